@@ -1,0 +1,1 @@
+"""First-party plugin that registers pstoolkit's built-in light models, BRDFs and scenes."""

@@ -1,0 +1,250 @@
+"""Event streams in memory and on disk, and the millisecond index that makes time windows cheap.
+
+An event is (x, y, t, p): pixel column and row (uint16), time in int64 microseconds, polarity int8 ±1.
+Streams are sorted by t. On disk the four columns are separate chunked datasets and ``ms_to_idx``
+holds, for every millisecond boundary ``b_i = ms_origin_us + 1000·i``, the number of events with
+``t < b_i`` (the DSEC ``ms_to_idx`` idea), so a window is read by slicing, never by scanning.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+EVENT_DTYPES: dict[str, np.dtype[Any]] = {
+    "x": np.dtype(np.uint16),
+    "y": np.dtype(np.uint16),
+    "t": np.dtype(np.int64),
+    "p": np.dtype(np.int8),
+}
+DEFAULT_CHUNK_EVENTS = 1 << 16
+
+
+@dataclass
+class EventArray:
+    """Events held in memory as four equal-length columns sorted by ``t`` (µs)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    t: np.ndarray
+    p: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.x = np.ascontiguousarray(self.x, dtype=np.uint16)
+        self.y = np.ascontiguousarray(self.y, dtype=np.uint16)
+        self.t = np.ascontiguousarray(self.t, dtype=np.int64)
+        self.p = np.ascontiguousarray(self.p, dtype=np.int8)
+        n = len(self.t)
+        if not (len(self.x) == len(self.y) == len(self.p) == n) or self.t.ndim != 1:
+            raise ValueError("event columns x, y, t, p must be 1-D and of equal length")
+
+    @classmethod
+    def empty(cls) -> EventArray:
+        return cls(*(np.empty(0, dtype=d) for d in EVENT_DTYPES.values()))
+
+    @classmethod
+    def concatenate(cls, parts: list[EventArray]) -> EventArray:
+        if not parts:
+            return cls.empty()
+        return cls(*(np.concatenate([getattr(e, c) for e in parts]) for c in "xytp"))
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def __getitem__(self, index: slice | np.ndarray) -> EventArray:
+        return EventArray(self.x[index], self.y[index], self.t[index], self.p[index])
+
+    @property
+    def t_first_us(self) -> int | None:
+        return int(self.t[0]) if len(self.t) else None
+
+    @property
+    def t_last_us(self) -> int | None:
+        return int(self.t[-1]) if len(self.t) else None
+
+    def window(self, t0_us: int, t1_us: int) -> EventArray:
+        """Events with ``t0_us <= t < t1_us``."""
+        lo, hi = np.searchsorted(self.t, [t0_us, t1_us], side="left")
+        return self[lo:hi]
+
+    def chunks(self, size: int = 1 << 20) -> Iterator[EventArray]:
+        for start in range(0, len(self), size):
+            yield self[start : start + size]
+
+    def read(self) -> EventArray:
+        return self
+
+    def is_sorted(self) -> bool:
+        return bool(np.all(self.t[1:] >= self.t[:-1]))
+
+    def to_structured(self) -> np.ndarray:
+        """A structured array with fields x, y, t, p (the layout of tonic and most event libraries)."""
+        out = np.empty(len(self), dtype=[("x", "<u2"), ("y", "<u2"), ("t", "<i8"), ("p", "i1")])
+        for c in "xytp":
+            out[c] = getattr(self, c)
+        return out
+
+
+def ms_origin(t_first_us: int | None) -> int:
+    """Index origin: the first event's time rounded down to a whole millisecond (0 for no events)."""
+    return 0 if t_first_us is None else (int(t_first_us) // 1000) * 1000
+
+
+def ms_index_length(t_first_us: int | None, t_last_us: int | None) -> int:
+    """Entries of ``ms_to_idx``: boundaries from the origin up to the first one after the last event."""
+    if t_first_us is None or t_last_us is None:
+        return 1
+    return (int(t_last_us) - ms_origin(t_first_us)) // 1000 + 2
+
+
+class MsIndexBuilder:
+    """Builds ``ms_to_idx`` from sorted blocks of times as they stream past, in bounded memory.
+
+    An entry is final once an event at or after its boundary has been seen, since every later event
+    is later still; ``finish`` fills the boundaries after the last event with the total count.
+    """
+
+    def __init__(self) -> None:
+        self.t_first_us: int | None = None
+        self.t_last_us: int | None = None
+        self._parts: list[np.ndarray] = []
+        self._done = 0
+        self._count = 0
+
+    @property
+    def origin_us(self) -> int:
+        return ms_origin(self.t_first_us)
+
+    def add(self, t_us: np.ndarray) -> None:
+        if len(t_us) == 0:
+            return
+        if self.t_first_us is None:
+            self.t_first_us = int(t_us[0])
+        complete = (int(t_us[-1]) - self.origin_us) // 1000 + 1
+        if complete > self._done:
+            bounds = self.origin_us + 1000 * np.arange(self._done, complete, dtype=np.int64)
+            self._parts.append((self._count + np.searchsorted(t_us, bounds, side="left")).astype(np.uint64))
+            self._done = complete
+        self.t_last_us = int(t_us[-1])
+        self._count += len(t_us)
+
+    def finish(self) -> np.ndarray:
+        length = ms_index_length(self.t_first_us, self.t_last_us)
+        tail = np.full(length - self._done, self._count, dtype=np.uint64)
+        return np.concatenate(self._parts + [tail])
+
+
+class H5EventStore:
+    """Events in an open HDF5 group, read lazily: by window through the index, or chunk by chunk."""
+
+    def __init__(self, group: Any) -> None:
+        self._group = group
+        self._cols = {c: group[c] for c in "xytp"}
+        self._n = int(self._cols["t"].shape[0])
+        self._index = group["ms_to_idx"] if "ms_to_idx" in group else None
+        self._origin = int(group.attrs.get("ms_origin_us", 0))
+        self._chunk = (self._cols["t"].chunks or (DEFAULT_CHUNK_EVENTS,))[0]
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def t_first_us(self) -> int | None:
+        return int(self._cols["t"][0]) if self._n else None
+
+    @property
+    def t_last_us(self) -> int | None:
+        return int(self._cols["t"][self._n - 1]) if self._n else None
+
+    def _slice(self, lo: int, hi: int) -> EventArray:
+        return EventArray(*(self._cols[c][lo:hi] for c in "xytp"))
+
+    def _bound(self, t_us: int, round_up: bool) -> int:
+        """An event index that brackets ``t_us`` from below (or above) using only the ms index."""
+        length = int(self._index.shape[0])
+        offset = t_us - self._origin
+        i = -(-offset // 1000) if round_up else offset // 1000
+        if i <= 0:
+            return 0
+        if i >= length:
+            return self._n
+        return int(self._index[i])
+
+    def window(self, t0_us: int, t1_us: int) -> EventArray:
+        """Events with ``t0_us <= t < t1_us``, reading only the chunks that hold them."""
+        if self._n == 0 or t1_us <= t0_us:
+            return EventArray.empty()
+        if self._index is None:
+            lo, hi = 0, self._n
+        else:
+            lo, hi = self._bound(int(t0_us), False), self._bound(int(t1_us), True)
+        t = self._cols["t"][lo:hi]
+        a, b = np.searchsorted(t, [t0_us, t1_us], side="left")
+        return self._slice(lo + int(a), lo + int(b))
+
+    def chunks(self, size: int | None = None) -> Iterator[EventArray]:
+        """Bounded-memory iteration in time order; ``size`` defaults to a whole number of storage chunks."""
+        step = size or 16 * self._chunk
+        for start in range(0, self._n, step):
+            yield self._slice(start, min(start + step, self._n))
+
+    def read(self) -> EventArray:
+        if self._n == 0:
+            return EventArray.empty()
+        cols = {}
+        for c in "xytp":
+            arr = np.empty(self._n, dtype=EVENT_DTYPES[c])
+            self._cols[c].read_direct(arr)
+            cols[c] = arr
+        return EventArray(**cols)
+
+
+@dataclass
+class Events:
+    """An event stream with its sensor geometry; ``data`` is in memory or a lazy on-disk store."""
+
+    width: int
+    height: int
+    data: EventArray | H5EventStore
+
+    def __len__(self) -> int:
+        return len(self.data)
+
+    @property
+    def t_first_us(self) -> int | None:
+        return self.data.t_first_us
+
+    @property
+    def t_last_us(self) -> int | None:
+        return self.data.t_last_us
+
+    def window(self, t0_us: int, t1_us: int) -> EventArray:
+        return self.data.window(t0_us, t1_us)
+
+    def chunks(self, size: int | None = None) -> Iterator[EventArray]:
+        return self.data.chunks(size) if size else self.data.chunks()
+
+    def read(self) -> EventArray:
+        return self.data.read()
+
+
+@dataclass
+class Triggers:
+    """External trigger edges (EVT EXT_TRIGGER): time µs, channel id, edge value 0/1."""
+
+    t: np.ndarray
+    channel: np.ndarray
+    value: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.t = np.ascontiguousarray(self.t, dtype=np.int64)
+        self.channel = np.ascontiguousarray(self.channel, dtype=np.uint8)
+        self.value = np.ascontiguousarray(self.value, dtype=np.int8)
+        if not (len(self.t) == len(self.channel) == len(self.value)):
+            raise ValueError("trigger columns t, channel, value must be of equal length")
+
+    def __len__(self) -> int:
+        return len(self.t)

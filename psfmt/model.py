@@ -1,0 +1,227 @@
+"""The data model of a hybrid capture: plain dataclasses, numpy arrays or lazy on-disk views.
+
+A capture holds frames only (classic photometric stereo), events only (EventPS) or both (DualResPS),
+plus the light model, calibration, optional ground truth and stored solver results. Units: time in
+int64 microseconds, lengths in millimetres, angles in degrees, pixels as (column u → right, row v ↓).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from psfmt.events import Events, Triggers
+
+FRAME_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.float32))
+COLOR_ORDERS = {"RGB": 3, "L": 1}
+
+
+def utc_now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
+
+
+class FrameStack:
+    """A lazy (K, H, W, C) view of the frames dataset: indexing reads only what is asked for."""
+
+    def __init__(self, dataset: Any) -> None:
+        self._ds = dataset
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return tuple(self._ds.shape)
+
+    @property
+    def dtype(self) -> np.dtype[Any]:
+        return self._ds.dtype
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    def __len__(self) -> int:
+        return int(self._ds.shape[0])
+
+    def __getitem__(self, index: Any) -> np.ndarray:
+        return np.asarray(self._ds[index])
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        arr = self._ds[()]
+        return arr if dtype is None else arr.astype(dtype)
+
+
+@dataclass
+class Frames:
+    """K frames of H×W pixels with C channels, linear in irradiance.
+
+    Long-exposure captures give each frame an exposure window [t_start_us, t_end_us); classic captures
+    (DiLiGenT) give an instantaneous light direction (unit, camera frame) and RGB intensity per frame.
+    ``saturation`` is the pixel value at which the sensor clips, in stored units; ``bit_depth`` the
+    significant bits of an integer sensor (e.g. 12 in uint16).
+    """
+
+    data: np.ndarray | FrameStack
+    t_start_us: np.ndarray | None = None
+    t_end_us: np.ndarray | None = None
+    light_direction: np.ndarray | None = None
+    light_intensity: np.ndarray | None = None
+    color_order: str = "RGB"
+    bit_depth: int | None = None
+    saturation: float | None = None
+    black_level: float = 0.0
+    response: str = "linear"
+
+    def __post_init__(self) -> None:
+        dtype = np.dtype(self.data.dtype)
+        if self.bit_depth is None:
+            self.bit_depth = 32 if dtype.kind == "f" else dtype.itemsize * 8
+        if self.saturation is None:
+            self.saturation = 1.0 if dtype.kind == "f" else float(2 ** int(self.bit_depth) - 1)
+        for name in ("t_start_us", "t_end_us"):
+            value = getattr(self, name)
+            if value is not None:
+                setattr(self, name, np.asarray(value, dtype=np.int64))
+        for name in ("light_direction", "light_intensity"):
+            value = getattr(self, name)
+            if value is not None:
+                setattr(self, name, np.asarray(value, dtype=np.float64))
+
+    @property
+    def count(self) -> int:
+        return int(self.data.shape[0])
+
+    @property
+    def height(self) -> int:
+        return int(self.data.shape[1])
+
+    @property
+    def width(self) -> int:
+        return int(self.data.shape[2])
+
+    @property
+    def channels(self) -> int:
+        return int(self.data.shape[3])
+
+    @property
+    def has_windows(self) -> bool:
+        return self.t_start_us is not None and self.t_end_us is not None
+
+    @property
+    def has_instant_lights(self) -> bool:
+        return self.light_direction is not None
+
+    def frame(self, k: int) -> np.ndarray:
+        return np.asarray(self.data[k])
+
+    def as_float(self, k: int | slice = slice(None)) -> np.ndarray:
+        """Frame(s) as float32 in units of the saturation level (1.0 = clipped), black level removed."""
+        raw = np.asarray(self.data[k], dtype=np.float32)
+        scale = float(self.saturation) - float(self.black_level)
+        return (raw - float(self.black_level)) / scale
+
+
+@dataclass
+class LightSpec:
+    """A light model by registry name with its parameters (scalars, strings or arrays).
+
+    The parameters of the built-in models (``ring``, ``sampled``, ``near-ring``) are defined in the
+    spec; a plugin's model stores whatever its registry entry needs.
+    """
+
+    model: str
+    params: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class Calibration:
+    """How the two cameras and the sensor relate.
+
+    ``event_to_frame`` maps event pixel centres (u_e, v_e, 1) to frame pixel coordinates (u_f, v_f);
+    contrast thresholds are in natural-log units; the refractory period in µs.
+    """
+
+    event_to_frame: np.ndarray | None = None
+    contrast_pos: float | None = None
+    contrast_neg: float | None = None
+    refractory_us: float | None = None
+    camera_model: str = "orthographic"
+    view_direction: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+
+    def __post_init__(self) -> None:
+        if self.event_to_frame is not None:
+            self.event_to_frame = np.asarray(self.event_to_frame, dtype=np.float64)
+        self.view_direction = np.asarray(self.view_direction, dtype=np.float64)
+
+
+def scale_affine(event_scale: float) -> np.ndarray:
+    """The event→frame affine of an event sensor that samples the frame's view at ``event_scale``
+    event pixels per frame pixel with the same field of view (pixel centres at integers)."""
+    s = 1.0 / float(event_scale)
+    return np.array([[s, 0.0, 0.5 * s - 0.5], [0.0, s, 0.5 * s - 0.5]])
+
+
+@dataclass
+class GroundTruth:
+    """Reference maps at frame resolution: unit normals (camera frame, x right, y up, z to camera),
+    mask, optional RGB albedo, depth and material maps (``f0``, ``roughness``, ``metallic`` …)."""
+
+    normal: np.ndarray | None = None
+    mask: np.ndarray | None = None
+    albedo: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    materials: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+@dataclass
+class Result:
+    """Maps a solver wrote (``normal`` (H, W, 3) at least) and how they were made."""
+
+    name: str
+    maps: dict[str, np.ndarray]
+    solver: str
+    options: dict[str, Any] = field(default_factory=dict)
+    seconds: float = 0.0
+    version: str = ""
+    created: str = field(default_factory=utc_now)
+
+
+@dataclass
+class Capture:
+    """One capture: what the cameras recorded, under which lights, and what is known about it."""
+
+    frames: Frames | None = None
+    events: Events | None = None
+    triggers: Triggers | None = None
+    lights: LightSpec | None = None
+    calibration: Calibration = field(default_factory=Calibration)
+    ground_truth: GroundTruth | None = None
+    results: dict[str, Result] = field(default_factory=dict)
+    description: str = ""
+    creator: str = "psfmt"
+    creator_version: str = ""
+    created: str = field(default_factory=utc_now)
+    format_version: str = ""
+    path: Path | None = None
+    _handle: Any = field(default=None, repr=False, compare=False)
+
+    @property
+    def kind(self) -> str:
+        """``hybrid``, ``frames`` or ``events``: what the capture holds."""
+        if self.frames is not None and self.events is not None:
+            return "hybrid"
+        return "frames" if self.frames is not None else "events" if self.events is not None else "empty"
+
+    def close(self) -> None:
+        """Release the file behind lazy frames and events (a no-op for in-memory captures)."""
+        if self._handle is not None:
+            self._handle.close()
+            self._handle = None
+
+    def __enter__(self) -> Capture:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

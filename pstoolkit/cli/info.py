@@ -1,0 +1,123 @@
+"""``pstoolkit info FILE``: what a capture holds, in a few lines (or JSON)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import typer
+
+import psfmt
+from pstoolkit.cli.app import app
+
+
+def describe(capture: psfmt.Capture) -> dict[str, Any]:
+    """A JSON-able summary: geometry, frames, events, lights, ground truth, results and data rate."""
+    out: dict[str, Any] = {
+        "file": str(capture.path) if capture.path else None,
+        "kind": capture.kind,
+        "format_version": capture.format_version,
+        "creator": f"{capture.creator} {capture.creator_version}".strip(),
+        "created": capture.created,
+        "description": capture.description,
+    }
+    frames = capture.frames
+    if frames is not None:
+        f: dict[str, Any] = {
+            "count": frames.count,
+            "width": frames.width,
+            "height": frames.height,
+            "channels": frames.channels,
+            "dtype": str(frames.data.dtype),
+            "bit_depth": frames.bit_depth,
+            "saturation": frames.saturation,
+        }
+        if frames.has_windows:
+            exposure = (frames.t_end_us - frames.t_start_us) / 1000.0
+            f["exposure_ms"] = [round(float(v), 3) for v in exposure]
+        else:
+            f["instantaneous_lights"] = True
+        out["frames"] = f
+    events = capture.events
+    if events is not None:
+        n = len(events)
+        duration_s = (events.t_last_us - events.t_first_us + 1) / 1e6 if n else 0.0
+        out["events"] = {
+            "count": n,
+            "width": events.width,
+            "height": events.height,
+            "t_first_us": events.t_first_us,
+            "t_last_us": events.t_last_us,
+            "duration_s": duration_s,
+            "rate_ev_per_s": n / duration_s if duration_s > 0 else 0.0,
+        }
+    if capture.lights is not None:
+        out["lights"] = {
+            "model": capture.lights.model,
+            "params": {k: v for k, v in capture.lights.params.items() if isinstance(v, (int, float, str, bool))},
+        }
+    gt = capture.ground_truth
+    if gt is not None:
+        out["ground_truth"] = [k for k in ("normal", "mask", "albedo", "depth") if getattr(gt, k) is not None] + sorted(gt.materials)
+    out["results"] = {name: {"solver": r.solver, "seconds": r.seconds} for name, r in capture.results.items()}
+    rate = psfmt.data_rate(capture)
+    out["data_rate"] = {
+        "total": rate.rate,
+        "frames": rate.frame_rate,
+        "events": rate.event_rate,
+        "periods": rate.periods,
+        "accounting": "per light period; frames as 24-bit RGB, events as 16-bit EVT 3.0 words; 1.0 = 24 RGB frames",
+    }
+    return out
+
+
+def _text(d: dict[str, Any]) -> str:
+    lines = [f"{d['file']}: {d['kind']} capture, format {d['format_version']}, by {d['creator']} at {d['created']}"]
+    if d["description"]:
+        lines.append(f"  description: {d['description']}")
+    if "frames" in d:
+        f = d["frames"]
+        timing = (
+            "exposure " + ", ".join(f"{e:g}" for e in f["exposure_ms"]) + " ms"
+            if "exposure_ms" in f
+            else "instantaneous lights"
+        )
+        lines.append(
+            f"  frames: {f['count']} × {f['width']}×{f['height']}×{f['channels']} {f['dtype']} "
+            f"({f['bit_depth']}-bit, saturation {f['saturation']:g}), {timing}"
+        )
+    if "events" in d:
+        e = d["events"]
+        lines.append(
+            f"  events: {e['count']:,} at {e['width']}×{e['height']}, {e['duration_s'] * 1000:.3f} ms, "
+            f"{e['rate_ev_per_s'] / 1e6:.3f} M events/s"
+        )
+    if "lights" in d:
+        params = ", ".join(f"{k}={v}" for k, v in d["lights"]["params"].items())
+        lines.append(f"  lights: {d['lights']['model']}" + (f" ({params})" if params else ""))
+    else:
+        lines.append("  lights: none")
+    lines.append("  ground truth: " + (", ".join(d["ground_truth"]) if d.get("ground_truth") else "none"))
+    results = d["results"]
+    lines.append(
+        "  results: " + (", ".join(f"{k} ({v['solver']}, {v['seconds']:.2f} s)" for k, v in results.items()) or "none")
+    )
+    r = d["data_rate"]
+    lines.append(
+        f"  data rate: {100 * r['total']:.1f} % of 24 RGB frames per period "
+        f"(frames {100 * r['frames']:.1f} %, events {100 * r['events']:.1f} %, {r['periods']:g} period(s))"
+    )
+    return "\n".join(lines)
+
+
+@app.command()
+def info(
+    file: Path = typer.Argument(..., help="A hybrid-capture HDF5 file."),
+    as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
+) -> None:
+    """Show what a capture holds: resolution, frames and exposure, events and rate, lights, ground
+    truth, stored results, and the data rate against 24 RGB 8-bit frames."""
+    with psfmt.read(file, verify=True) as capture:
+        summary = describe(capture)
+    typer.echo(json.dumps(summary, indent=2) if as_json else _text(summary))
