@@ -1,0 +1,75 @@
+"""Typed options of registry entries, and parsing of ``--set key=value`` against them."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from pstoolkit.errors import UserError
+
+_TRUE = {"1", "true", "yes", "on"}
+_FALSE = {"0", "false", "no", "off"}
+
+
+@dataclass(frozen=True)
+class Option:
+    """One option of a solver, scene, backend …: ``type`` is int, float, bool or str; ``choices``
+    restricts a str option; ``minimum``/``maximum`` bound a number."""
+
+    name: str
+    type: type
+    default: Any
+    help: str
+    choices: tuple[str, ...] | None = None
+    minimum: float | None = None
+    maximum: float | None = None
+
+    def parse(self, text: str) -> Any:
+        """Convert a command-line string, raising UserError with the option's name on bad input."""
+        if self.type is bool:
+            low = text.strip().lower()
+            if low in _TRUE:
+                return True
+            if low in _FALSE:
+                return False
+            raise UserError(f"option {self.name}: expected true or false, got {text!r}")
+        try:
+            value = self.type(text)
+        except ValueError:
+            raise UserError(f"option {self.name}: expected {self.type.__name__}, got {text!r}") from None
+        return self.check(value)
+
+    def check(self, value: Any) -> Any:
+        if self.choices is not None and value not in self.choices:
+            raise UserError(f"option {self.name}: {value!r} is not one of {', '.join(self.choices)}")
+        if self.minimum is not None and value < self.minimum:
+            raise UserError(f"option {self.name}: {value!r} is below the minimum {self.minimum:g}")
+        if self.maximum is not None and value > self.maximum:
+            raise UserError(f"option {self.name}: {value!r} is above the maximum {self.maximum:g}")
+        return value
+
+    def describe(self) -> str:
+        extra = f"; one of {', '.join(self.choices)}" if self.choices else ""
+        return f"{self.name} ({self.type.__name__}, default {self.default!r}{extra}): {self.help}"
+
+
+def defaults(options: Iterable[Option]) -> dict[str, Any]:
+    return {o.name: o.default for o in options}
+
+
+def parse_assignments(pairs: Sequence[str], options: Sequence[Option], owner: str) -> dict[str, Any]:
+    """``["frames=6", "robust=true"]`` → the full option dict (defaults filled in) for ``owner``;
+    unknown keys and bad values raise UserError naming the key and the known ones."""
+    known = {o.name: o for o in options}
+    values = defaults(options)
+    for pair in pairs:
+        key, sep, text = pair.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise UserError(f"--set {pair!r}: expected key=value")
+        if key not in known:
+            names = ", ".join(sorted(known)) or "none"
+            raise UserError(f"{owner} has no option {key!r} (options: {names})")
+        values[key] = known[key].parse(text)
+    return values
