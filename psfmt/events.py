@@ -14,6 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from psfmt.files import damaged
+
 EVENT_DTYPES: dict[str, np.dtype[Any]] = {
     "x": np.dtype(np.uint16),
     "y": np.dtype(np.uint16),
@@ -159,8 +161,15 @@ class H5EventStore:
     def t_last_us(self) -> int | None:
         return int(self._cols["t"][self._n - 1]) if self._n else None
 
-    def _slice(self, lo: int, hi: int) -> EventArray:
-        return EventArray(*(self._cols[c][lo:hi] for c in "xytp"))
+    def _column(self, c: str, lo: int, hi: int) -> np.ndarray:
+        try:
+            return self._cols[c][lo:hi]
+        except OSError as exc:
+            raise damaged(self._group.file.filename, exc) from exc
+
+    def _slice(self, lo: int, hi: int, t: np.ndarray | None = None) -> EventArray:
+        cols = {c: self._column(c, lo, hi) for c in "xyp"}
+        return EventArray(t=self._column("t", lo, hi) if t is None else t, **cols)
 
     def _bound(self, t_us: int, round_up: bool) -> int:
         """An event index that brackets ``t_us`` from below (or above) using only the ms index."""
@@ -181,9 +190,9 @@ class H5EventStore:
             lo, hi = 0, self._n
         else:
             lo, hi = self._bound(int(t0_us), False), self._bound(int(t1_us), True)
-        t = self._cols["t"][lo:hi]
-        a, b = np.searchsorted(t, [t0_us, t1_us], side="left")
-        return self._slice(lo + int(a), lo + int(b))
+        t = self._column("t", lo, hi)
+        a, b = (int(i) for i in np.searchsorted(t, [t0_us, t1_us], side="left"))
+        return self._slice(lo + a, lo + b, t[a:b])
 
     def chunks(self, size: int | None = None) -> Iterator[EventArray]:
         """Bounded-memory iteration in time order; ``size`` defaults to a whole number of storage chunks."""
@@ -197,7 +206,10 @@ class H5EventStore:
         cols = {}
         for c in "xytp":
             arr = np.empty(self._n, dtype=EVENT_DTYPES[c])
-            self._cols[c].read_direct(arr)
+            try:
+                self._cols[c].read_direct(arr)
+            except OSError as exc:
+                raise damaged(self._group.file.filename, exc) from exc
             cols[c] = arr
         return EventArray(**cols)
 

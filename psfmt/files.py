@@ -3,11 +3,26 @@
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import h5py
 
 from psfmt.errors import FormatError
+
+_TRUNCATED = re.compile(r"truncated file: eof = (\d+).*stored_eof = (\d+)")
+
+
+def _detail(exc: OSError) -> str:
+    """The innermost reason of an HDF5 error: "A (B (C))" → "C"; HDF5's outer words are generic."""
+    text = str(exc)
+    inner = re.search(r"\(([^()]*)\)+\s*$", text)
+    return (inner[1] if inner else text).strip() or type(exc).__name__
+
+
+def damaged(path: str | os.PathLike[str], exc: OSError) -> FormatError:
+    """The FormatError for an HDF5 file that opens but whose data cannot be read (a corrupt chunk)."""
+    return FormatError(path, f"damaged HDF5 file ({_detail(exc)})")
 
 
 def open_hdf5(path: str | os.PathLike[str]) -> h5py.File:
@@ -24,5 +39,7 @@ def open_hdf5(path: str | os.PathLike[str]) -> h5py.File:
     except PermissionError as exc:
         raise FormatError(path, "permission denied") from exc
     except OSError as exc:
-        reason = str(exc).split("(")[0].strip().rstrip(",") or type(exc).__name__
-        raise FormatError(path, f"truncated or damaged HDF5 file ({reason})") from exc
+        cut = _TRUNCATED.search(str(exc))
+        if cut:
+            raise FormatError(path, f"truncated HDF5 file ({cut[1]} of {cut[2]} bytes present)") from exc
+        raise damaged(path, exc) from exc

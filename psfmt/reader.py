@@ -12,7 +12,7 @@ import numpy as np
 
 from psfmt import layout
 from psfmt.errors import FormatError
-from psfmt.files import open_hdf5
+from psfmt.files import damaged, open_hdf5
 from psfmt.events import Events, H5EventStore, Triggers
 from psfmt.model import (
     Calibration,
@@ -132,7 +132,10 @@ def read(path: str | os.PathLike[str], *, verify: bool = False) -> Capture:
     except FormatError:
         fh.close()
         raise
-    except (OSError, KeyError, ValueError) as exc:
+    except OSError as exc:
+        fh.close()
+        raise damaged(path, exc) from exc
+    except (KeyError, ValueError) as exc:
         fh.close()
         raise FormatError(path, f"damaged file ({exc})") from exc
 

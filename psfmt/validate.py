@@ -16,7 +16,7 @@ import numpy as np
 
 from psfmt import layout
 from psfmt.errors import FormatError
-from psfmt.files import open_hdf5
+from psfmt.files import damaged, open_hdf5
 from psfmt.events import EVENT_DTYPES, MsIndexBuilder, ms_index_length
 from psfmt.model import COLOR_ORDERS, FRAME_DTYPES
 from psfmt.version import FORMAT_NAME, FORMAT_VERSION, FORMAT_VERSION_STR, parse_version
@@ -25,6 +25,7 @@ UNIT_TOLERANCE = 1e-3
 NORMAL_UNIT_TOLERANCE = 1e-2
 SATURATED_SHARE_WARNING = 0.05
 SCAN_CHUNK = 1 << 21
+SAMPLED_INTERPOLATION = "linear-renormalised"
 
 # Parameters each built-in light model needs: name → expected shape (() for a scalar attribute).
 LIGHT_MODEL_PARAMS: dict[str, dict[str, tuple[int, ...]]] = {
@@ -237,6 +238,11 @@ def _check_lights(f: h5py.File, out: _Collector) -> None:
             out.error(where, "times_us, directions and intensities differ in length")
         if _attr(g, "periodic") and "period_us" not in g.attrs:
             out.error(where, "a periodic sampled trajectory needs 'period_us'")
+        if "periodic" in g.attrs and not _attr(g, "periodic") and "period_us" in g.attrs:
+            out.error(where, "a non-periodic sampled trajectory must not have 'period_us'")
+        rule = _attr(g, "interpolation")
+        if rule not in (None, SAMPLED_INTERPOLATION):
+            out.error(where, f"interpolation {rule!r} is not defined in format {FORMAT_VERSION_STR} (only {SAMPLED_INTERPOLATION!r})")
     for key in ("period_us",):
         value = _attr(g, key)
         if value is not None and not (isinstance(value, (int, float)) and value > 0):
@@ -348,7 +354,9 @@ def structure_findings(f: h5py.File) -> list[Finding]:
                 out.error(f"/{name}", "must be a group")
             else:
                 check(f, out)
-    if layout.LIGHTS not in f:
+    frames = f.get(layout.FRAMES)
+    instant = isinstance(frames, h5py.Group) and "light_direction" in frames
+    if layout.LIGHTS not in f and not instant:
         out.warn("/", "no light model: solvers cannot use this capture without one")
     _check_calibration(f, out)
     _check_ground_truth(f, out)
@@ -412,6 +420,9 @@ def _scan_lights(g: h5py.Group, out: _Collector) -> None:
     times = g["times_us"][()]
     if np.any(np.diff(times) <= 0):
         out.error(f"/{layout.LIGHTS}/times_us", "sample times are not strictly increasing")
+    period = _attr(g, "period_us")
+    if _attr(g, "periodic") and isinstance(period, (int, float)) and times.size and times[-1] - times[0] >= period:
+        out.error(f"/{layout.LIGHTS}/times_us", f"samples span {int(times[-1] - times[0])} µs, not less than period_us {period}")
     norms = np.linalg.norm(g["directions"][()], axis=-1)
     worst = float(np.max(np.abs(norms - 1.0))) if norms.size else 0.0
     if worst > UNIT_TOLERANCE:
@@ -450,12 +461,15 @@ def validate(path: str | os.PathLike[str]) -> ValidationReport:
     or is not a hybrid capture of a readable major version."""
     path = Path(path)
     with open_hdf5(path) as f:
-        findings = structure_findings(f)
-        fatal = [x for x in findings if x.fatal]
-        if fatal:
-            raise FormatError(path, fatal[0].text)
-        if not any(x.level == "error" for x in findings):
-            findings += content_findings(f)
+        try:
+            findings = structure_findings(f)
+            fatal = [x for x in findings if x.fatal]
+            if fatal:
+                raise FormatError(path, fatal[0].text)
+            if not any(x.level == "error" for x in findings):
+                findings += content_findings(f)
+        except OSError as exc:
+            raise damaged(path, exc) from exc
     report = ValidationReport(path)
     for finding in findings:
         (report.errors if finding.level == "error" else report.warnings).append(finding)

@@ -1,5 +1,15 @@
-"""pstoolkit — the photometric-stereo core: plugins and registries, shared maths, simulator, CLI."""
+"""pstoolkit — the photometric-stereo core: plugins and registries, shared maths, simulator, CLI.
+
+A plugin imports what it needs from here: ``hookimpl`` to mark its hook functions, ``Option`` for
+typed options, ``Solver`` and ``SolverResult`` for solvers.
+"""
 
 from __future__ import annotations
 
 __version__ = "0.1.0"
+
+from pstoolkit.options import Option
+from pstoolkit.plugins import get_registries, hookimpl
+from pstoolkit.solver import Solver, SolverResult
+
+__all__ = ["Option", "Solver", "SolverResult", "__version__", "get_registries", "hookimpl"]

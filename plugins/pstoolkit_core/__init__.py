@@ -1,1 +1,35 @@
-"""First-party plugin that registers pstoolkit's built-in light models, BRDFs and scenes."""
+"""First-party plugin that registers pstoolkit's built-in light models, BRDFs and scenes.
+
+It is found through the ``pstoolkit`` entry-point group and uses the same hooks as a third-party
+plugin. Imports sit inside the hooks, so a module that fails to import spoils only its own registry
+and the command line starts without loading torch.
+"""
+
+from __future__ import annotations
+
+from pstoolkit import hookimpl
+from pstoolkit.registry import Registry
+
+
+@hookimpl
+def pstoolkit_register_light_models(registry: Registry) -> None:
+    from pstoolkit.lights import NearRingLight, RingLight, SampledLight
+
+    for model in (RingLight, SampledLight, NearRingLight):
+        registry.register(model)
+
+
+@hookimpl
+def pstoolkit_register_brdfs(registry: Registry) -> None:
+    from pstoolkit.brdf import GGX, Lambertian
+
+    for brdf in (Lambertian, GGX):
+        registry.register(brdf)
+
+
+@hookimpl
+def pstoolkit_register_scenes(registry: Registry) -> None:
+    from pstoolkit.scenes import SCENES
+
+    for scene in SCENES:
+        registry.register(scene)

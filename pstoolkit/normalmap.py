@@ -1,0 +1,157 @@
+"""Normal maps on disk in the community convention: RGB = (n + 1)/2 scaled to the full 8- or 16-bit
+range, R = x right, G = y up, B = z towards the camera, background 0 (a pixel facing the camera is
+(128, 128, 255) in 8 bit). Also float32 .npy maps, and the DiLiGenT-geometry folder layout.
+
+OpenCV stores colour images as BGR, so every read and write here swaps the channel order.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+from psfmt import atomic_path
+
+from pstoolkit.errors import UserError
+
+_DTYPES = {8: np.uint8, 16: np.uint16}
+
+
+def _unit(normal: np.ndarray) -> np.ndarray:
+    norm = np.linalg.norm(normal, axis=-1, keepdims=True)
+    return np.divide(normal, norm, out=np.zeros_like(normal), where=norm > 0)
+
+
+def _check_normal(normal: np.ndarray, what: str) -> np.ndarray:
+    array = np.asarray(normal, dtype=np.float64)
+    if array.ndim != 3 or array.shape[2] != 3:
+        raise UserError(f"{what}: normal map has shape {array.shape}, expected (H, W, 3)")
+    return array
+
+
+def normal_to_rgb(normal: np.ndarray, mask: np.ndarray | None = None, bits: int = 16) -> np.ndarray:
+    """Encode (H, W, 3) normals as RGB uint16 (bits=16) or uint8 (bits=8): round((n + 1)/2 · (2^bits − 1)),
+    half up, 0 outside ``mask`` (default: where the normal is non-zero). Normals are normalised first."""
+    if bits not in _DTYPES:
+        raise UserError(f"normal map bit depth must be 8 or 16, got {bits}")
+    n = _check_normal(normal, "normal_to_rgb")
+    mask = np.linalg.norm(n, axis=-1) > 0 if mask is None else np.asarray(mask, dtype=bool)
+    if mask.shape != n.shape[:2]:
+        raise UserError(f"mask of shape {mask.shape} does not fit a {n.shape[0]}×{n.shape[1]} normal map")
+    top = float(2**bits - 1)
+    rgb = np.clip(np.floor((_unit(n) + 1.0) / 2.0 * top + 0.5), 0, top).astype(_DTYPES[bits])
+    rgb[~mask] = 0
+    return rgb
+
+
+def rgb_to_normal(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Decode an 8- or 16-bit RGB normal map: (normal float32 (H, W, 3) renormalised, 0 in the
+    background; mask bool (H, W), False where all three channels are 0)."""
+    array = np.asarray(rgb)
+    if array.ndim != 3 or array.shape[2] != 3:
+        raise UserError(f"normal image has shape {array.shape}, expected (H, W, 3) RGB")
+    if array.dtype not in (np.uint8, np.uint16):
+        raise UserError(f"normal image has dtype {array.dtype}, expected uint8 or uint16")
+    top = float(np.iinfo(array.dtype).max)
+    mask = np.any(array != 0, axis=-1)
+    normal = _unit(array.astype(np.float64) / top * 2.0 - 1.0)
+    normal[~mask] = 0.0
+    return normal.astype(np.float32), mask
+
+
+def _target(path: str | os.PathLike[str]) -> Path:
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise UserError(f"{path}: folder {path.parent} does not exist")
+    return path
+
+
+def write_normal_png(path: str | os.PathLike[str], normal: np.ndarray, mask: np.ndarray | None = None, bits: int = 16) -> None:
+    """Write a normal map PNG (8 or 16 bit) atomically."""
+    path = _target(path)
+    rgb = normal_to_rgb(normal, mask, bits)
+    # Encode in memory: the atomic temporary file has no .png suffix for cv2.imwrite to go by.
+    ok, encoded = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))
+    if not ok:
+        raise UserError(f"{path}: OpenCV could not encode the normal map")
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(encoded.tobytes())
+
+
+def _read_image(path: Path) -> np.ndarray:
+    if not path.is_file():
+        raise UserError(f"{path}: file does not exist")
+    image = cv2.imdecode(np.fromfile(path, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise UserError(f"{path}: not a readable image")
+    return image
+
+
+def read_normal_png(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Read an 8- or 16-bit RGB normal map PNG: (normal float32 (H, W, 3), mask bool (H, W))."""
+    path = Path(path)
+    image = _read_image(path)
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise UserError(f"{path}: expected a 3-channel RGB normal map, got shape {image.shape}")
+    try:
+        return rgb_to_normal(image[..., ::-1])
+    except UserError as exc:
+        raise UserError(f"{path}: {exc}") from None
+
+
+def write_normal_npy(path: str | os.PathLike[str], normal: np.ndarray) -> None:
+    """Write normals as float32 (H, W, 3) .npy atomically."""
+    path = _target(path)
+    array = _check_normal(normal, str(path)).astype(np.float32)
+    with atomic_path(path) as tmp:
+        # A file handle, because np.save appends ".npy" to a path that lacks it.
+        with open(tmp, "wb") as fh:
+            np.save(fh, array, allow_pickle=False)
+
+
+def read_normal_npy(path: str | os.PathLike[str]) -> np.ndarray:
+    """Read a float32 (H, W, 3) normal map .npy."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: file does not exist")
+    try:
+        array = np.load(path, allow_pickle=False)
+    except (ValueError, OSError) as exc:
+        raise UserError(f"{path}: not a readable .npy array ({exc})") from None
+    if array.ndim != 3 or array.shape[2] != 3 or array.dtype.kind != "f":
+        raise UserError(f"{path}: expected a float (H, W, 3) normal map, got {array.dtype} {array.shape}")
+    return array.astype(np.float32, copy=False)
+
+
+def read_geometry_folder(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read a DiLiGenT-geometry folder: ``normal_map.png`` (16-bit, n = v/65535·2 − 1), ``mask.png``
+    (non-zero inside) and ``depth_gt.npz`` (key ``depth_gt``). Returns (normal float32 (H, W, 3) unit
+    inside the mask and 0 outside, mask bool (H, W), depth float32 (H, W) as stored)."""
+    folder = Path(path)
+    if not folder.is_dir():
+        raise UserError(f"{folder}: geometry folder does not exist")
+    normal_path, mask_path, depth_path = folder / "normal_map.png", folder / "mask.png", folder / "depth_gt.npz"
+    image = _read_image(normal_path)
+    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint16:
+        raise UserError(f"{normal_path}: expected a 16-bit RGB image, got {image.dtype} {image.shape}")
+    mask_image = _read_image(mask_path)
+    mask = mask_image > 0 if mask_image.ndim == 2 else np.any(mask_image > 0, axis=-1)
+    if mask.shape != image.shape[:2]:
+        raise UserError(f"{mask_path}: mask is {mask.shape[0]}×{mask.shape[1]}, the normal map {image.shape[0]}×{image.shape[1]}")
+    # The background of these maps is not 0 (often 65535), so the mask comes from mask.png alone.
+    normal = _unit(image[..., ::-1].astype(np.float64) / 65535.0 * 2.0 - 1.0)
+    normal[~mask] = 0.0
+    if not depth_path.is_file():
+        raise UserError(f"{depth_path}: file does not exist")
+    try:
+        with np.load(depth_path, allow_pickle=False) as archive:
+            depth = np.asarray(archive["depth_gt"], dtype=np.float32)
+    except KeyError:
+        raise UserError(f"{depth_path}: key 'depth_gt' is missing") from None
+    except (ValueError, OSError) as exc:
+        raise UserError(f"{depth_path}: not a readable .npz archive ({exc})") from None
+    if depth.shape != mask.shape:
+        raise UserError(f"{depth_path}: depth is {depth.shape}, the normal map {image.shape[0]}×{image.shape[1]}")
+    return normal.astype(np.float32), mask, depth
