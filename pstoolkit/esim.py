@@ -1,0 +1,357 @@
+"""ESIM-style event simulation (facts §4; Rebecq et al. 2018) from a render callback.
+
+``render(t_us) -> (T, height, width)`` gives linear grey irradiance (≥ 0) at the event resolution;
+each pixel sees ``L = ln(I + ε)`` and fires by the rule of ``pstoolkit.eventmodel``:
+
+- **Sampling.** Render times are chosen adaptively: a block of up to ``chunk_samples`` times at the
+  current step is rendered at once; every interval whose largest per-pixel ``|ΔL|`` exceeds
+  ``max_dlog`` (default half the smaller contrast) is split into ``⌈|ΔL| / max_dlog⌉`` equal parts and
+  the new times rendered, until no interval exceeds it or is shorter than ``min_dt_us``. The step of
+  the next block follows the mean step of this one, doubled at most when the block changed little.
+  Memory is bounded: ``render`` never receives more than ``chunk_samples`` times, and a few blocks
+  of at most ``chunk_samples`` float32 log frames are held — never a (T × H × W) array of the whole
+  span. As in ESIM, a change that starts and ends between two samples is not seen. The number of
+  samples is set by the fastest pixel: a pixel leaving attached shadow (I from 0, so ln(I + ε)
+  jumps by ≈ 7) forces steps near ``min_dt_us``, and the cost is about samples × pixels.
+- **Crossings.** ``L`` (held in float32, ≈ 1e-6 absolute) is linear between samples; every crossing
+  inside a step is emitted at its own exact time on that line (float64), then rounded half up to
+  int64 µs. Positive events step the reference by ``C⁺``, negative by ``C⁻``; per-pixel thresholds
+  are drawn once from ``N(C, σ)`` and clamped to ≥ 0.01.
+- **Refractory** (``eventmodel.REFRACTORY_RULE``, "reset-at-end"): after an event at ``t`` the pixel
+  cannot fire before ``t + R``; what happens in the dead time is not emitted, and at ``t + R`` the
+  reference is reset to ``L(t + R)``. So on a line of slope ``s`` a pixel fires every ``R + C / |s|``.
+- **Leak** (v2e-style, optional): each pixel's reference drifts down by ``leak_hz · C⁺`` per second,
+  so a static pixel fires positive events at ``leak_hz``; the start reference is lowered by a uniform
+  random fraction of ``C⁺`` (seeded) so that static pixels do not fire in lockstep.
+- **Shot noise** (optional): a Poisson process of rate ``shot_noise_hz`` per pixel with random
+  polarity, added on top; shot events obey no refractory and leave the reference untouched.
+
+Output: ``EventArray`` chunks in time order — each sorted by ``t`` and then by pixel (y·width + x),
+each starting no earlier than the previous one ended; times lie in ``[t0_us, t1_us]``. The same
+arguments and seed give the same events.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from psfmt import EventArray
+from pstoolkit.errors import UserError
+from pstoolkit.eventmodel import LOG_EPS, log_irradiance
+
+MIN_CONTRAST = 0.01
+Render = Callable[[np.ndarray], np.ndarray]
+
+
+def _check_options(
+    t0_us: float, t1_us: float, width: int, height: int, contrasts: dict[str, float], sigma: float,
+    refractory_us: float, eps: float, max_dlog: float, initial_dt_us: float, chunk_samples: int,
+    min_dt_us: float, rates: dict[str, float],
+) -> None:
+    if not t1_us > t0_us:
+        raise UserError(f"simulate_events: t1_us ({t1_us}) must be after t0_us ({t0_us})")
+    if width < 1 or height < 1 or width > 65536 or height > 65536:
+        raise UserError(f"simulate_events: sensor size {width}x{height} must be 1 to 65536 pixels per side")
+    positive = {**contrasts, "eps": eps, "max_dlog": max_dlog, "initial_dt_us": initial_dt_us,
+                "min_dt_us": min_dt_us}
+    nonnegative = {"sigma": sigma, "refractory_us": refractory_us, **rates}
+    for name, value in positive.items():
+        if not value > 0 or not math.isfinite(value):
+            raise UserError(f"simulate_events: {name} must be a positive number, got {value}")
+    for name, value in nonnegative.items():
+        if not value >= 0 or not math.isfinite(value):
+            raise UserError(f"simulate_events: {name} must be zero or positive, got {value}")
+    if chunk_samples < 2:
+        raise UserError(f"simulate_events: chunk_samples must be at least 2, got {chunk_samples}")
+
+
+def draw_thresholds(rng: np.random.Generator, contrast: float, sigma: float, n_pixels: int) -> np.ndarray:
+    """Per-pixel contrast thresholds ``N(contrast, sigma)`` clamped to ≥ ``MIN_CONTRAST``."""
+    if sigma == 0:
+        return np.full(n_pixels, max(contrast, MIN_CONTRAST))
+    return np.maximum(rng.normal(contrast, sigma, n_pixels), MIN_CONTRAST)
+
+
+def _log_frames(render: Render, t_us: np.ndarray, shape: tuple[int, int], eps: float) -> np.ndarray:
+    """``ln(I + ε)`` of the rendered frames, flattened to (T, H·W)."""
+    irradiance = np.asarray(render(t_us))
+    if irradiance.shape != (len(t_us), *shape):
+        raise UserError(f"simulate_events: render returned shape {irradiance.shape}, expected {(len(t_us), *shape)}")
+    if not (irradiance.min() >= 0 and np.isfinite(irradiance.max())):
+        raise UserError("simulate_events: render returned negative or non-finite irradiance")
+    return log_irradiance(irradiance, eps, np.float32).reshape(len(t_us), -1)
+
+
+def _largest_change(l_prev: np.ndarray, block: np.ndarray) -> np.ndarray:
+    """Largest per-pixel |ΔL| of each interval: from ``l_prev`` to ``block[0]``, then along ``block``."""
+    out = np.empty(len(block))
+    out[0] = np.abs(block[0] - l_prev).max()
+    if len(block) > 1:
+        diff = np.diff(block, axis=0)
+        out[1:] = np.maximum(diff.max(axis=1), -diff.min(axis=1))
+    return out
+
+
+def _rows_change(l_prev: np.ndarray, block: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Largest per-pixel |ΔL| of the intervals ending at ``rows`` of ``block``."""
+    before = block[np.maximum(rows - 1, 0)]
+    before[rows == 0] = l_prev
+    return np.abs(block[rows] - before).max(axis=1)
+
+
+def _refine(
+    log_render: Callable[[np.ndarray], np.ndarray], t_prev: float, l_prev: np.ndarray, times: np.ndarray,
+    block: np.ndarray, max_dlog: float, min_dt_us: float, cap: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split intervals whose |ΔL| exceeds ``max_dlog`` until none does, keeping at most ``cap`` samples
+    (a prefix of the block: later samples are dropped rather than held). Returns times, frames and
+    each interval's largest |ΔL|."""
+    change = _largest_change(l_prev, block)
+    while True:
+        starts = np.concatenate(([t_prev], times[:-1]))
+        lengths = times - starts
+        pieces = np.where(
+            change > max_dlog,
+            np.minimum(np.ceil(change / max_dlog), np.floor(lengths / min_dt_us)),
+            1,
+        ).astype(np.int64)
+        pieces = np.maximum(pieces, 1)
+        if np.all(pieces == 1):
+            return times, block, change
+        keep = max(1, int(np.searchsorted(np.cumsum(pieces), cap, side="right")))
+        pieces = pieces[:keep]
+        pieces[0] = min(pieces[0], cap)
+        ends = np.cumsum(pieces) - 1
+        new_count = pieces - 1
+        owner = np.repeat(np.arange(keep), new_count)
+        rank = np.arange(len(owner)) - np.repeat(np.cumsum(new_count) - new_count, new_count) + 1
+        new_slots = ends[owner] - pieces[owner] + rank
+        merged_times = np.empty(ends[-1] + 1)
+        merged_times[ends] = times[:keep]
+        merged_times[new_slots] = starts[owner] + lengths[owner] * rank / pieces[owner]
+        merged = np.empty((ends[-1] + 1, block.shape[1]), dtype=block.dtype)
+        merged[ends] = block[:keep]
+        merged[new_slots] = log_render(merged_times[new_slots])
+        merged_change = np.empty(ends[-1] + 1)
+        merged_change[ends] = change[:keep]
+        redo = np.concatenate((new_slots, ends[pieces > 1]))
+        merged_change[redo] = _rows_change(l_prev, merged, redo)
+        times, block, change = merged_times, merged, merged_change
+
+
+def _adaptive_blocks(
+    log_render: Callable[[np.ndarray], np.ndarray], t0_us: float, t1_us: float, l_start: np.ndarray,
+    max_dlog: float, initial_dt_us: float, min_dt_us: float, cap: int,
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Blocks of (sample times (n,), log frames (n, H·W)) covering (t0_us, t1_us], in order."""
+    t_prev, l_prev, dt = float(t0_us), l_start, float(initial_dt_us)
+    while t_prev < t1_us:
+        n = int(min(cap, math.ceil((t1_us - t_prev) / dt)))
+        times = t_prev + dt * np.arange(1, n + 1)
+        times[-1] = min(times[-1], t1_us)
+        times, block, change = _refine(log_render, t_prev, l_prev, times, log_render(times), max_dlog, min_dt_us, cap)
+        mean_step = (times[-1] - t_prev) / len(times)
+        dt = mean_step * float(np.clip(0.8 * max_dlog / max(change.max(), 1e-12), 1.0, 2.0))
+        t_prev, l_prev = float(times[-1]), block[-1].copy()
+        yield times, block
+
+
+_TINY = np.finfo(np.float64).tiny
+
+
+@dataclass
+class _Pixels:
+    """Per-pixel state. ``hi``/``lo`` are the levels that fire the next positive/negative event
+    (reference + C⁺, reference − C⁻), ±inf while the pixel is blind; ``blind_until_us`` is +inf
+    unless a reset to the level at the end of the dead time is pending (``blind`` such pixels)."""
+
+    c_pos: np.ndarray
+    c_neg: np.ndarray
+    hi: np.ndarray
+    lo: np.ndarray
+    blind_until_us: np.ndarray
+    refractory_us: float
+    blind: int = 0
+
+    def set_reference(self, index: np.ndarray, reference: np.ndarray) -> None:
+        self.hi[index] = reference + self.c_pos[index]
+        self.lo[index] = reference - self.c_neg[index]
+        self.blind_until_us[index] = np.inf
+
+    def reset_due(self, ta: float, tb: float, m0: np.ndarray, m1: np.ndarray) -> None:
+        """Pixels whose dead time ends within [ta, tb] take the level they see then as reference."""
+        due = np.flatnonzero(self.blind_until_us <= tb)
+        if due.size:
+            frac = (self.blind_until_us[due] - ta) / (tb - ta)
+            a = m0[due].astype(np.float64)
+            self.set_reference(due, a + frac * (m1[due] - a))
+            self.blind -= due.size
+
+    def fire(self, index: np.ndarray, ta: float, tb: float, m0: np.ndarray, m1: np.ndarray,
+             ) -> tuple[np.ndarray, ...]:
+        """Update the pixels ``index`` whose line from ``m0`` (at ``ta``) to ``m1`` (at ``tb``) reaches a
+        firing level, and return what ``_step_all`` expands into events: pixel, sign, first level,
+        level gap, event count, start and end of the line. Falling lines are handled as rising ones
+        in sign·L."""
+        up = m1[index] >= self.hi[index]
+        sign = np.where(up, 1.0, -1.0)
+        a = sign * m0[index]
+        b = sign * m1[index]
+        first = np.where(up, self.hi[index], -self.lo[index]).astype(np.float64)
+        gap = np.where(up, self.c_pos[index], self.c_neg[index])
+        if self.refractory_us > 0:
+            slope = np.maximum((b - a) / (tb - ta), _TINY)
+            gap = gap + slope * self.refractory_us
+        count = np.floor((b - first) / gap).astype(np.int64) + 1
+        last = first + (count - 1) * gap
+        if self.refractory_us == 0:
+            self.set_reference(index, sign * last)
+        else:
+            blind_until = np.minimum(ta + (last - a) / slope, tb) + self.refractory_us
+            now = blind_until <= tb
+            self.set_reference(index[now], sign[now] * (last[now] + slope[now] * self.refractory_us))
+            later = index[~now]
+            self.hi[later], self.lo[later] = np.inf, -np.inf
+            self.blind_until_us[later] = blind_until[~now]
+            self.blind += later.size
+        return index, sign, first, gap, count, a, b
+
+    def advance(self, t_prev: float, m_prev: np.ndarray, times: np.ndarray, block: np.ndarray,
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Events over consecutive samples (t_prev, m_prev), (times[i], block[i]): pixel, time, polarity.
+
+        Only pixels that can fire in the block are stepped: a pixel whose levels stay strictly
+        between its firing levels, and which stays blind or sighted throughout, keeps its state.
+        Stepping a small subset saves the per-step passes over the whole sensor where few pixels
+        are active (around shadow edges, when the sampling is fine)."""
+        candidates = np.flatnonzero(
+            (block.max(axis=0) >= self.hi) | (block.min(axis=0) <= self.lo) | (self.blind_until_us <= times[-1])
+        )
+        if 2 * candidates.size > block.shape[1]:
+            return self._step_all(t_prev, m_prev, times, block)
+        if candidates.size == 0:
+            return np.empty(0, np.int64), np.empty(0), np.empty(0, np.int8)
+        blind = int(np.count_nonzero(np.isfinite(self.blind_until_us[candidates])))
+        sub = _Pixels(self.c_pos[candidates], self.c_neg[candidates], self.hi[candidates], self.lo[candidates],
+                      self.blind_until_us[candidates], self.refractory_us, blind)
+        pix, t, pol = sub._step_all(t_prev, m_prev[candidates], times, block[:, candidates])
+        self.hi[candidates], self.lo[candidates], self.blind_until_us[candidates] = sub.hi, sub.lo, sub.blind_until_us
+        self.blind += sub.blind - blind
+        return candidates[pix], t, pol
+
+    def _step_all(self, t_prev: float, m_prev: np.ndarray, times: np.ndarray, block: np.ndarray,
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Steps run in order (each depends on the state the previous left); the events are
+        expanded once per block."""
+        t_all = np.concatenate(([t_prev], times))
+        bounds = t_all.tolist()
+        fired, steps = [], []
+        m0 = m_prev
+        for s, m1 in enumerate(block):
+            if self.blind:
+                self.reset_due(bounds[s], bounds[s + 1], m0, m1)
+            index = np.flatnonzero((m1 >= self.hi) | (m1 <= self.lo))
+            if index.size:
+                fired.append(self.fire(index, bounds[s], bounds[s + 1], m0, m1))
+                steps.append(s)
+            m0 = m1
+        if not fired:
+            return np.empty(0, np.int64), np.empty(0), np.empty(0, np.int8)
+        sizes = [len(f[0]) for f in fired]
+        index, sign, first, gap, count, a, b = (np.concatenate(c) for c in zip(*fired))
+        step = np.repeat(np.array(steps), sizes)
+        owner = np.repeat(np.arange(len(count)), count)
+        k = np.arange(len(owner)) - (np.cumsum(count) - count)[owner]
+        level = first[owner] + k * gap[owner]
+        a, step = a[owner], step[owner]
+        frac = np.clip((level - a) / np.maximum(b[owner] - a, _TINY), 0.0, 1.0)
+        t = t_all[step] + frac * (t_all[step + 1] - t_all[step])
+        return index[owner], t, sign[owner].astype(np.int8)
+
+
+def _shot_noise(rng: np.random.Generator, rate_hz: float, n_pixels: int, ta: float, tb: float,
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    count = rng.poisson(rate_hz * n_pixels * (tb - ta) * 1e-6)
+    return (rng.integers(0, n_pixels, count), rng.uniform(ta, tb, count),
+            (2 * rng.integers(0, 2, count) - 1).astype(np.int8))
+
+
+def _sorted_chunk(pix: np.ndarray, t: np.ndarray, pol: np.ndarray, width: int, n_pixels: int) -> EventArray:
+    """Round times half up to µs and sort by (t, pixel); the sort is stable, so a pixel's events that
+    round to the same µs keep their order."""
+    t_us = np.floor(t + 0.5).astype(np.int64)
+    key = (t_us - t_us.min()) * n_pixels + pix
+    order = np.argsort(key, kind="stable")
+    pix, t_us = pix[order], t_us[order]
+    return EventArray(x=pix % width, y=pix // width, t=t_us, p=pol[order])
+
+
+def simulate_events(
+    render: Render,
+    t0_us: float,
+    t1_us: float,
+    *,
+    width: int,
+    height: int,
+    contrast_pos: float = 0.15,
+    contrast_neg: float = 0.15,
+    sigma: float = 0.0,
+    refractory_us: float = 0.0,
+    eps: float = LOG_EPS,
+    seed: int = 0,
+    max_dlog: float | None = None,
+    initial_dt_us: float = 100.0,
+    chunk_samples: int = 64,
+    min_dt_us: float = 1.0,
+    shot_noise_hz: float = 0.0,
+    leak_hz: float = 0.0,
+) -> Iterator[EventArray]:
+    """Events of a ``width``×``height`` sensor watching ``render`` from ``t0_us`` to ``t1_us`` (see the
+    module docstring for the model). Yields non-empty ``EventArray`` chunks in time order.
+
+    ``eps`` defaults to ``eventmodel.LOG_EPS`` (1e-3, for irradiance normalised to ≈ 1 when bright);
+    ``sigma`` is the per-pixel threshold spread, ``refractory_us`` the dead time, ``max_dlog`` the
+    largest log change allowed between samples (default ``0.5·min(C⁺, C⁻)``), ``initial_dt_us`` the
+    first sampling step, ``chunk_samples`` the most times rendered or held at once, ``min_dt_us`` the
+    shortest interval that is still split (a jump in irradiance is resolved to this), ``leak_hz`` and
+    ``shot_noise_hz`` the noise rates per pixel.
+    """
+    if max_dlog is None:
+        max_dlog = 0.5 * min(contrast_pos, contrast_neg)
+    _check_options(t0_us, t1_us, width, height, {"contrast_pos": contrast_pos, "contrast_neg": contrast_neg},
+                   sigma, refractory_us, eps, max_dlog, initial_dt_us, chunk_samples, min_dt_us,
+                   {"shot_noise_hz": shot_noise_hz, "leak_hz": leak_hz})
+    n_pixels = width * height
+    rng_thresholds, rng_leak, rng_shot = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
+    c_pos = draw_thresholds(rng_thresholds, contrast_pos, sigma, n_pixels)
+    c_neg = draw_thresholds(rng_thresholds, contrast_neg, sigma, n_pixels)
+
+    def log_render(t_us: np.ndarray) -> np.ndarray:
+        return _log_frames(render, t_us, (height, width), eps)
+
+    l_start = log_render(np.array([float(t0_us)]))[0]
+    reference = l_start.astype(np.float64)
+    # Leak is a downward drift of the reference; it is applied as the equal upward drift
+    # leak_per_us·(t − t0) of the signal, which keeps the signal piecewise linear.
+    leak_per_us = leak_hz * 1e-6 * c_pos
+    if leak_hz > 0:
+        reference -= rng_leak.uniform(0.0, 1.0, n_pixels) * c_pos
+    pixels = _Pixels(c_pos, c_neg, (reference + c_pos).astype(np.float32), (reference - c_neg).astype(np.float32),
+                     np.full(n_pixels, np.inf), float(refractory_us))
+
+    t_prev, m_prev = float(t0_us), l_start
+    for times, block in _adaptive_blocks(log_render, float(t0_us), float(t1_us), l_start, max_dlog,
+                                         float(initial_dt_us), float(min_dt_us), int(chunk_samples)):
+        if leak_hz > 0:
+            block += leak_per_us * (times - t0_us)[:, None]
+        pix, t, pol = pixels.advance(t_prev, m_prev, times, block)
+        if shot_noise_hz > 0:
+            s_pix, s_t, s_pol = _shot_noise(rng_shot, shot_noise_hz, n_pixels, t_prev, float(times[-1]))
+            pix, t, pol = np.concatenate((pix, s_pix)), np.concatenate((t, s_t)), np.concatenate((pol, s_pol))
+        t_prev, m_prev = float(times[-1]), block[-1]
+        if len(t):
+            yield _sorted_chunk(pix, t, pol, width, n_pixels)
