@@ -68,16 +68,33 @@ def _target(path: str | os.PathLike[str]) -> Path:
     return path
 
 
+def _encode_png(image: np.ndarray) -> bytes:
+    """PNG bytes of a uint8 or uint16 image: grey (H, W) or RGB (H, W, 3), channels in RGB order."""
+    array = np.asarray(image)
+    if array.dtype not in (np.uint8, np.uint16):
+        raise UserError(f"PNG image has dtype {array.dtype}, expected uint8 or uint16")
+    if array.ndim == 3 and array.shape[2] == 3:
+        array = array[..., ::-1]
+    elif array.ndim != 2:
+        raise UserError(f"PNG image has shape {array.shape}, expected (H, W) grey or (H, W, 3) RGB")
+    ok, encoded = cv2.imencode(".png", np.ascontiguousarray(array))
+    if not ok:
+        raise UserError(f"OpenCV could not encode a {array.dtype} {array.shape} image as PNG")
+    return encoded.tobytes()
+
+
+def write_png(path: str | os.PathLike[str], image: np.ndarray) -> None:
+    """Write a uint8/uint16 grey (H, W) or RGB (H, W, 3) image as PNG atomically."""
+    path = _target(path)
+    # Encode in memory: the atomic temporary file has no .png suffix for cv2.imwrite to go by.
+    data = _encode_png(image)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+
+
 def write_normal_png(path: str | os.PathLike[str], normal: np.ndarray, mask: np.ndarray | None = None, bits: int = 16) -> None:
     """Write a normal map PNG (8 or 16 bit) atomically."""
-    path = _target(path)
-    rgb = normal_to_rgb(normal, mask, bits)
-    # Encode in memory: the atomic temporary file has no .png suffix for cv2.imwrite to go by.
-    ok, encoded = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))
-    if not ok:
-        raise UserError(f"{path}: OpenCV could not encode the normal map")
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(encoded.tobytes())
+    write_png(path, normal_to_rgb(normal, mask, bits))
 
 
 def _read_image(path: Path) -> np.ndarray:
@@ -104,7 +121,11 @@ def read_normal_png(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarra
 def write_normal_npy(path: str | os.PathLike[str], normal: np.ndarray) -> None:
     """Write normals as float32 (H, W, 3) .npy atomically."""
     path = _target(path)
-    array = _check_normal(normal, str(path)).astype(np.float32)
+    write_npy(path, _check_normal(normal, str(path)).astype(np.float32))
+
+
+def write_npy(path: str | os.PathLike[str], array: np.ndarray) -> None:
+    """Write an array as .npy atomically (no pickles)."""
     with atomic_path(path) as tmp:
         # A file handle, because np.save appends ".npy" to a path that lacks it.
         with open(tmp, "wb") as fh:

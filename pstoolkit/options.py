@@ -15,7 +15,8 @@ _FALSE = {"0", "false", "no", "off"}
 @dataclass(frozen=True)
 class Option:
     """One option of a solver, scene, backend …: ``type`` is int, float, bool or str; ``choices``
-    restricts a str option; ``minimum``/``maximum`` bound a number."""
+    restricts a str option; ``minimum``/``maximum`` bound a number. A ``multiple`` option may be
+    given repeatedly: its value is the tuple of the given values in order (``default`` when none)."""
 
     name: str
     type: type
@@ -24,6 +25,7 @@ class Option:
     choices: tuple[str, ...] | None = None
     minimum: float | None = None
     maximum: float | None = None
+    multiple: bool = False
 
     def parse(self, text: str) -> Any:
         """Convert a command-line string, raising UserError with the option's name on bad input."""
@@ -51,6 +53,7 @@ class Option:
 
     def describe(self) -> str:
         extra = f"; one of {', '.join(self.choices)}" if self.choices else ""
+        extra += "; repeatable" if self.multiple else ""
         return f"{self.name} ({self.type.__name__}, default {self.default!r}{extra}): {self.help}"
 
 
@@ -63,6 +66,7 @@ def parse_assignments(pairs: Sequence[str], options: Sequence[Option], owner: st
     unknown keys and bad values raise UserError naming the key and the known ones."""
     known = {o.name: o for o in options}
     values = defaults(options)
+    given: set[str] = set()
     for pair in pairs:
         key, sep, text = pair.partition("=")
         key = key.strip()
@@ -71,5 +75,11 @@ def parse_assignments(pairs: Sequence[str], options: Sequence[Option], owner: st
         if key not in known:
             names = ", ".join(sorted(known)) or "none"
             raise UserError(f"{owner} has no option {key!r} (options: {names})")
-        values[key] = known[key].parse(text)
+        option = known[key]
+        value = option.parse(text)
+        if option.multiple:
+            # the first assignment replaces the default, later ones add to it
+            value = (*(values[key] if key in given else ()), value)
+        values[key] = value
+        given.add(key)
     return values

@@ -139,9 +139,7 @@ def test_run_rejects_bad_input_in_one_line(
     assert not (tmp_path / "out").exists()
 
 
-def test_run_without_or_with_a_missing_capture(template: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["run", "--solver", "flat"]) == 2
-    assert capsys.readouterr().err.startswith("pstoolkit: error: no demo capture yet")
+def test_run_with_a_missing_capture(template: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     missing = tmp_path / "missing.h5"
     assert main(["run", str(missing), "--solver", "flat", "--device", "cpu"]) == 2
     assert capsys.readouterr().err == f"pstoolkit: error: {missing}: no such file\n"

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-from pstoolkit.cli import info, validate  # noqa: F401  (registers the commands)
+from pstoolkit.cli import convert, eval, info, plugins, run, simulate, validate  # noqa: F401  (registers the commands)
 from pstoolkit.cli.app import app, main
+from pstoolkit.plugins import add_commands
+
+add_commands(app)
 
 __all__ = ["app", "main"]

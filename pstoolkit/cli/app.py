@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import sys
 
-import click
 import typer
 
 from psfmt import FormatError
@@ -15,6 +14,7 @@ app = typer.Typer(
     help="Photometric stereo from frames, events or both: run solvers, simulate, convert and inspect captures.",
     no_args_is_help=True,
     add_completion=False,
+    rich_markup_mode=None,
     pretty_exceptions_enable=False,
     context_settings={"help_option_names": ["-h", "--help"]},
 )
@@ -25,18 +25,17 @@ def fail(message: str) -> None:
     typer.echo(f"pstoolkit: error: {message}", err=True)
 
 
+def _usage_error(exc: BaseException) -> bool:
+    """Click's usage errors, whether typer uses click or its own vendored copy of it."""
+    return hasattr(exc, "format_message") and isinstance(getattr(exc, "exit_code", None), int)
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Console entry point. Exit codes: 0 success, 1 a negative finding (validate), 2 a user error."""
+    """Console entry point. Exit codes: 0 success, 1 a negative finding (validate), 2 a user error
+    (a usage error, a bad file, a bad option), 130 interrupted. Every error is one line on stderr."""
     try:
-        code = app(args=argv, prog_name="pstoolkit", standalone_mode=False)
-    except click.exceptions.Exit as exc:
-        code = exc.exit_code
-    except click.ClickException as exc:
-        exc.show()
-        code = exc.exit_code
-    except click.exceptions.Abort:
-        fail("interrupted")
-        code = 130
+        result = app(args=argv, prog_name="pstoolkit", standalone_mode=False)
+        code = result if isinstance(result, int) else 0
     except KeyboardInterrupt:
         fail("interrupted")
         code = 130
@@ -46,7 +45,15 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         fail(f"{exc.filename or ''}: {exc.strerror or exc}".lstrip(": "))
         code = 2
-    code = int(code or 0)
+    except Exception as exc:
+        if type(exc).__name__ == "Abort":  # click turns Ctrl-C inside a command into Abort
+            fail("interrupted")
+            code = 130
+        elif _usage_error(exc):
+            fail(exc.format_message())  # type: ignore[attr-defined]
+            code = exc.exit_code  # type: ignore[attr-defined]
+        else:
+            raise
     if argv is None:
         sys.exit(code)
     return code

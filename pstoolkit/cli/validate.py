@@ -11,7 +11,7 @@ from pstoolkit.cli.app import app
 
 
 @app.command()
-def validate(file: Path = typer.Argument(..., help="A hybrid-capture HDF5 file.")) -> int:
+def validate(file: Path = typer.Argument(..., help="A hybrid-capture HDF5 file.")) -> None:
     """Check FILE against spec/hybrid-capture.md. Exit 0 valid (warnings are printed), 1 invalid
     (each error on its own line), 2 the file cannot be read at all."""
     report = psfmt.validate(file)
@@ -21,5 +21,5 @@ def validate(file: Path = typer.Argument(..., help="A hybrid-capture HDF5 file."
         typer.echo(f"{file}: warning: {finding.text}")
     if report.valid:
         typer.echo(f"{file}: valid ({len(report.warnings)} warning(s))")
-        return 0
-    return 1
+        return
+    raise typer.Exit(1)

@@ -1,0 +1,112 @@
+"""Speed and memory of the simulator (``pstoolkit simulate``).
+
+Simulates one light period of a 256×256-frame / 128×128-event hybrid capture (three long exposures,
+C = 0.15, the CLI's other defaults) of each scene into a temporary folder, and reports the seconds
+spent on frames and on events, events per second of the whole run, and the peak memory: the
+process's peak resident size (``resource.getrusage``, includes torch and the interpreter) and the
+peak of Python-tracked allocations (``tracemalloc``, numpy arrays included, torch tensors not).
+Prints a table and writes ``benchmarks/results/simulate.json``.
+
+Target: ≥ 5 M events/s.
+
+    python benchmarks/simulate.py [--size 256] [--scenes sphere blobs] [--device cpu] [--refractory-us 2000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import resource
+import sys
+import tempfile
+import time
+import tracemalloc
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+import psfmt
+from pstoolkit.simulator import SimulationConfig, simulate
+
+RESULTS = Path(__file__).resolve().parent / "results" / "simulate.json"
+TARGET_EVENTS_PER_S = 5e6
+
+
+def run_scene(config: SimulationConfig, folder: Path) -> dict[str, Any]:
+    marks: dict[str, float] = {}
+    start = time.perf_counter()
+
+    def progress(fraction: float, message: str) -> None:
+        if message == "events" and "frames_done" not in marks:
+            marks["frames_done"] = time.perf_counter()
+
+    tracemalloc.start()
+    summary = simulate(config, folder / f"{config.scene}.h5", progress)
+    _, traced_peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    total = time.perf_counter() - start
+    frames_s = marks.get("frames_done", start) - start
+    with psfmt.read(summary.path) as capture:
+        file_mb = summary.path.stat().st_size / 1e6
+        rate = psfmt.data_rate(capture).rate
+    return {
+        "scene": config.scene,
+        "events": summary.events,
+        "seconds": total,
+        "frames_seconds": frames_s,
+        "events_seconds": total - frames_s,
+        "events_per_s": summary.events / total,
+        "traced_peak_mb": traced_peak / 1e6,
+        "file_mb": file_mb,
+        "data_rate": rate,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", type=int, default=256)
+    parser.add_argument("--scenes", nargs="+", default=["sphere", "blobs", "relief"])
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--refractory-us", type=float, default=SimulationConfig.refractory_us)
+    args = parser.parse_args()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for scene in args.scenes:
+            config = SimulationConfig(
+                scene=scene, size=args.size, event_scale=0.5, frames=3, periods=1, contrast=0.15,
+                refractory_us=args.refractory_us, device=args.device,
+            )
+            rows.append(run_scene(config, Path(tmp)))
+    peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    print(f"{args.size}×{args.size} frames, {args.size // 2}×{args.size // 2} events, one period, C = 0.15, "
+          f"refractory {args.refractory_us:g} µs, device {args.device}, {torch.get_num_threads()} torch threads")
+    print(f"{'scene':8s} {'events':>9s} {'frames s':>9s} {'events s':>9s} {'total s':>8s} {'M ev/s':>7s} {'traced MB':>10s} {'rate %':>7s}")
+    for r in rows:
+        print(f"{r['scene']:8s} {r['events']:9,d} {r['frames_seconds']:9.2f} {r['events_seconds']:9.2f} {r['seconds']:8.2f} "
+              f"{r['events_per_s'] / 1e6:7.3f} {r['traced_peak_mb']:10.1f} {100 * r['data_rate']:7.1f}")
+    best = max(r["events_per_s"] for r in rows)
+    print(f"peak resident memory {peak_rss_mb:.0f} MB")
+    print(f"target ≥ {TARGET_EVENTS_PER_S / 1e6:.0f} M events/s: best {best / 1e6:.3f} M events/s "
+          f"({'met' if best >= TARGET_EVENTS_PER_S else 'NOT met'})")
+    result = {
+        "size": args.size,
+        "event_size": args.size // 2,
+        "refractory_us": args.refractory_us,
+        "device": args.device,
+        "rows": rows,
+        "peak_rss_mb": peak_rss_mb,
+        "target_events_per_s": TARGET_EVENTS_PER_S,
+        "machine": {"python": platform.python_version(), "numpy": np.__version__, "torch": torch.__version__,
+                    "threads": torch.get_num_threads(), "processor": platform.processor() or platform.machine(),
+                    "argv": sys.argv[1:]},
+    }
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(json.dumps(result, indent=2))
+    print(f"wrote {RESULTS}")
+
+
+if __name__ == "__main__":
+    main()

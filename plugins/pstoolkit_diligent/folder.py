@@ -1,0 +1,171 @@
+"""One DiLiGenT-layout object folder (facts §1–2), checked completely before anything is converted.
+
+    obj = scan_object(Path("pmsData/ballPNG"), require_normal=True)   # UserError on any problem
+    rgb = obj.image(0)                                                 # (H, W, 3) uint16, RGB order
+
+Layout: the images named in ``filenames.txt`` (16-bit RGB PNG, stored BGR as OpenCV writes them),
+``light_directions.txt`` and ``light_intensities.txt`` (one ``x y z`` / ``r g b`` line per image; the
+intensities in RGB order), ``mask.png`` (non-zero inside) and ``Normal_gt.mat`` (variable
+``Normal_gt``, float64 (H, W, 3)). Lights and normals share the camera frame of the capture format
+(x right, y up, z towards the camera), so they are taken as they are.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import scipy.io
+
+from pstoolkit.errors import UserError
+from pstoolkit_diligent.png import check_png, decode
+
+FILENAMES = "filenames.txt"
+DIRECTIONS = "light_directions.txt"
+INTENSITIES = "light_intensities.txt"
+MASK = "mask.png"
+NORMAL = "Normal_gt.mat"
+NORMAL_VARIABLE = "Normal_gt"
+
+
+@dataclass
+class ObjectFolder:
+    """A checked object folder: image paths in ``filenames.txt`` order with their unit light
+    directions and RGB intensities (K, 3), the mask (H, W) and the ground-truth normals (H, W, 3),
+    0 outside the mask, when present."""
+
+    path: Path
+    images: list[Path]
+    directions: np.ndarray
+    intensities: np.ndarray
+    mask: np.ndarray
+    normal: np.ndarray | None
+
+    @property
+    def height(self) -> int:
+        return int(self.mask.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.mask.shape[1])
+
+    def image(self, k: int) -> np.ndarray:
+        """Image ``k`` as (H, W, 3) uint16 in RGB order."""
+        path = self.images[k]
+        image = decode(path)
+        if image.dtype != np.uint16 or image.shape != (self.height, self.width, 3):
+            raise UserError(f"{path}: decoded as {image.dtype} {image.shape}, expected uint16 ({self.height}, {self.width}, 3)")
+        return image[..., ::-1]
+
+
+def _require(path: Path) -> Path:
+    if not path.is_file():
+        raise UserError(f"{path}: file does not exist")
+    return path
+
+
+def _lines(path: Path) -> list[str]:
+    try:
+        text = _require(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise UserError(f"{path}: not a text file") from None
+    return [line.strip() for line in text.splitlines() if line.strip()]
+
+
+def _table(path: Path) -> np.ndarray:
+    """A text file of lines with three numbers → (K, 3) float64."""
+    rows = []
+    for number, line in enumerate(_lines(path), start=1):
+        fields = line.replace(",", " ").split()
+        try:
+            values = [float(f) for f in fields]
+        except ValueError:
+            raise UserError(f"{path}: line {number}: expected three numbers, got {line!r}") from None
+        if len(values) != 3 or not all(np.isfinite(values)):
+            raise UserError(f"{path}: line {number}: expected three finite numbers, got {line!r}")
+        rows.append(values)
+    return np.array(rows, dtype=np.float64).reshape(-1, 3)
+
+
+def _directions(path: Path) -> np.ndarray:
+    table = _table(path)
+    norm = np.linalg.norm(table, axis=1, keepdims=True)
+    if np.any(norm == 0):
+        raise UserError(f"{path}: line {int(np.flatnonzero(norm[:, 0] == 0)[0]) + 1}: a light direction is the zero vector")
+    return table / norm
+
+
+def _intensities(path: Path) -> np.ndarray:
+    table = _table(path)
+    bad = np.flatnonzero(np.any(table <= 0, axis=1))
+    if bad.size:
+        raise UserError(f"{path}: line {int(bad[0]) + 1}: light intensities must be positive")
+    return table
+
+
+def _mask(path: Path, height: int, width: int) -> np.ndarray:
+    header = check_png(path)
+    if (header.height, header.width) != (height, width):
+        raise UserError(f"{path}: mask is {header.width}×{header.height}, the images {width}×{height}")
+    image = decode(path)
+    mask = image > 0 if image.ndim == 2 else np.any(image > 0, axis=-1)
+    if not mask.any():
+        raise UserError(f"{path}: the mask is empty")
+    return mask
+
+
+def _normal(path: Path, mask: np.ndarray) -> np.ndarray:
+    try:
+        content = scipy.io.loadmat(path, variable_names=[NORMAL_VARIABLE])
+    # scipy reports a malformed file through any of these, a MATLAB v7.3 (HDF5) file as NotImplementedError
+    except (ValueError, TypeError, OSError, NotImplementedError, scipy.io.matlab.MatReadError) as exc:
+        raise UserError(f"{path}: not a readable MATLAB v5 file ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+    if NORMAL_VARIABLE not in content:
+        raise UserError(f"{path}: variable {NORMAL_VARIABLE!r} is missing")
+    normal = np.asarray(content[NORMAL_VARIABLE])
+    if normal.shape != (*mask.shape, 3) or normal.dtype.kind not in "fi":
+        raise UserError(f"{path}: {NORMAL_VARIABLE} is {normal.dtype} {normal.shape}, expected real ({mask.shape[0]}, {mask.shape[1]}, 3)")
+    normal = normal.astype(np.float64)
+    if not np.all(np.isfinite(normal)):
+        raise UserError(f"{path}: {NORMAL_VARIABLE} holds NaN or infinity")
+    norm = np.linalg.norm(normal, axis=-1, keepdims=True)
+    return np.where(mask[..., None] & (norm > 0), normal / np.maximum(norm, 1e-300), 0.0)
+
+
+def scan_object(folder: Path, require_normal: bool) -> ObjectFolder:
+    """Check every file of an object folder (present, counts agree, 16-bit RGB PNGs of one size with
+    intact checksums, mask and ground truth of that size) and read the small ones. Raises UserError
+    naming the file and the problem; ``Normal_gt.mat`` may be absent unless ``require_normal``."""
+    if not folder.is_dir():
+        raise UserError(f"{folder}: folder does not exist")
+    names = _lines(folder / FILENAMES)
+    for path in (folder / DIRECTIONS, folder / INTENSITIES, folder / MASK):
+        _require(path)
+    normal_path = folder / NORMAL
+    if require_normal:
+        _require(normal_path)
+    directions = _directions(folder / DIRECTIONS)
+    intensities = _intensities(folder / INTENSITIES)
+    counts = {FILENAMES: len(names), DIRECTIONS: len(directions), INTENSITIES: len(intensities)}
+    if len(set(counts.values())) != 1:
+        listed = ", ".join(f"{name} has {count}" for name, count in counts.items())
+        raise UserError(f"{folder}: the numbers of images and lights differ ({listed} lines)")
+    if not names:
+        raise UserError(f"{folder / FILENAMES}: lists no images")
+    images = [folder / name for name in names]
+    size: tuple[int, int] | None = None
+    for path in images:
+        header = check_png(path)
+        if header.bit_depth != 16:
+            raise UserError(f"{path}: {header.bit_depth}-bit image, expected a 16-bit PNG")
+        if header.channels != 3:
+            raise UserError(f"{path}: {header.channels}-channel image, expected RGB")
+        if size is None:
+            size = (header.height, header.width)
+        elif (header.height, header.width) != size:
+            raise UserError(f"{path}: image is {header.width}×{header.height}, {images[0].name} is {size[1]}×{size[0]}")
+    assert size is not None
+    mask = _mask(folder / MASK, *size)
+    normal = _normal(normal_path, mask) if normal_path.is_file() else None
+    return ObjectFolder(folder, images, directions, intensities, mask, normal)

@@ -1,0 +1,241 @@
+"""Semi-real hybrid captures from a DiLiGenT object (facts §3, the EventPS recipe with DualResPS's
+frames).
+
+The 36 lights on the boundary of DiLiGenT's 12×8 light grid, in loop order, are the key lights of
+one light period T; key light j is on at ``knots_us[j] = round(j·T/36)``. The images are cropped to a
+square around the mask (16 px margin), area-resized to size×size, divided by the light intensities
+and scaled so that the 99th percentile of all masked values of the 36 images is 1. Between key
+lights each pixel's log-irradiance ``ln(I + ε)`` runs linearly in time, which defines I(t) for:
+
+- **frames**: ``frames`` long exposures per period, frame k the mean of I(t) over
+  [k·T/frames, (k+1)·T/frames) (exact: the integral of an exponential is closed-form), times 255,
+  rounded and clamped to 8 bit: an LDR camera whose white is the 99th-percentile irradiance;
+- **events**: grey = 0.299 R + 0.587 G + 0.114 B area-averaged to the event grid
+  (``size·event_scale`` pixels a side), log-interpolated the same way and fed to the ESIM-style
+  generator (no threshold noise);
+- **discrete lights** (the frame-based comparison): K of the 36 key images, evenly spread over the
+  loop, as instantaneous 8-bit frames of the same scale.
+
+The capture's light model is ``sampled``, periodic, through the key directions with intensity 1
+(the images are already divided by the intensities); the ground truth is resized and re-normalised.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import exprel
+
+import psfmt
+from pstoolkit.errors import UserError
+from pstoolkit.esim import Render, simulate_events
+from pstoolkit.eventmodel import LOG_EPS, log_irradiance
+from pstoolkit.lights import SampledLight
+from pstoolkit.render import GREY_WEIGHTS, area_weights, event_shape
+from pstoolkit.simulator import EVENT_MIN_STEP_TURNS, FRAMES_SHARE
+from pstoolkit.solver import Progress
+from pstoolkit_diligent.folder import ObjectFolder
+from pstoolkit_diligent.geometry import area_resize, crop, resize_truth, square_around
+
+GRID_LIGHTS = 96
+BOUNDARY_LOOP: tuple[int, ...] = (
+    *range(88, 96), 87, 79, 71, 63, 55, 7, 15, 23, 31, 39, 47, *range(46, 39, -1), 32, 24, 16, 8, 0, 48, 56, 64, 72, 80
+)
+"""The 0-based ids of the 36 boundary lights of the 12×8 grid (id = 8·column + row), in loop order."""
+MARGIN_PX = 16
+NORMALISE_PERCENTILE = 99.0
+LDR_WHITE = 255
+
+
+@dataclass
+class SemiRealConfig:
+    """Options of a semi-real capture (see the module docstring); ``discrete_lights`` K > 0 writes
+    the frames-only comparison instead of the hybrid capture."""
+
+    size: int = 256
+    event_scale: float = 0.5
+    contrast: float = 0.15
+    refractory_us: float = 2000.0
+    frames: int = 3
+    periods: int = 1
+    period_ms: float = 1000.0 / 30.0
+    seed: int = 0
+    discrete_lights: int = 0
+
+    @property
+    def period_us(self) -> int:
+        return round(self.period_ms * 1000.0)
+
+    def check(self) -> None:
+        """Raise UserError naming the first option out of range."""
+        limits = [
+            ("--size", 8 <= self.size <= 8192, "must be between 8 and 8192 pixels"),
+            ("--event-scale", 0 < self.event_scale <= 1, "must be in (0, 1] event pixels per frame pixel"),
+            ("--frames", 1 <= self.frames <= 36, "must be between 1 and 36"),
+            ("--period-ms", self.period_us >= 10 * len(BOUNDARY_LOOP), "is too short (at least 10 µs per key light)"),
+            ("--refractory-us", 0 <= self.refractory_us <= self.period_us, "must be between 0 and the period"),
+            ("--discrete-lights", 0 <= self.discrete_lights <= len(BOUNDARY_LOOP), f"must be between 0 and {len(BOUNDARY_LOOP)}"),
+        ]
+        for flag, ok, message in limits:
+            if not ok:
+                raise UserError(f"{flag} {getattr(self, flag[2:].replace('-', '_'))!r} {message}")
+        pixels = self.size * self.event_scale
+        if abs(pixels - round(pixels)) > 1e-9:
+            raise UserError(f"--size {self.size} × --event-scale {self.event_scale:g} = {pixels:g} is not a whole number of event pixels")
+
+
+@dataclass
+class KeyLights:
+    """The 36 boundary images as normalised linear irradiance (36, S, S, 3) float32 with their unit
+    directions (36, 3), and the ground truth at S×S."""
+
+    images: np.ndarray
+    directions: np.ndarray
+    normal: np.ndarray | None
+    mask: np.ndarray
+
+
+def check_grid(obj: ObjectFolder) -> None:
+    """UserError unless ``obj`` has the 96 lights of DiLiGenT's grid, whose boundary the recipe uses."""
+    if len(obj.images) != GRID_LIGHTS:
+        raise UserError(f"{obj.path}: semi-real data needs DiLiGenT's {GRID_LIGHTS}-light grid, the folder has {len(obj.images)} lights")
+
+
+def key_lights(obj: ObjectFolder, size: int, progress: Progress) -> KeyLights:
+    """Crop, resize, divide and normalise the boundary images of ``obj`` (a 96-light object)."""
+    check_grid(obj)
+    square = square_around(obj.mask, MARGIN_PX)
+    images = np.empty((len(BOUNDARY_LOOP), size, size, 3), dtype=np.float32)
+    for j, k in enumerate(BOUNDARY_LOOP):
+        images[j] = area_resize(crop(obj.image(k), square), size) / obj.intensities[k].astype(np.float32)
+        progress((j + 1) / len(BOUNDARY_LOOP), "images")
+    normal = crop(obj.normal, square) if obj.normal is not None else None
+    normal, mask = resize_truth(normal, crop(obj.mask, square), size)
+    level = float(np.percentile(images[:, mask], NORMALISE_PERCENTILE)) if mask.any() else 0.0
+    if not level > 0:
+        raise UserError(f"{obj.path}: the boundary images are black inside the mask")
+    images /= np.float32(level)
+    return KeyLights(images, obj.directions[list(BOUNDARY_LOOP)], normal, mask)
+
+
+def knot_times_us(period_us: int) -> np.ndarray:
+    """(37,) int64: the time of each key light in the first period, then the period's end."""
+    return np.round(np.arange(len(BOUNDARY_LOOP) + 1) * period_us / len(BOUNDARY_LOOP)).astype(np.int64)
+
+
+def window_mean(log_keys: np.ndarray, knots_us: np.ndarray, t0_us: float, t1_us: float) -> np.ndarray:
+    """Mean irradiance exp(L(t)) − ε over [t0_us, t1_us) ⊂ [knots_us[0], knots_us[-1]], L linear in
+    time from ``log_keys[j]`` to ``log_keys[j + 1]`` (the last key wraps to the first)."""
+    log_next = np.roll(log_keys, -1, axis=0)
+    total = np.zeros(log_keys.shape[1:])
+    for j in range(len(log_keys)):
+        s0, s1 = max(t0_us, knots_us[j]), min(t1_us, knots_us[j + 1])
+        if s1 <= s0:
+            continue
+        span = float(knots_us[j + 1] - knots_us[j])
+        slope = log_next[j] - log_keys[j]
+        w0, w1 = (s0 - knots_us[j]) / span, (s1 - knots_us[j]) / span
+        # ∫ exp(a + w·d) dw over [w0, w1] = (w1 − w0)·exp(a + w0·d)·exprel((w1 − w0)·d), stable as d → 0
+        total += span * (w1 - w0) * np.exp(log_keys[j] + w0 * slope) * exprel((w1 - w0) * slope)
+    return total / (t1_us - t0_us) - LOG_EPS
+
+
+def ldr(irradiance: np.ndarray) -> np.ndarray:
+    """8-bit pixels of normalised irradiance: 1.0 is white, brighter clips."""
+    return np.clip(np.rint(irradiance * LDR_WHITE), 0, LDR_WHITE).astype(np.uint8)
+
+
+def event_render(log_keys: np.ndarray, knots_us: np.ndarray, period_us: int) -> Render:
+    """The render callback of the event generator: irradiance whose log runs linearly between the
+    key logs (M, He, We), periodic in ``period_us``."""
+    log_next = np.roll(log_keys, -1, axis=0)
+    starts = knots_us[:-1].astype(np.float64)
+    spans = np.diff(knots_us).astype(np.float64)
+
+    def render(t_us: np.ndarray) -> np.ndarray:
+        tau = np.mod(np.asarray(t_us, dtype=np.float64), period_us)
+        j = np.clip(np.searchsorted(starts, tau, side="right") - 1, 0, len(starts) - 1)
+        w = ((tau - starts[j]) / spans[j])[:, None, None]
+        return np.maximum(np.exp((1.0 - w) * log_keys[j] + w * log_next[j]) - LOG_EPS, 0.0)
+
+    return render
+
+
+def boundary_light(keys: KeyLights, knots_us: np.ndarray, period_us: int) -> psfmt.LightSpec:
+    """The periodic ``sampled`` light model through the key directions, intensity 1."""
+    light = SampledLight(
+        times_us=knots_us[:-1],
+        directions=keys.directions,
+        intensities=np.ones_like(keys.directions),
+        periodic=True,
+        period_us=float(period_us),
+    )
+    spec = light.to_spec()
+    spec.params["times_us"] = knots_us[:-1].copy()  # the format stores sample times as int64 (spec §8.2)
+    return spec
+
+
+def write_semi_real(
+    obj: ObjectFolder, writer: psfmt.CaptureWriter, config: SemiRealConfig, progress: Progress
+) -> int:
+    """Write the semi-real capture of ``obj`` through ``writer``; returns the number of events."""
+    keys = key_lights(obj, config.size, lambda f, m: progress(FRAMES_SHARE * f, m))
+    period = config.period_us
+    knots = knot_times_us(period)
+    writer.begin_frames(config.size, config.size, 3, np.uint8, bit_depth=8)
+    count = 0
+    if config.discrete_lights:
+        pick = np.arange(config.discrete_lights) * len(BOUNDARY_LOOP) // config.discrete_lights
+        writer.append_frames(
+            ldr(keys.images[pick]), light_direction=keys.directions[pick], light_intensity=np.ones((len(pick), 3))
+        )
+    else:
+        log_rgb = log_irradiance(keys.images)
+        bounds = np.round(np.arange(config.frames + 1) * period / config.frames).astype(np.int64)
+        exposures = [ldr(window_mean(log_rgb, knots, bounds[k], bounds[k + 1])) for k in range(config.frames)]
+        for p in range(config.periods):
+            for k, exposure in enumerate(exposures):
+                writer.append_frames(exposure, t_start_us=[p * period + bounds[k]], t_end_us=[p * period + bounds[k + 1]])
+        count = _write_events(keys, knots, config, writer, progress)
+    writer.set_lights(boundary_light(keys, knots, period))
+    writer.set_ground_truth(psfmt.GroundTruth(normal=keys.normal, mask=keys.mask))
+    progress(1.0, "done")
+    return count
+
+
+def _write_events(
+    keys: KeyLights, knots_us: np.ndarray, config: SemiRealConfig, writer: psfmt.CaptureWriter, progress: Progress
+) -> int:
+    height, width = event_shape(config.size, config.size, config.event_scale)
+    av = area_weights(height, config.size, config.event_scale)
+    au = area_weights(width, config.size, config.event_scale)
+    grey = keys.images.astype(np.float64) @ np.array(GREY_WEIGHTS)
+    log_keys = log_irradiance(av @ grey @ au.T)
+    writer.begin_events(width, height)
+    t1 = config.periods * config.period_us
+    count = 0
+    for chunk in simulate_events(
+        event_render(log_keys, knots_us, config.period_us),
+        0,
+        t1,
+        width=width,
+        height=height,
+        contrast_pos=config.contrast,
+        contrast_neg=config.contrast,
+        refractory_us=config.refractory_us,
+        seed=config.seed,
+        min_dt_us=max(1.0, config.period_us * EVENT_MIN_STEP_TURNS),
+    ):
+        writer.append_events(chunk)
+        count += len(chunk)
+        progress(FRAMES_SHARE + (1.0 - FRAMES_SHARE) * min(1.0, float(chunk.t[-1]) / t1), "events")
+    writer.set_calibration(
+        psfmt.Calibration(
+            event_to_frame=psfmt.scale_affine(config.event_scale),
+            contrast_pos=config.contrast,
+            contrast_neg=config.contrast,
+            refractory_us=config.refractory_us,
+        )
+    )
+    return count

@@ -1,0 +1,17 @@
+"""First-party plugin: the ``frameps`` least-squares photometric-stereo solver (Woodham 1980).
+
+Found through the ``pstoolkit`` entry-point group like any third-party plugin; the solver module is
+imported inside the hook so listing plugins stays cheap.
+"""
+
+from __future__ import annotations
+
+from pstoolkit import hookimpl
+from pstoolkit.registry import Registry
+
+
+@hookimpl
+def pstoolkit_register_solvers(registry: Registry) -> None:
+    from pstoolkit_frameps.solver import FramePS
+
+    registry.register(FramePS)

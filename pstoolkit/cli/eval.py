@@ -1,0 +1,37 @@
+"""``pstoolkit eval PATH…``: tables of accuracy, data rate and time over results and captures."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+import psfmt
+from pstoolkit.cli.app import app
+from pstoolkit.errors import UserError
+from pstoolkit.evaluation import collect, csv_text, json_text, markdown
+
+
+@app.command("eval")
+def eval_command(
+    paths: list[Path] = typer.Argument(..., help="Result folders (with result.json), folders of result folders, or captures with stored results."),
+    as_json: bool = typer.Option(False, "--json", help="Print JSON: every result and the per-solver averages."),
+    as_csv: bool = typer.Option(False, "--csv", help="Print CSV, one row per result: object, solver, mae_deg, median_deg, data_rate, seconds."),
+    out: Path | None = typer.Option(None, "-o", "--out", help="Write the output to this file instead of printing it."),
+) -> None:
+    """Compare results: markdown tables with a row per object (capture stem) and a column per solver
+    (result name) of the mean and median angular error in degrees, data rate and solver seconds, each
+    with an average row over the objects that have a value. A result without ground truth shows –.
+    Stored results in a capture are scored afresh against its ground truth."""
+    if as_json and as_csv:
+        raise UserError("--json and --csv: choose one output format")
+    records = collect(paths)
+    text = json_text(records) if as_json else csv_text(records) if as_csv else markdown(records)
+    if out is None:
+        typer.echo(text, nl=False)
+        return
+    if not out.parent.is_dir():
+        raise UserError(f"{out}: folder {out.parent} does not exist")
+    with psfmt.atomic_path(out) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    typer.echo(f"wrote {out}: {len(records)} result(s)")

@@ -1,0 +1,145 @@
+"""``pstoolkit run [CAPTURE] --solver NAME``: run a registered solver and write its outputs."""
+
+from __future__ import annotations
+
+import json
+import re
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import typer
+
+import psfmt
+from pstoolkit import __version__
+from pstoolkit.cli.app import app
+from pstoolkit.errors import UserError
+from pstoolkit.evaluation import score
+from pstoolkit.normalmap import write_normal_npy, write_normal_png
+from pstoolkit.outputs import prepare_maps, write_error_map, write_maps
+from pstoolkit.plugins import get_registries
+from pstoolkit.solver import Progress, no_progress, resolve_device, run_solver
+
+_RESULT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
+
+
+def terminal_progress(label: str) -> Progress:
+    """A one-line percentage on stderr, redrawn only when the whole percent changes."""
+    shown = [-1]
+
+    def report(fraction: float, message: str) -> None:
+        percent = int(100 * min(max(fraction, 0.0), 1.0))
+        if percent != shown[0]:
+            shown[0] = percent
+            end = "\n" if percent == 100 else ""
+            sys.stderr.write(f"\r{label}: {percent:3d} % {message:<20.20}{end}")
+            sys.stderr.flush()
+
+    return report
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return str(value)
+
+
+def _demo_capture(progress: Progress) -> Path:
+    # Deferred: the demo module loads the simulator (and torch), which a run on a given file never needs.
+    from pstoolkit import demo
+
+    typer.echo("no CAPTURE given: running on the built-in demo capture (simulated on first use, then cached)", err=True)
+    return demo.demo_capture_path(demo.DEMO_CONFIG, progress)
+
+
+@app.command()
+def run(
+    capture: Path | None = typer.Argument(None, help="A hybrid-capture HDF5 file (default: the built-in demo capture)."),
+    solver: str = typer.Option(..., "--solver", help="A registered solver (see `pstoolkit plugins`)."),
+    out: Path | None = typer.Option(None, "-o", "--out", help="Output folder (default: out/<capture stem>-<name>)."),
+    assignments: list[str] = typer.Option([], "--set", help="A solver option as key=value; repeat for more."),
+    device: str = typer.Option("auto", "--device", help="auto (CUDA when available), cpu or cuda."),
+    as_json: bool = typer.Option(False, "--json", help="Print result.json and no progress."),
+    store: bool = typer.Option(False, "--store", help="Also store the maps in the capture under /results/<name>."),
+    name: str | None = typer.Option(None, "--name", help="Name of the result: its column in `pstoolkit eval` and /results/<name> with --store (default: the solver)."),
+    error_max: float = typer.Option(30.0, "--error-max", help="Angular error (degrees) at the top of error.png's colour scale."),
+) -> None:
+    """Estimate normals of CAPTURE with a solver. Writes to the output folder: normal.npy (float32
+    H×W×3), normal.png (16-bit, RGB = (n+1)/2, x right, y up, z to the camera, background 0), each
+    further map of the solver as <map>.png (16-bit, scale in result.json) and <map>.npy, error.png
+    (Turbo colormap, 0 to --error-max degrees, black outside the mask) and error.npy (float32 degrees,
+    NaN outside the mask) when the capture has ground truth, and result.json (solver, capture, seconds,
+    mean and median error in degrees, shares below 10/20/30°, data rate, options)."""
+    entry = get_registries().solvers.get(solver)
+    options = entry.parse_options(assignments)
+    device = resolve_device(device)
+    if not error_max > 0:
+        raise UserError(f"--error-max {error_max:g}: must be a positive number of degrees")
+    result_name = entry.name if name is None else name
+    if not _RESULT_NAME.fullmatch(result_name):
+        raise UserError(f"--name {result_name!r}: use letters, digits, '.', '_' and '-', starting with a letter or digit")
+    quiet = as_json or not sys.stderr.isatty()
+    demo = capture is None
+    if capture is None:
+        capture = _demo_capture(no_progress if quiet else terminal_progress("simulate demo"))
+    with psfmt.read(capture, verify=True) as data:
+        result, seconds = run_solver(entry, data, options, device=device, progress=no_progress if quiet else terminal_progress(entry.name))
+        normal = np.where(result.mask[..., None], result.normal, np.float32(0.0))
+        scored = score(normal, data.ground_truth)
+        rate = psfmt.data_rate(data).rate
+        kind = data.kind
+    maps = prepare_maps(result.maps, result.mask, f"plugin {entry.plugin!r}: solver {entry.name!r}")
+    stats = scored.stats if scored is not None else {}
+    obj = "demo" if demo else capture.stem
+    summary = {
+        "name": result_name,
+        "solver": entry.name,
+        "plugin": entry.plugin,
+        "object": obj,
+        "capture": str(capture),
+        "capture_kind": kind,
+        "size": list(normal.shape[:2]),
+        "seconds": seconds,
+        "mae_deg": stats.get("mae_deg"),
+        "median_deg": stats.get("median_deg"),
+        **{key: stats.get(key) for key in ("below_10", "below_20", "below_30", "n_pixels")},
+        "data_rate": rate,
+        "device": device,
+        "options": options,
+        "maps": {output.name: output.files() for output in maps},
+        "error_max_deg": error_max if scored is not None else None,
+        "stored": result_name if store else None,
+        "pstoolkit_version": __version__,
+        "diagnostics": result.diagnostics,
+    }
+    text = json.dumps(summary, indent=2, default=_jsonable)
+    outdir = out if out is not None else Path("out") / f"{obj}-{result_name}"
+    outdir.mkdir(parents=True, exist_ok=True)
+    write_normal_npy(outdir / "normal.npy", normal)
+    write_normal_png(outdir / "normal.png", normal, result.mask)
+    write_maps(outdir, maps)
+    if scored is not None:
+        write_error_map(outdir, scored.error_deg, error_max)
+    if store:
+        stored = psfmt.Result(
+            name=result_name,
+            maps={"normal": normal, "mask": result.mask, **{m.name: m.array for m in maps}},
+            solver=entry.name,
+            options=options,
+            seconds=seconds,
+            version=__version__,
+        )
+        psfmt.write_result(capture, stored)
+        where = f"the demo capture {capture} (a cached file, regenerated without it if the cache is cleared)" if demo else str(capture)
+        typer.echo(f"stored result {result_name!r} in {where}", err=True)
+    # Last, so a folder with result.json holds every file it lists.
+    with psfmt.atomic_path(outdir / "result.json") as tmp:
+        tmp.write_text(text + "\n")
+    if as_json:
+        typer.echo(text)
+        return
+    score_text = f"MAE {summary['mae_deg']:.2f}°, median {summary['median_deg']:.2f}°" if scored is not None else "no ground truth"
+    typer.echo(f"{entry.name} on {capture}: {score_text}, {seconds:.2f} s, data rate {100 * rate:.1f} % → {outdir}")

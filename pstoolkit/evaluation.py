@@ -1,0 +1,198 @@
+"""Scoring normal maps against ground truth, and collecting scored results into tables.
+
+``score`` is what ``pstoolkit run`` reports; ``collect`` gathers ``Record``s from result folders
+(``result.json`` written by ``run``), folders of result folders, and captures with stored results
+(scored afresh against the capture's ground truth); ``markdown``, ``csv_text`` and ``json_text`` lay
+them out with objects as rows and result names (the solver, or ``run --name``) as columns.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import psfmt
+from pstoolkit.errors import UserError
+from pstoolkit.metrics import angular_error_deg, error_stats
+
+MISSING = "–"
+RESULT_FILE = "result.json"
+METRICS = ("mae_deg", "median_deg", "data_rate", "seconds")
+TITLES = {
+    "mae_deg": "Mean angular error (degrees)",
+    "median_deg": "Median angular error (degrees)",
+    "data_rate": "Data rate (% of 24 RGB frames)",
+    "seconds": "Solver time (seconds)",
+}
+CSV_COLUMNS = ("object", "solver", *METRICS)
+
+
+@dataclass(frozen=True)
+class Score:
+    """Angular error of a normal map: ``error_deg`` (H, W) float32 degrees, NaN outside the
+    ground-truth mask, and its summary ``stats`` (``metrics.error_stats``)."""
+
+    error_deg: np.ndarray
+    stats: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class Record:
+    """One scored result: ``object`` (capture stem, ``demo`` for the demo capture), ``solver`` (the
+    result's name: the solver's, or the one given to ``run --name``), metrics (None where unknown:
+    no ground truth), and ``source``, the folder or capture it was read from."""
+
+    object: str
+    solver: str
+    mae_deg: float | None
+    median_deg: float | None
+    data_rate: float | None
+    seconds: float | None
+    source: str
+
+
+def score(normal: np.ndarray, gt: psfmt.GroundTruth | None) -> Score | None:
+    """Error of ``normal`` over the ground-truth mask (non-zero ground-truth normals when the capture
+    stores no mask); None without ground-truth normals. A pixel the solver left out (zero normal)
+    counts as 90° off."""
+    if gt is None or gt.normal is None:
+        return None
+    mask = gt.mask if gt.mask is not None else np.linalg.norm(gt.normal, axis=-1) > 0
+    errors = angular_error_deg(normal, gt.normal, mask)
+    return Score(errors.astype(np.float32), error_stats(errors))
+
+
+def _number(data: dict[str, Any], key: str, where: Path) -> float | None:
+    value = data.get(key)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise UserError(f"{where}: {key!r} is {value!r}, expected a number or null")
+    return float(value)
+
+
+def read_result_folder(folder: Path) -> Record:
+    """The record of a folder written by ``pstoolkit run``."""
+    path = folder / RESULT_FILE
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise UserError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    if not isinstance(data, dict):
+        raise UserError(f"{path}: expected a JSON object")
+    for key in ("object", "name"):
+        if not isinstance(data.get(key), str):
+            raise UserError(f"{path}: {key!r} is missing or not a string (not a `pstoolkit run` result?)")
+    return Record(
+        object=data["object"],
+        solver=data["name"],
+        **{metric: _number(data, metric, path) for metric in METRICS},
+        source=str(folder),
+    )
+
+
+def read_capture_results(path: Path) -> list[Record]:
+    """Records of the results stored in a capture, each scored against the capture's ground truth."""
+    with psfmt.read(path) as capture:
+        if not capture.results:
+            raise UserError(f"{path}: the capture holds no stored results (store one with `pstoolkit run --store`)")
+        rate = psfmt.data_rate(capture).rate
+        records = []
+        for name, result in sorted(capture.results.items()):
+            normal = result.maps.get("normal")
+            if normal is None:
+                raise UserError(f"{path}: stored result {name!r} has no normal map")
+            scored = score(normal, capture.ground_truth)
+            stats = scored.stats if scored is not None else {}
+            records.append(
+                Record(path.stem, name, stats.get("mae_deg"), stats.get("median_deg"), rate, result.seconds, str(path))
+            )
+    return records
+
+
+def collect(paths: list[Path]) -> list[Record]:
+    """Records from result folders, folders holding result folders (one level down) and captures,
+    sorted by object and solver; two records for the same object and solver are a UserError."""
+    records: list[Record] = []
+    for path in paths:
+        if path.is_dir():
+            folders = [path] if (path / RESULT_FILE).is_file() else sorted(p for p in path.iterdir() if (p / RESULT_FILE).is_file())
+            if not folders:
+                raise UserError(f"{path}: no {RESULT_FILE} in this folder or its subfolders")
+            records += [read_result_folder(folder) for folder in folders]
+        elif path.is_file():
+            records += read_capture_results(path)
+        else:
+            raise UserError(f"{path}: no such file or folder")
+    seen: dict[tuple[str, str], str] = {}
+    for record in records:
+        key = (record.object, record.solver)
+        if key in seen:
+            raise UserError(
+                f"two results for object {record.object!r} and solver {record.solver!r}: {seen[key]} and {record.source} "
+                "(give one of them another name with `pstoolkit run --name`)"
+            )
+        seen[key] = record.source
+    return sorted(records, key=lambda r: (r.object, r.solver))
+
+
+def averages(records: list[Record]) -> dict[str, dict[str, float | None]]:
+    """Per solver, the mean of each metric over the objects that have a value for it (None if none)."""
+    out: dict[str, dict[str, float | None]] = {}
+    for solver in sorted({r.solver for r in records}):
+        mine = [r for r in records if r.solver == solver]
+        out[solver] = {}
+        for metric in METRICS:
+            values = [getattr(r, metric) for r in mine if getattr(r, metric) is not None]
+            out[solver][metric] = float(np.mean(values)) if values else None
+    return out
+
+
+def format_value(metric: str, value: float | None) -> str:
+    """A table cell: degrees to 2 decimals, seconds to 3, the data rate in percent to 1, ``–`` when unknown."""
+    if value is None:
+        return MISSING
+    if metric == "data_rate":
+        return f"{100 * value:.1f} %"
+    return f"{value:.3f}" if metric == "seconds" else f"{value:.2f}"
+
+
+def markdown_table(records: list[Record], metric: str) -> str:
+    """One metric as a markdown table: a row per object, a column per solver, and an average row
+    (each column averaged over the objects that have a value)."""
+    solvers = sorted({r.solver for r in records})
+    cells = {(r.object, r.solver): getattr(r, metric) for r in records}
+    lines = ["| object | " + " | ".join(solvers) + " |", "|:--" + "|--:" * len(solvers) + "|"]
+    for obj in sorted({r.object for r in records}):
+        lines.append(f"| {obj} | " + " | ".join(format_value(metric, cells.get((obj, s))) for s in solvers) + " |")
+    mean = averages(records)
+    lines.append("| **average** | " + " | ".join(format_value(metric, mean[s][metric]) for s in solvers) + " |")
+    return "\n".join(lines)
+
+
+def markdown(records: list[Record]) -> str:
+    """A titled markdown table for each metric: MAE, median error, data rate and solver time."""
+    return "\n\n".join(f"### {TITLES[metric]}\n\n{markdown_table(records, metric)}" for metric in METRICS) + "\n"
+
+
+def csv_text(records: list[Record]) -> str:
+    """Long format, one row per result: object, solver, mae_deg, median_deg, data_rate, seconds
+    (empty where unknown)."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(CSV_COLUMNS)
+    for record in records:
+        writer.writerow(["" if (v := getattr(record, column)) is None else v for column in CSV_COLUMNS])
+    return buffer.getvalue()
+
+
+def json_text(records: list[Record]) -> str:
+    """``{"results": [record …], "average": {solver: {metric: value}}}``, null where unknown."""
+    return json.dumps({"results": [asdict(r) for r in records], "average": averages(records)}, indent=2) + "\n"

@@ -1,0 +1,325 @@
+"""``pstoolkit run``: every output file, the error map, --store, --json, the demo capture and bad input.
+
+The solver is a small real one installed as a plugin distribution: Woodham's least squares on a
+simulated Lambertian sphere under 8 instantaneous ring lights, which also returns an RGB albedo, a
+grey residual and a per-light shading stack (a map that is not an image).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+import psfmt
+import pstoolkit
+from pstoolkit import demo, plugins
+from pstoolkit.cli import main
+from pstoolkit.metrics import angular_error_deg
+from test_plugins import fake_distribution
+
+SIZE = 32
+LIGHTS = 8
+
+LSQ_PLUGIN = """
+    import numpy as np
+
+    from pstoolkit import Option, Solver, SolverResult, hookimpl
+    from pstoolkit.errors import UserError
+
+
+    class LeastSquares(Solver):
+        name = "lsq"
+        summary = "Woodham least squares under instantaneous lights"
+        options = (Option("threshold", float, 0.02, "mask level", minimum=0.0),)
+        needs = frozenset({"frames"})
+
+        def solve(self, capture, options, progress):
+            frames = capture.frames
+            if not frames.has_instant_lights:
+                raise UserError("solver 'lsq' needs instantaneous lights")
+            images = frames.as_float()  # (K, H, W, 3)
+            k, h, w, _ = images.shape
+            lights = frames.light_direction  # (K, 3)
+            pinv = np.linalg.pinv(lights)  # (3, K)
+            rgb = np.einsum("ck,khwj->hwjc", pinv, images)  # b = ρ·n per channel
+            grey = rgb.mean(axis=2)
+            rho = np.linalg.norm(grey, axis=-1)
+            normal = grey / np.maximum(rho, 1e-12)[..., None]
+            mask = images.max(axis=(0, 3)) > options["threshold"]
+            albedo = np.linalg.norm(rgb, axis=-1)
+            shading = np.einsum("kc,hwc->khw", lights, grey)
+            residual = np.sqrt(np.mean((shading - images.mean(axis=-1)) ** 2, axis=0))
+            progress(1.0, "solved")
+            return SolverResult(
+                normal=normal, mask=mask, maps={"albedo": albedo, "residual": residual, "shading": shading}
+            )
+
+
+    class BadMap(LeastSquares):
+        name = "badmap"
+        summary = "returns a map under a name run uses itself"
+
+        def solve(self, capture, options, progress):
+            result = super().solve(capture, options, progress)
+            result.maps["error"] = result.maps.pop("residual")
+            return result
+
+
+    class EventsOnly(LeastSquares):
+        name = "evlsq"
+        summary = "declares that it needs events"
+        needs = frozenset({"events"})
+
+
+    @hookimpl
+    def pstoolkit_register_solvers(registry):
+        for solver in (LeastSquares, BadMap, EventsOnly):
+            registry.register(solver)
+"""
+
+
+@contextmanager
+def lsq_plugin(monkeypatch: pytest.MonkeyPatch, root: Path) -> Iterator[None]:
+    """Only the core plugin and the test solvers (installed under ``root``), and a private cache."""
+    site = fake_distribution(root / "site", "pskfake-lsq", "1.0", {"lsq": "pskfake_lsq"}, {"pskfake_lsq": LSQ_PLUGIN})
+    monkeypatch.syspath_prepend(str(site))
+    monkeypatch.delenv(plugins.DISABLE_ENV, raising=False)
+    monkeypatch.setenv(plugins.ALLOW_ENV, "core,lsq")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(root / "cache"))
+    plugins.reset()
+    try:
+        yield
+    finally:
+        plugins.reset()
+        sys.modules.pop("pskfake_lsq", None)
+
+
+def simulate_sphere(path: Path, *args: str) -> Path:
+    """A Lambertian sphere under LIGHTS instantaneous ring lights, no shadows, no noise."""
+    simulate = ["simulate", "sphere", "-o", str(path), "--size", str(SIZE), "--discrete-lights", str(LIGHTS)]
+    assert main([*simulate, "--brdf", "lambertian", "--no-shadows", "--noise", "0", "--quiet", *args]) == 0
+    return path
+
+
+@pytest.fixture
+def lsq(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Iterator[pytest.MonkeyPatch]:
+    with lsq_plugin(monkeypatch, tmp_path):
+        yield monkeypatch
+
+
+@pytest.fixture
+def sphere(lsq: pytest.MonkeyPatch, tmp_path: Path) -> Path:
+    return simulate_sphere(tmp_path / "sphere.h5")
+
+
+def run(capture: Path | None, out: Path | None, *args: str) -> int:
+    where = [str(capture)] if capture is not None else []
+    to = ["-o", str(out)] if out is not None else []
+    return main(["run", *where, "--solver", "lsq", *to, "--device", "cpu", *args])
+
+
+def digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_run_writes_every_map_and_a_consistent_error_map(
+    sphere: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    before = digest(sphere)
+    assert run(sphere, out) == 0
+    assert digest(sphere) == before  # without --store the capture is not touched
+    with psfmt.read(sphere) as capture:
+        gt = capture.ground_truth
+    inside = gt.mask
+    result = json.loads((out / "result.json").read_text())
+    normal = np.load(out / "normal.npy")
+    assert normal.dtype == np.float32 and normal.shape == (SIZE, SIZE, 3)
+
+    error = np.load(out / "error.npy")
+    expected = angular_error_deg(normal, gt.normal, inside)
+    assert error.dtype == np.float32 and error.shape == (SIZE, SIZE)
+    np.testing.assert_array_equal(np.isnan(error), ~inside)
+    np.testing.assert_allclose(error[inside], expected[inside], rtol=0, atol=1e-4)
+    assert result["mae_deg"] == pytest.approx(float(np.mean(expected[inside])), abs=1e-9)
+    assert result["median_deg"] == pytest.approx(float(np.median(expected[inside])), abs=1e-9)
+    for threshold in (10, 20, 30):
+        share = np.count_nonzero(expected[inside] < threshold) / inside.sum()
+        assert result[f"below_{threshold}"] == pytest.approx(share)
+    assert result["n_pixels"] == int(inside.sum())
+    # Least squares is exact where all 8 lights see a pixel; the rim (attached shadows) drags the mean.
+    assert result["median_deg"] < 1.0 and 3.0 < result["mae_deg"] < 8.0
+
+    assert {k: result[k] for k in ("name", "solver", "plugin", "object", "capture", "capture_kind", "size")} == {
+        "name": "lsq",
+        "solver": "lsq",
+        "plugin": "lsq",
+        "object": "sphere",
+        "capture": str(sphere),
+        "capture_kind": "frames",
+        "size": [SIZE, SIZE],
+    }
+    assert result["data_rate"] == pytest.approx(LIGHTS / 24)
+    assert result["options"] == {"threshold": 0.02}
+    assert result["pstoolkit_version"] == pstoolkit.__version__
+    assert result["error_max_deg"] == 30.0 and result["stored"] is None and result["seconds"] >= 0.0
+
+    png = cv2.imread(str(out / "error.png"), cv2.IMREAD_UNCHANGED)[..., ::-1]
+    assert png.dtype == np.uint8 and png.shape == (SIZE, SIZE, 3)
+    assert not png[~inside].any()
+    level = np.clip(error[inside] / 30.0 * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    turbo = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1]
+    np.testing.assert_array_equal(png[inside], turbo[level])
+
+    mask = np.any(normal != 0, axis=-1)
+    albedo = np.load(out / "albedo.npy")
+    assert albedo.dtype == np.float32 and albedo.shape == (SIZE, SIZE, 3)
+    scale = result["maps"]["albedo"]["scale"]
+    assert scale == pytest.approx(np.percentile(albedo[mask].astype(np.float64), 99.0))
+    albedo_png = cv2.imread(str(out / "albedo.png"), cv2.IMREAD_UNCHANGED)[..., ::-1]
+    assert albedo_png.dtype == np.uint16 and albedo_png.shape == (SIZE, SIZE, 3)
+    assert not albedo_png[~mask].any()
+    decoded = albedo_png[mask] / 65535.0 * scale
+    np.testing.assert_allclose(decoded, np.minimum(albedo[mask], scale), atol=0.5 / 65535 * scale + 1e-7)
+
+    residual = np.load(out / "residual.npy")
+    residual_png = cv2.imread(str(out / "residual.png"), cv2.IMREAD_UNCHANGED)
+    assert residual.shape == residual_png.shape == (SIZE, SIZE) and residual_png.dtype == np.uint16
+    assert result["maps"]["residual"]["scale"] == 1.0  # a grey map within [0, 1] keeps its values
+    np.testing.assert_array_equal(residual_png[mask], np.floor(residual[mask].astype(np.float64) * 65535 + 0.5))
+
+    shading = np.load(out / "shading.npy")
+    assert shading.dtype == np.float32 and shading.shape == (LIGHTS, SIZE, SIZE)
+    assert not (out / "shading.png").exists()
+    assert result["maps"]["shading"] == {"npy": "shading.npy", "shape": [LIGHTS, SIZE, SIZE]}
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        ["albedo.npy", "albedo.png", "error.npy", "error.png", "normal.npy", "normal.png"]
+        + ["residual.npy", "residual.png", "result.json", "shading.npy"]
+    )
+    captured = capsys.readouterr()
+    assert captured.out == (
+        f"lsq on {sphere}: MAE {result['mae_deg']:.2f}°, median {result['median_deg']:.2f}°, "
+        f"{result['seconds']:.2f} s, data rate 33.3 % → {out}\n"
+    )
+    assert captured.err == ""
+
+
+def test_error_max_sets_the_top_of_the_colour_scale(sphere: Path, tmp_path: Path) -> None:
+    assert run(sphere, tmp_path / "out", "--error-max", "5") == 0
+    error = np.load(tmp_path / "out" / "error.npy")
+    png = cv2.imread(str(tmp_path / "out" / "error.png"), cv2.IMREAD_UNCHANGED)[..., ::-1]
+    turbo_top = cv2.applyColorMap(np.array([[255]], dtype=np.uint8), cv2.COLORMAP_TURBO)[0, 0, ::-1]
+    over = error >= 5.0
+    assert over.any()
+    np.testing.assert_array_equal(png[over], np.tile(turbo_top, (int(over.sum()), 1)))
+    assert json.loads((tmp_path / "out" / "result.json").read_text())["error_max_deg"] == 5.0
+
+
+def test_json_prints_result_json_and_no_progress_even_on_a_terminal(
+    sphere: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], lsq: pytest.MonkeyPatch
+) -> None:
+    lsq.setattr(sys.stderr, "isatty", lambda: True)
+    assert run(sphere, tmp_path / "out", "--json") == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out) == json.loads((tmp_path / "out" / "result.json").read_text())
+    assert captured.err == ""
+    assert run(sphere, tmp_path / "out") == 0
+    assert capsys.readouterr().err == "\rlsq: 100 % solved              \n"
+
+
+def test_store_round_trips_through_the_capture(sphere: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    with psfmt.read(sphere) as capture:
+        frames = capture.frames.as_float()
+    assert run(sphere, out, "--store", "--name", "lsq-test", "--set", "threshold=0.03") == 0
+    assert capsys.readouterr().err == f"stored result 'lsq-test' in {sphere}\n"
+    summary = json.loads((out / "result.json").read_text())
+    assert summary["name"] == summary["stored"] == "lsq-test"
+    with psfmt.read(sphere) as capture:
+        np.testing.assert_array_equal(capture.frames.as_float(), frames)
+        assert list(capture.results) == ["lsq-test"]
+        stored = capture.results["lsq-test"]
+    assert (stored.solver, stored.version, stored.options) == ("lsq", pstoolkit.__version__, {"threshold": 0.03})
+    assert stored.seconds == summary["seconds"]
+    assert sorted(stored.maps) == ["albedo", "mask", "normal", "residual", "shading"]
+    normal = np.load(out / "normal.npy")
+    np.testing.assert_array_equal(stored.maps["normal"], normal)
+    np.testing.assert_array_equal(stored.maps["mask"].astype(bool), np.any(normal != 0, axis=-1))
+    for name in ("albedo", "residual", "shading"):
+        np.testing.assert_array_equal(stored.maps[name], np.load(out / f"{name}.npy"))
+    report = psfmt.validate(sphere)
+    assert report.valid, report.errors
+
+
+def test_no_capture_runs_on_the_demo_in_the_cache(
+    lsq: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # The real demo is a 128-pixel hybrid capture; a tiny classic one keeps the test fast and fits lsq.
+    tiny = dataclasses.replace(demo.DEMO_CONFIG, scene="sphere", size=SIZE, discrete_lights=LIGHTS, brdf="lambertian")
+    lsq.setattr(demo, "DEMO_CONFIG", tiny)
+    lsq.chdir(tmp_path)
+    assert run(None, None, "--json") == 0
+    captured = capsys.readouterr()
+    assert captured.err == "no CAPTURE given: running on the built-in demo capture (simulated on first use, then cached)\n"
+    result = json.loads(captured.out)
+    cached = tmp_path / "cache" / "pstoolkit" / f"demo-{demo.demo_key(tiny)}.h5"
+    assert result["capture"] == str(cached) and result["object"] == "demo"
+    assert (tmp_path / "out" / "demo-lsq" / "normal.npy").is_file()
+    before = digest(cached)
+    assert run(None, tmp_path / "again") == 0  # the cached file is reused as it is
+    assert digest(cached) == before
+    capsys.readouterr()
+    assert run(None, tmp_path / "stored", "--store") == 0
+    assert capsys.readouterr().err.endswith(
+        f"stored result 'lsq' in the demo capture {cached} (a cached file, regenerated without it if the cache is cleared)\n"
+    )
+    with psfmt.read(cached) as capture:
+        assert list(capture.results) == ["lsq"]
+
+
+def events_only(path: Path) -> None:
+    x = np.arange(16) % 8
+    events = psfmt.Events(8, 8, psfmt.EventArray(x, x, np.arange(16, dtype=np.int64) * 10, np.ones(16)))
+    psfmt.write(psfmt.Capture(events=events), path)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--solver", "lsqq"], "unknown solver 'lsqq' (known: badmap, evlsq, lsq)"),
+        (["--solver", "lsq", "--set", "level=1"], "solver 'lsq' has no option 'level' (options: threshold)"),
+        (["--solver", "lsq", "--set", "threshold=-1"], "option threshold: -1.0 is below the minimum 0"),
+        (["--solver", "lsq", "--error-max", "0"], "--error-max 0: must be a positive number of degrees"),
+        (["--solver", "lsq", "--name", "a/b"], "--name 'a/b': use letters, digits, '.', '_' and '-', starting with a letter or digit"),
+        (["--solver", "evlsq"], "solver 'evlsq' needs events, but {capture} has none (frames capture)"),
+        (["--solver", "badmap"], "plugin 'lsq': solver 'badmap' returned a map named 'error': names are letters, digits, '_' and '-', not error, mask, normal"),
+    ],
+)
+def test_bad_input_is_one_line_exit_2_and_writes_nothing(
+    sphere: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], message: str
+) -> None:
+    before = digest(sphere)
+    assert main(["run", str(sphere), "-o", str(tmp_path / "out"), "--device", "cpu", "--store", *args]) == 2
+    assert capsys.readouterr().err == f"pstoolkit: error: {message.format(capture=sphere)}\n"
+    assert not (tmp_path / "out").exists()
+    assert digest(sphere) == before
+
+
+def test_missing_capture_and_one_lacking_frames(lsq: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    missing = tmp_path / "missing.h5"
+    assert run(missing, tmp_path / "out") == 2
+    assert capsys.readouterr().err == f"pstoolkit: error: {missing}: no such file\n"
+    events = tmp_path / "events.h5"
+    events_only(events)
+    assert run(events, tmp_path / "out") == 2
+    assert capsys.readouterr().err == f"pstoolkit: error: solver 'lsq' needs frames, but {events} has none (events capture)\n"
+    assert not (tmp_path / "out").exists()
