@@ -280,7 +280,8 @@ class SampledLight(LightModel):
 
     def to_spec(self) -> LightSpec:
         params: dict[str, Any] = {
-            "times_us": self.times_us.copy(),
+            # the format stores sample times as int64 µs (spec §8.2)
+            "times_us": np.round(self.times_us).astype(np.int64),
             "directions": self.directions.copy(),
             "intensities": self.intensities.copy(),
             "periodic": self.periodic,

@@ -319,6 +319,7 @@ def test_plugins_json_lists_versions_entries_and_options(
                                     "choices": None,
                                     "minimum": 0.0,
                                     "maximum": None,
+                                    "multiple": False,
                                 }
                             ],
                         }

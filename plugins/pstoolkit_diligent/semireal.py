@@ -171,9 +171,7 @@ def boundary_light(keys: KeyLights, knots_us: np.ndarray, period_us: int) -> psf
         periodic=True,
         period_us=float(period_us),
     )
-    spec = light.to_spec()
-    spec.params["times_us"] = knots_us[:-1].copy()  # the format stores sample times as int64 (spec §8.2)
-    return spec
+    return light.to_spec()
 
 
 def write_semi_real(

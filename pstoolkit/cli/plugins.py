@@ -30,6 +30,7 @@ def _option(o: Option) -> dict[str, Any]:
         "choices": list(o.choices) if o.choices is not None else None,
         "minimum": o.minimum,
         "maximum": o.maximum,
+        "multiple": o.multiple,
     }
 
 
