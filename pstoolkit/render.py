@@ -16,8 +16,8 @@ import numpy as np
 import torch
 
 from pstoolkit.brdf import BRDF
-from pstoolkit.errors import UserError
 from pstoolkit.equivalent import sample_times
+from pstoolkit.errors import UserError
 from pstoolkit.lights import US_PER_S, LightModel
 from pstoolkit.scenes import SceneMaps
 
@@ -219,8 +219,8 @@ class Renderer:
         self._view = self._tensor(np.array([0.0, 0.0, 1.0]))
         self._points: np.ndarray | None = None
         if light.near:
-            pitch = float(getattr(light, "pixel_pitch_mm"))
-            points = getattr(light, "pixel_points")(maps.height, maps.width, maps.depth * pitch)
+            pitch = float(light.pixel_pitch_mm)  # type: ignore[attr-defined]
+            points = light.pixel_points(maps.height, maps.width, maps.depth * pitch)  # type: ignore[attr-defined]
             self._points = points[self.index]
 
     def _tensor(self, array: np.ndarray) -> torch.Tensor:

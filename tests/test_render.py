@@ -10,7 +10,13 @@ from pstoolkit.equivalent import equivalent_lights, sample_times
 from pstoolkit.lights import NearRingLight, RingLight
 from pstoolkit.options import defaults
 from pstoolkit.plugins import get_registries
-from pstoolkit.render import Renderer, area_weights, cast_shadow_mask, exposure_samples, integrate
+from pstoolkit.render import (
+    Renderer,
+    area_weights,
+    cast_shadow_mask,
+    exposure_samples,
+    integrate,
+)
 from pstoolkit.scenes import Blobs, SceneMaps, Sphere
 
 LAMBERTIAN = get_registries().brdfs.get("lambertian").obj

@@ -11,7 +11,15 @@ import pytest
 from pstoolkit.errors import UserError
 from pstoolkit.options import defaults
 from pstoolkit.plugins import get_registries
-from pstoolkit.scenes import SCENES, Blobs, Geometry, Relief, SceneMaps, Sphere, normals_from_height
+from pstoolkit.scenes import (
+    SCENES,
+    Blobs,
+    Geometry,
+    Relief,
+    SceneMaps,
+    Sphere,
+    normals_from_height,
+)
 
 
 def build(cls: type, size: int = 32, seed: int = 0, **overrides: object) -> SceneMaps:
