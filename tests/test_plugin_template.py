@@ -15,7 +15,7 @@ import pytest
 import psfmt
 from pstoolkit import plugins
 from pstoolkit.cli import main
-from pstoolkit.cli.run import terminal_progress
+from pstoolkit.cli.app import terminal_progress
 from pstoolkit.errors import UserError
 from pstoolkit.lights import build_light_model
 from pstoolkit.plugins import get_registries

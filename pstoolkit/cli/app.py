@@ -8,6 +8,7 @@ import typer
 
 from psfmt import FormatError
 from pstoolkit.errors import UserError
+from pstoolkit.solver import Progress, no_progress
 
 app = typer.Typer(
     name="pstoolkit",
@@ -18,6 +19,26 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
     context_settings={"help_option_names": ["-h", "--help"]},
 )
+
+
+def terminal_progress(label: str) -> Progress:
+    """A one-line percentage on stderr, redrawn only when the whole percent changes."""
+    shown = [-1]
+
+    def report(fraction: float, message: str) -> None:
+        percent = int(100 * min(max(fraction, 0.0), 1.0))
+        if percent != shown[0]:
+            shown[0] = percent
+            end = "\n" if percent == 100 else ""
+            sys.stderr.write(f"\r{label}: {percent:3d} % {message:<20.20}{end}")
+            sys.stderr.flush()
+
+    return report
+
+
+def progress_bar(label: str, quiet: bool = False) -> Progress:
+    """Progress on a terminal; nothing when ``quiet`` or when stderr is not a terminal (pipes, CI)."""
+    return no_progress if quiet or not sys.stderr.isatty() else terminal_progress(label)
 
 
 def fail(message: str) -> None:

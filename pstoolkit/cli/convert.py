@@ -8,20 +8,17 @@ converter's registry entry, so a plugin's converter gets its command line for fr
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 import typer
 
-from pstoolkit.cli.app import app
-from pstoolkit.cli.run import terminal_progress
+from pstoolkit.cli.app import app, progress_bar
 from pstoolkit.converter import run_converter
 from pstoolkit.errors import UserError
 from pstoolkit.options import Option
 from pstoolkit.plugins import get_registries
 from pstoolkit.registry import Entry
-from pstoolkit.solver import no_progress
 
 HELP_FLAGS = ("-h", "--help")
 
@@ -133,7 +130,7 @@ def convert(
     options = entry.parse_options([*assignments, *pairs])
     if out is None:
         raise UserError(f"convert {entry.name}: give the output with -o OUT")
-    progress = no_progress if quiet or not sys.stderr.isatty() else terminal_progress(f"convert {entry.name}")
+    progress = progress_bar(f"convert {entry.name}", quiet)
     written = run_converter(entry, Path(positional[0]), out, options, progress)
     if not quiet:
         for path in written:

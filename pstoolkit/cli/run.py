@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import re
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -13,30 +12,15 @@ import typer
 
 import psfmt
 from pstoolkit import __version__
-from pstoolkit.cli.app import app
+from pstoolkit.cli.app import app, progress_bar
 from pstoolkit.errors import UserError
 from pstoolkit.evaluation import score
 from pstoolkit.normalmap import write_normal_npy, write_normal_png
 from pstoolkit.outputs import prepare_maps, write_error_map, write_maps
 from pstoolkit.plugins import get_registries
-from pstoolkit.solver import Progress, no_progress, resolve_device, run_solver
+from pstoolkit.solver import Progress, resolve_device, run_solver
 
 _RESULT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
-
-
-def terminal_progress(label: str) -> Progress:
-    """A one-line percentage on stderr, redrawn only when the whole percent changes."""
-    shown = [-1]
-
-    def report(fraction: float, message: str) -> None:
-        percent = int(100 * min(max(fraction, 0.0), 1.0))
-        if percent != shown[0]:
-            shown[0] = percent
-            end = "\n" if percent == 100 else ""
-            sys.stderr.write(f"\r{label}: {percent:3d} % {message:<20.20}{end}")
-            sys.stderr.flush()
-
-    return report
 
 
 def _jsonable(value: Any) -> Any:
@@ -81,12 +65,12 @@ def run(
     result_name = entry.name if name is None else name
     if not _RESULT_NAME.fullmatch(result_name):
         raise UserError(f"--name {result_name!r}: use letters, digits, '.', '_' and '-', starting with a letter or digit")
-    quiet = as_json or not sys.stderr.isatty()
+    quiet = as_json
     demo = capture is None
     if capture is None:
-        capture = _demo_capture(no_progress if quiet else terminal_progress("simulate demo"))
+        capture = _demo_capture(progress_bar("simulate demo", quiet))
     with psfmt.read(capture, verify=True) as data:
-        result, seconds = run_solver(entry, data, options, device=device, progress=no_progress if quiet else terminal_progress(entry.name))
+        result, seconds = run_solver(entry, data, options, device=device, progress=progress_bar(entry.name, quiet))
         normal = np.where(result.mask[..., None], result.normal, np.float32(0.0))
         scored = score(normal, data.ground_truth)
         rate = psfmt.data_rate(data).rate

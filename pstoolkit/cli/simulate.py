@@ -2,17 +2,15 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import typer
 
-from pstoolkit.cli.app import app
-from pstoolkit.cli.run import terminal_progress
+from pstoolkit.cli.app import app, progress_bar
 from pstoolkit.errors import UserError
 from pstoolkit.plugins import get_registries
 from pstoolkit.simulator import SimulationConfig, simulate
-from pstoolkit.solver import no_progress, resolve_device
+from pstoolkit.solver import resolve_device
 
 _DEFAULTS = SimulationConfig()
 
@@ -71,7 +69,7 @@ def simulate_command(
         shadows=shadows,
         device=resolve_device(device),
     )
-    progress = no_progress if quiet or not sys.stderr.isatty() else terminal_progress(f"simulate {scene}")
+    progress = progress_bar(f"simulate {scene}", quiet)
     summary = simulate(config, out, progress)
     if quiet:
         return
