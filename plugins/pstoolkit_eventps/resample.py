@@ -40,8 +40,9 @@ def to_target(normal: np.ndarray, mask: np.ndarray, affine: np.ndarray, target: 
         weight = flat_mask[i].astype(np.float32)
         source = np.concatenate([flat_normal[i] * weight[..., None], weight[..., None]], axis=-1).astype(np.float32)
         sampled = cv2.remap(source, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        length = np.linalg.norm(sampled[..., :3], axis=-1)
+        vector = sampled[..., :3]
+        length = np.sqrt(np.einsum("hwc,hwc->hw", vector, vector))
         inside = (sampled[..., 3] >= 0.5) & (length > 0)
-        out_normal[i][inside] = sampled[..., :3][inside] / length[inside, None]
+        np.divide(vector, length[..., None], out=out_normal[i], where=inside[..., None])
         out_mask[i] = inside
     return out_normal.reshape(normal.shape[:-3] + (h, w, 3)), out_mask.reshape(mask.shape[:-2] + (h, w))
