@@ -144,3 +144,16 @@ def test_missing_calibration_is_one_clear_error() -> None:
     with pytest.raises(UserError, match=r"^eventps: the capture has no contrast threshold in its calibration; set one with --set contrast=C$"):
         _solve(capture)
     assert _solve(capture, f"contrast={CONTRAST}", f"refractory_us={REFRACTORY_US}").mask.sum() == 1
+
+
+def test_closed_form_eigenvectors_match_lapack() -> None:
+    from pstoolkit_eventps.constraints import symmetric_eigen
+
+    rng = np.random.default_rng(3)
+    v = rng.normal(size=(500, 6, 3))
+    sums = np.einsum("bki,bkj->bij", v, v)
+    values, vector = symmetric_eigen(sums)
+    ref_values, ref_vectors = np.linalg.eigh(sums)
+    np.testing.assert_allclose(values, ref_values, rtol=1e-9, atol=1e-9)
+    cosine = np.abs(np.einsum("bi,bi->b", vector, ref_vectors[:, :, 0]))
+    assert np.degrees(np.arccos(np.clip(cosine.min(), -1.0, 1.0))) < 1e-5

@@ -110,15 +110,51 @@ def accumulate(bins: np.ndarray, constraints: Constraints, n_bins: int) -> tuple
     return sums, np.bincount(bins, minlength=n_bins)
 
 
+def symmetric_eigen(sums: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenvalues (B, 3) in ascending order and the unit eigenvector of the smallest (B, 3) of
+    symmetric 3×3 matrices, in closed form (Smith 1961): the trigonometric solution of the
+    characteristic cubic, then the eigenvector as the longest cross product of two rows of
+    A − λ_min·I. Written on the six unique entries as flat arrays, it is several times faster than
+    batched LAPACK ``eigh`` on many tiny matrices, and as accurate when the smallest eigenvalue is
+    separated from the middle one (which the rank test of ``smallest_eigenvectors`` requires)."""
+    a, b, c = sums[:, 0, 0], sums[:, 0, 1], sums[:, 0, 2]
+    d, e, f = sums[:, 1, 1], sums[:, 1, 2], sums[:, 2, 2]
+    q = (a + d + f) / 3.0
+    a0, d0, f0 = a - q, d - q, f - q
+    p = np.sqrt((a0 * a0 + d0 * d0 + f0 * f0 + 2.0 * (b * b + c * c + e * e)) / 6.0)
+    det = a0 * (d0 * f0 - e * e) - b * (b * f0 - e * c) + c * (b * e - d0 * c)
+    cube = np.where(p > 0, p, 1.0) ** 3
+    phi = np.arccos(np.clip(det / (2.0 * cube), -1.0, 1.0)) / 3.0
+    largest = q + 2.0 * p * np.cos(phi)
+    smallest = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    values = np.stack([smallest, 3.0 * q - largest - smallest, largest], axis=1)
+    a1, d1, f1 = a - smallest, d - smallest, f - smallest
+    # rows of A − λI: (a1, b, c), (b, d1, e), (c, e, f1); their three pairwise cross products
+    crosses = np.stack(
+        [
+            np.stack([b * e - c * d1, c * b - a1 * e, a1 * d1 - b * b]),
+            np.stack([b * f1 - c * e, c * c - a1 * f1, a1 * e - b * c]),
+            np.stack([d1 * f1 - e * e, e * c - b * f1, b * e - d1 * c]),
+        ]
+    )  # (3 pairs, 3 components, B)
+    lengths = np.sqrt(np.einsum("pkb,pkb->pb", crosses, crosses))
+    best = np.argmax(lengths, axis=0)
+    columns = np.arange(len(sums))
+    vector = crosses[best, :, columns]
+    norm = lengths[best, columns]
+    vector /= np.where(norm > 0, norm, 1.0)[:, None]
+    return values, vector
+
+
 def smallest_eigenvectors(sums: np.ndarray, counts: np.ndarray, min_pairs: int) -> tuple[np.ndarray, np.ndarray]:
     """Per bin, the unit eigenvector of the smallest eigenvalue, flipped to n_z ≥ 0, for bins with at
     least ``min_pairs`` constraints of rank ≥ 2; zero elsewhere. Returns normals (B, 3) and the
     (B,) bool of determined bins."""
     normal = np.zeros((len(counts), 3))
     candidate = np.flatnonzero(counts >= max(min_pairs, 2))
-    values, vectors = np.linalg.eigh(sums[candidate])
+    values, vectors = symmetric_eigen(sums[candidate])
     determined = values[:, 1] > MIN_RANK_RATIO * values[:, 2]
-    n = vectors[determined, :, 0]
+    n = vectors[determined]
     n *= np.where(n[:, 2] < 0, -1.0, 1.0)[:, None]
     ok = np.zeros(len(counts), dtype=bool)
     ok[candidate[determined]] = True
