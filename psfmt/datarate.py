@@ -75,14 +75,27 @@ def light_periods(capture: Capture) -> float:
     return float(max(1, round((span[1] - span[0]) / float(period))))
 
 
-def data_rate(capture: Capture, *, event_bytes: float | None = None) -> DataRate:
-    """Data per period relative to 24 RGB frames; ``event_bytes`` overrides the 2-bytes-per-event estimate."""
+def data_rate(
+    capture: Capture,
+    *,
+    frames: int | None = None,
+    events: bool = True,
+    event_bytes: float | None = None,
+) -> DataRate:
+    """Data per period relative to 24 RGB frames.
+
+    By default everything the capture holds counts; a solver that used only some of it is accounted
+    with ``frames`` (how many of the capture's frames it read; 0 for none) and ``events=False``.
+    ``event_bytes`` overrides the 2-bytes-per-event estimate (e.g. a real EVT 3.0 encoding)."""
     h, w = target_size(capture)
     periods = light_periods(capture)
-    frames = capture.frames
-    frame_bytes = frames.count * frames.height * frames.width * frames.channels if frames is not None else 0
-    if event_bytes is None:
-        event_bytes = EVENT_WORD_BYTES * (len(capture.events) if capture.events is not None else 0)
+    stack = capture.frames
+    count = 0 if stack is None else stack.count if frames is None else min(int(frames), stack.count)
+    frame_bytes = count * stack.height * stack.width * stack.channels if stack is not None else 0
+    if not events or capture.events is None:
+        event_bytes = 0.0
+    elif event_bytes is None:
+        event_bytes = EVENT_WORD_BYTES * len(capture.events)
     return DataRate(
         frame_bytes=frame_bytes / periods,
         event_bytes=event_bytes / periods,

@@ -177,7 +177,8 @@ class GroundTruth:
 
 @dataclass
 class Result:
-    """Maps a solver wrote (``normal`` (H, W, 3) at least) and how they were made."""
+    """Maps a solver wrote (``normal`` (H, W, 3) at least) and how they were made; ``data_rate`` is the
+    share of 24 RGB frames per period that the solver's inputs amount to (None when unknown)."""
 
     name: str
     maps: dict[str, np.ndarray]
@@ -186,6 +187,7 @@ class Result:
     seconds: float = 0.0
     version: str = ""
     created: str = field(default_factory=utc_now)
+    data_rate: float | None = None
 
 
 @dataclass

@@ -72,6 +72,7 @@ def _read_result(name: str, group: h5py.Group) -> Result:
         seconds=float(attrs.get("seconds", 0.0)),
         version=str(attrs.get("version", "")),
         created=str(attrs.get("created", "")),
+        data_rate=float(attrs["data_rate"]) if "data_rate" in attrs else None,
     )
 
 

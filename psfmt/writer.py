@@ -324,6 +324,8 @@ def put_result(root: h5py.Group, result: Result, compress: dict[str, Any] | None
     group.attrs["seconds"] = float(result.seconds)
     group.attrs["version"] = result.version
     group.attrs["created"] = result.created
+    if result.data_rate is not None:
+        group.attrs["data_rate"] = float(result.data_rate)
 
 
 def write(capture: Capture, path: str | os.PathLike[str], *, compression_level: int = 1) -> Path:

@@ -103,7 +103,7 @@ def read_capture_results(path: Path) -> list[Record]:
     with psfmt.read(path) as capture:
         if not capture.results:
             raise UserError(f"{path}: the capture holds no stored results (store one with `pstoolkit run --store`)")
-        rate = psfmt.data_rate(capture).rate
+        whole = psfmt.data_rate(capture).rate
         records = []
         for name, result in sorted(capture.results.items()):
             normal = result.maps.get("normal")
@@ -112,7 +112,16 @@ def read_capture_results(path: Path) -> list[Record]:
             scored = score(normal, capture.ground_truth)
             stats = scored.stats if scored is not None else {}
             records.append(
-                Record(path.stem, name, stats.get("mae_deg"), stats.get("median_deg"), rate, result.seconds, str(path))
+                Record(
+                    path.stem,
+                    name,
+                    stats.get("mae_deg"),
+                    stats.get("median_deg"),
+                    # a result stored without its data rate counts the whole capture
+                    result.data_rate if result.data_rate is not None else whole,
+                    result.seconds,
+                    str(path),
+                )
             )
     return records
 

@@ -50,12 +50,15 @@ class SolverResult:
     """What a solver returns, at the capture's target resolution (``psfmt.target_size``):
     ``normal`` (H, W, 3) float32 unit vectors in the camera frame (x right, y up, z to the camera),
     ``mask`` (H, W) bool where the normal is meaningful, further ``maps`` (``albedo`` (H, W, 3),
-    ``roughness`` (H, W) …) and JSON-able ``diagnostics``."""
+    ``roughness`` (H, W) …) and JSON-able ``diagnostics``. ``frames_used`` says how many of the
+    capture's frames the solver read when it used only some (None: all of them, if it needs frames);
+    the data rate of the result counts those and, if the solver needs events, the events."""
 
     normal: np.ndarray
     mask: np.ndarray
     maps: dict[str, np.ndarray] = field(default_factory=dict)
     diagnostics: dict[str, Any] = field(default_factory=dict)
+    frames_used: int | None = None
 
     def __post_init__(self) -> None:
         self.normal = np.asarray(self.normal, dtype=np.float32)
@@ -110,6 +113,17 @@ def resolve_device(device: str) -> str:
     if device == "cuda":
         raise UserError("--device cuda: no CUDA GPU is available (use --device cpu or auto)")
     return "cpu"
+
+
+def input_data_rate(entry: Entry, capture: psfmt.Capture, result: SolverResult) -> float:
+    """The data rate (fraction of 24 RGB frames per period) of what the solver read: its frames
+    (``result.frames_used`` of them, or all) if it needs frames, the events if it needs events; a
+    solver that declares neither may read anything, so the whole capture counts."""
+    needs = set(getattr(entry.obj, "needs", ())) & {"frames", "events"}
+    if not needs:
+        return psfmt.data_rate(capture).rate
+    frames = result.frames_used if "frames" in needs else 0
+    return psfmt.data_rate(capture, frames=frames, events="events" in needs).rate
 
 
 def run_solver(

@@ -323,3 +323,24 @@ def test_missing_capture_and_one_lacking_frames(lsq: pytest.MonkeyPatch, tmp_pat
     assert run(events, tmp_path / "out") == 2
     assert capsys.readouterr().err == f"pstoolkit: error: solver 'lsq' needs frames, but {events} has none (events capture)\n"
     assert not (tmp_path / "out").exists()
+
+
+def test_data_rate_counts_only_what_the_solver_read(tmp_path: Path) -> None:
+    """On one hybrid capture, frameps is charged for its frames, eventps for the events, and
+    frameps with frames=K for K frames — the paper's per-method accounting."""
+    capture = tmp_path / "hybrid.h5"
+    assert main(["simulate", "sphere", "-o", str(capture), "--size", "32", "--frames", "6", "--brdf", "lambertian", "--quiet"]) == 0
+    with psfmt.read(capture) as data:
+        n_events = len(data.events)
+    reference = 24 * 32 * 32 * 3
+    frame = 32 * 32 * 3
+    expected = {
+        ("frameps",): 6 * frame / reference,
+        ("frameps", "--set", "frames=3"): 3 * frame / reference,
+        ("eventps",): 2 * n_events / reference,
+    }
+    for args, rate in expected.items():
+        out = tmp_path / "-".join(args).replace("=", "")
+        assert main(["run", str(capture), "--solver", *args, "-o", str(out), "--device", "cpu", "--json"]) == 0
+        assert json.loads((out / "result.json").read_text())["data_rate"] == pytest.approx(rate, rel=1e-12)
+    assert psfmt.data_rate(psfmt.load(capture), frames=1, events=False).rate == pytest.approx(frame / reference)

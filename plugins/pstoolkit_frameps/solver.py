@@ -130,6 +130,7 @@ class FramePS(Solver):
             mask=mask.reshape(h, w),
             maps={"albedo": albedo.reshape(h, w, -1).astype(np.float32)},
             diagnostics=diagnostics,
+            frames_used=k_used,
         )
 
     @staticmethod

@@ -18,7 +18,7 @@ from pstoolkit.evaluation import score
 from pstoolkit.normalmap import write_normal_npy, write_normal_png
 from pstoolkit.outputs import prepare_maps, write_error_map, write_maps
 from pstoolkit.plugins import get_registries
-from pstoolkit.solver import Progress, resolve_device, run_solver
+from pstoolkit.solver import input_data_rate, Progress, resolve_device, run_solver
 
 _RESULT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
 
@@ -73,7 +73,7 @@ def run(
         result, seconds = run_solver(entry, data, options, device=device, progress=progress_bar(entry.name, quiet))
         normal = np.where(result.mask[..., None], result.normal, np.float32(0.0))
         scored = score(normal, data.ground_truth)
-        rate = psfmt.data_rate(data).rate
+        rate = input_data_rate(entry, data, result)
         kind = data.kind
     maps = prepare_maps(result.maps, result.mask, f"plugin {entry.plugin!r}: solver {entry.name!r}")
     stats = scored.stats if scored is not None else {}
@@ -115,6 +115,7 @@ def run(
             options=options,
             seconds=seconds,
             version=__version__,
+            data_rate=rate,
         )
         psfmt.write_result(capture, stored)
         where = f"the demo capture {capture} (a cached file, regenerated without it if the cache is cleared)" if demo else str(capture)
