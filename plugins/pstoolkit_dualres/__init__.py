@@ -1,0 +1,1 @@
+"""First-party plugin: the `dualres` DualResPS solver (frames + events, neural inverse rendering)."""

@@ -1,0 +1,1 @@
+"""First-party plugin: the serial ring-light hardware backend."""
