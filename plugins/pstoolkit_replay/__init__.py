@@ -1,1 +1,13 @@
-"""First-party plugin: the `replay` backend that plays a capture file as if it were the rig."""
+"""First-party plugin: the ``replay`` camera source that plays a capture file as if it were the rig."""
+
+from __future__ import annotations
+
+from pstoolkit import hookimpl
+from pstoolkit.registry import Registry
+
+
+@hookimpl
+def pstoolkit_register_backends(registry: Registry) -> None:
+    from pstoolkit_replay.source import Replay
+
+    registry.register(Replay)

@@ -57,6 +57,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         result = app(args=argv, prog_name="pstoolkit", standalone_mode=False)
         code = result if isinstance(result, int) else 0
+        if code == 130:  # typer turns Ctrl-C inside a command into Exit(130) without a word
+            fail("interrupted")
     except KeyboardInterrupt:
         fail("interrupted")
         code = 130
