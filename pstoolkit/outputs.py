@@ -1,4 +1,7 @@
-"""The files ``pstoolkit run`` writes beside the normal map: a solver's further maps and the error map.
+"""One result folder, as ``pstoolkit run`` and ``pstoolkit batch`` write it: ``solve_capture`` runs a
+solver on a capture file and scores it, ``result_summary`` builds ``result.json``, and
+``write_result_folder`` writes the normal map, the solver's further maps, the error map and, last,
+``result.json``, so a folder holding ``result.json`` holds every file it lists.
 
 Image maps — grey (H, W) or RGB (H, W, 3) at the normal map's size — become 16-bit PNGs with
 pixel = round(value / scale · 65535), clipped to [0, 65535], and 0 outside the mask, so
@@ -15,15 +18,21 @@ colormap (dark blue at 0°, through cyan, green and yellow, to dark red at ``err
 
 from __future__ import annotations
 
+import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 
-from pstoolkit.normalmap import write_npy, write_png
-from pstoolkit.registry import PluginError
+import psfmt
+from pstoolkit import __version__
+from pstoolkit.evaluation import RESULT_FILE, Score, score
+from pstoolkit.normalmap import write_normal_npy, write_normal_png, write_npy, write_png
+from pstoolkit.registry import Entry, PluginError
+from pstoolkit.solver import input_data_rate, no_progress, Progress, run_solver
 
 ROBUST_PERCENTILE = 99.0
 PNG_TOP = 65535
@@ -121,3 +130,100 @@ def write_error_map(folder: Path, error_deg: np.ndarray, error_max_deg: float) -
     """``error.npy`` (float32 degrees, NaN outside the mask) and ``error.png`` (Turbo, see the module)."""
     write_npy(folder / "error.npy", error_deg.astype(np.float32))
     write_png(folder / "error.png", error_to_rgb(error_deg, error_max_deg))
+
+
+@dataclass
+class SolvedCapture:
+    """A solver's result on one capture, ready to write: ``normal`` (H, W, 3) float32, zero outside
+    ``mask``; the prepared further ``maps``; the score against ground truth (None without);
+    solver ``seconds``; the ``data_rate`` of what the solver read; the capture's ``kind``."""
+
+    normal: np.ndarray
+    mask: np.ndarray
+    maps: list[MapOutput]
+    scored: Score | None
+    seconds: float
+    data_rate: float
+    capture_kind: str
+    diagnostics: dict[str, Any]
+
+
+def solve_capture(
+    entry: Entry, capture: Path, options: dict[str, Any], *, device: str, progress: Progress = no_progress
+) -> SolvedCapture:
+    """Read ``capture`` (verified), run the registered solver ``entry`` on it and score the result."""
+    with psfmt.read(capture, verify=True) as data:
+        result, seconds = run_solver(entry, data, options, device=device, progress=progress)
+        normal = np.where(result.mask[..., None], result.normal, np.float32(0.0))
+        scored = score(normal, data.ground_truth)
+        rate = input_data_rate(entry, data, result)
+        kind = data.kind
+    maps = prepare_maps(result.maps, result.mask, f"plugin {entry.plugin!r}: solver {entry.name!r}")
+    return SolvedCapture(normal, result.mask, maps, scored, seconds, rate, kind, result.diagnostics)
+
+
+def result_summary(
+    solved: SolvedCapture,
+    *,
+    entry: Entry,
+    name: str,
+    obj: str,
+    capture: Path,
+    device: str,
+    options: dict[str, Any],
+    error_max_deg: float,
+    stored: bool = False,
+) -> dict[str, Any]:
+    """The content of ``result.json``: what ran on what, the error statistics in degrees (None
+    without ground truth), the data rate, the options and the files of the further maps."""
+    stats = solved.scored.stats if solved.scored is not None else {}
+    return {
+        "name": name,
+        "solver": entry.name,
+        "plugin": entry.plugin,
+        "object": obj,
+        "capture": str(capture),
+        "capture_kind": solved.capture_kind,
+        "size": list(solved.normal.shape[:2]),
+        "seconds": solved.seconds,
+        "mae_deg": stats.get("mae_deg"),
+        "median_deg": stats.get("median_deg"),
+        **{key: stats.get(key) for key in ("below_10", "below_20", "below_30", "n_pixels")},
+        "data_rate": solved.data_rate,
+        "device": device,
+        "options": options,
+        "maps": {output.name: output.files() for output in solved.maps},
+        "error_max_deg": error_max_deg if solved.scored is not None else None,
+        "stored": name if stored else None,
+        "pstoolkit_version": __version__,
+        "diagnostics": solved.diagnostics,
+    }
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return str(value)
+
+
+def summary_json(summary: dict[str, Any]) -> str:
+    """``result.json``'s text (numpy values as plain numbers, anything else unknown as a string)."""
+    return json.dumps(summary, indent=2, default=_jsonable)
+
+
+def write_result_folder(folder: Path, solved: SolvedCapture, summary: dict[str, Any]) -> str:
+    """Write ``normal.npy``, ``normal.png``, the further maps, ``error.npy``/``error.png`` with ground
+    truth, then ``result.json`` (returned as text) into ``folder``, created if needed."""
+    text = summary_json(summary)
+    folder.mkdir(parents=True, exist_ok=True)
+    write_normal_npy(folder / "normal.npy", solved.normal)
+    write_normal_png(folder / "normal.png", solved.normal, solved.mask)
+    write_maps(folder, solved.maps)
+    if solved.scored is not None:
+        write_error_map(folder, solved.scored.error_deg, summary["error_max_deg"])
+    # Last, so a folder with result.json holds every file it lists.
+    with psfmt.atomic_path(folder / RESULT_FILE) as tmp:
+        tmp.write_text(text + "\n")
+    return text

@@ -2,33 +2,20 @@
 
 from __future__ import annotations
 
-import json
 import re
 from pathlib import Path
-from typing import Any
 
-import numpy as np
 import typer
 
 import psfmt
 from pstoolkit import __version__
 from pstoolkit.cli.app import app, progress_bar
 from pstoolkit.errors import UserError
-from pstoolkit.evaluation import score
-from pstoolkit.normalmap import write_normal_npy, write_normal_png
-from pstoolkit.outputs import prepare_maps, write_error_map, write_maps
+from pstoolkit.outputs import result_summary, solve_capture, write_result_folder
 from pstoolkit.plugins import get_registries
-from pstoolkit.solver import input_data_rate, Progress, resolve_device, run_solver
+from pstoolkit.solver import Progress, resolve_device
 
 _RESULT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    return str(value)
 
 
 def _demo_capture(progress: Progress) -> Path:
@@ -69,62 +56,28 @@ def run(
     demo = capture is None
     if capture is None:
         capture = _demo_capture(progress_bar("simulate demo", quiet))
-    with psfmt.read(capture, verify=True) as data:
-        result, seconds = run_solver(entry, data, options, device=device, progress=progress_bar(entry.name, quiet))
-        normal = np.where(result.mask[..., None], result.normal, np.float32(0.0))
-        scored = score(normal, data.ground_truth)
-        rate = input_data_rate(entry, data, result)
-        kind = data.kind
-    maps = prepare_maps(result.maps, result.mask, f"plugin {entry.plugin!r}: solver {entry.name!r}")
-    stats = scored.stats if scored is not None else {}
+    solved = solve_capture(entry, capture, options, device=device, progress=progress_bar(entry.name, quiet))
     obj = "demo" if demo else capture.stem
-    summary = {
-        "name": result_name,
-        "solver": entry.name,
-        "plugin": entry.plugin,
-        "object": obj,
-        "capture": str(capture),
-        "capture_kind": kind,
-        "size": list(normal.shape[:2]),
-        "seconds": seconds,
-        "mae_deg": stats.get("mae_deg"),
-        "median_deg": stats.get("median_deg"),
-        **{key: stats.get(key) for key in ("below_10", "below_20", "below_30", "n_pixels")},
-        "data_rate": rate,
-        "device": device,
-        "options": options,
-        "maps": {output.name: output.files() for output in maps},
-        "error_max_deg": error_max if scored is not None else None,
-        "stored": result_name if store else None,
-        "pstoolkit_version": __version__,
-        "diagnostics": result.diagnostics,
-    }
-    text = json.dumps(summary, indent=2, default=_jsonable)
+    summary = result_summary(
+        solved, entry=entry, name=result_name, obj=obj, capture=capture, device=device, options=options, error_max_deg=error_max, stored=store
+    )
     outdir = out if out is not None else Path("out") / f"{obj}-{result_name}"
-    outdir.mkdir(parents=True, exist_ok=True)
-    write_normal_npy(outdir / "normal.npy", normal)
-    write_normal_png(outdir / "normal.png", normal, result.mask)
-    write_maps(outdir, maps)
-    if scored is not None:
-        write_error_map(outdir, scored.error_deg, error_max)
     if store:
         stored = psfmt.Result(
             name=result_name,
-            maps={"normal": normal, "mask": result.mask, **{m.name: m.array for m in maps}},
+            maps={"normal": solved.normal, "mask": solved.mask, **{m.name: m.array for m in solved.maps}},
             solver=entry.name,
             options=options,
-            seconds=seconds,
+            seconds=solved.seconds,
             version=__version__,
-            data_rate=rate,
+            data_rate=solved.data_rate,
         )
         psfmt.write_result(capture, stored)
         where = f"the demo capture {capture} (a cached file, regenerated without it if the cache is cleared)" if demo else str(capture)
         typer.echo(f"stored result {result_name!r} in {where}", err=True)
-    # Last, so a folder with result.json holds every file it lists.
-    with psfmt.atomic_path(outdir / "result.json") as tmp:
-        tmp.write_text(text + "\n")
+    text = write_result_folder(outdir, solved, summary)
     if as_json:
         typer.echo(text)
         return
-    score_text = f"MAE {summary['mae_deg']:.2f}°, median {summary['median_deg']:.2f}°" if scored is not None else "no ground truth"
-    typer.echo(f"{entry.name} on {capture}: {score_text}, {seconds:.2f} s, data rate {100 * rate:.1f} % → {outdir}")
+    score_text = f"MAE {summary['mae_deg']:.2f}°, median {summary['median_deg']:.2f}°" if solved.scored is not None else "no ground truth"
+    typer.echo(f"{entry.name} on {capture}: {score_text}, {solved.seconds:.2f} s, data rate {100 * solved.data_rate:.1f} % → {outdir}")

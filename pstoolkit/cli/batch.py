@@ -1,0 +1,74 @@
+"""``pstoolkit batch CAPTURE… --solver NAME … -o DIR``: every (capture, solver) pair on Dask distributed."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from pstoolkit.batch import expand_captures, is_complete, local_cluster, plan, run_batch, solver_options, status_counts, write_log
+from pstoolkit.cli.app import app, progress_bar
+from pstoolkit.errors import UserError
+from pstoolkit.solver import DEVICES
+
+
+def _client(scheduler: str | None, workers: int | None) -> tuple[Any, Any]:
+    """A ``distributed.Client`` of the scheduler at ``scheduler``, or of a new LocalCluster sized to
+    the machine (returned too, to close it; None for an existing scheduler)."""
+    from distributed import Client  # deferred: loading dask takes a second that other commands never need
+
+    if scheduler is None:
+        cluster = local_cluster(workers)
+        return Client(cluster, set_as_default=False), cluster
+    if workers is not None:
+        raise UserError("--workers: only for the local cluster; an existing scheduler (--scheduler) has its own workers")
+    try:
+        return Client(scheduler, timeout="20s", set_as_default=False), None
+    except (OSError, ValueError, TypeError) as exc:
+        raise UserError(f"--scheduler {scheduler!r}: cannot connect ({exc})") from None
+
+
+@app.command()
+def batch(
+    captures: list[Path] = typer.Argument(..., help="Capture files, or folders whose *.h5 files are captures."),
+    solvers: list[str] = typer.Option(..., "--solver", help="A registered solver; repeat for more."),
+    out: Path = typer.Option(..., "-o", "--out", help="Output folder: one result folder <object>-<solver> per pair, and batch.json."),
+    assignments: list[str] = typer.Option([], "--set", help="key=value for every solver with that option, or SOLVER.key=value; repeat for more."),
+    scheduler: str | None = typer.Option(None, "--scheduler", help="Address of a running Dask scheduler (tcp://host:8786); default: a local cluster."),
+    workers: int | None = typer.Option(None, "--workers", help="Worker processes of the local cluster (default: one per CPU core)."),
+    device: str = typer.Option("auto", "--device", help="auto (CUDA when a worker has it), cpu or cuda."),
+    error_max: float = typer.Option(30.0, "--error-max", help="Angular error (degrees) at the top of error.png's colour scale."),
+    quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
+) -> None:
+    """Run every solver on every capture, one Dask task per (capture, solver) pair. Each pair writes
+    the folder `pstoolkit run` would (normal maps, error map, result.json) into DIR/<object>-<solver>,
+    atomically; a rerun skips the pairs whose folder is complete, so an interrupted batch resumes. A
+    failing pair is reported and recorded in DIR/batch.json and the others go on. Exit code 0 when
+    every pair succeeded, 1 when any failed, 2 on bad input."""
+    if not error_max > 0:
+        raise UserError(f"--error-max {error_max:g}: must be a positive number of degrees")
+    if device not in DEVICES:
+        raise UserError(f"--device {device!r}: expected one of {', '.join(DEVICES)}")
+    if out.exists() and not out.is_dir():
+        raise UserError(f"{out}: exists and is not a folder")
+    pairs = plan(expand_captures(captures), solver_options(solvers, assignments), out, device=device, error_max_deg=error_max)
+    progress = progress_bar("batch", quiet)
+    if all(is_complete(pair) for pair in pairs):
+        outcomes = run_batch(pairs, None, progress)  # nothing to compute: no cluster to start
+    else:
+        client, cluster = _client(scheduler, workers)
+        try:
+            outcomes = run_batch(pairs, client, progress)
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+    log = write_log(out, outcomes)
+    failed = [o for o in outcomes if o.status == "failed"]
+    for outcome in failed:
+        typer.echo(f"pstoolkit: failed: {outcome.object} × {outcome.solver}: {outcome.error}", err=True)
+    counts = status_counts(outcomes)
+    typer.echo(f"{len(pairs)} pairs: {counts['done']} done, {counts['skipped']} skipped, {counts['failed']} failed → {out} (log {log.name})")
+    if failed:
+        raise typer.Exit(1)
