@@ -79,6 +79,7 @@ def test_info_text_of_a_hybrid_capture(tmp_path: Path, capsys: pytest.CaptureFix
         "  ground truth: normal, mask, albedo, depth, f0, roughness",
         "  results: eventps (eventps, 1.25 s)",
         f"  data rate: {total:.1f} % of 24 RGB frames per period (frames 12.5 %, events 2.7 %, 1 period(s))",
+        "  EVT 3.0: 17,762 bytes (4.44 per event; 16-bit estimate 8,000), data rate 18.5 % (events 6.0 %)",
     ]
     assert f"{total:.1f}" == "15.2"
 

@@ -1,1 +1,17 @@
-"""First-party plugin: event-file converters (Prophesee RAW EVT 3.0/2.0, DSEC-style HDF5)."""
+"""First-party plugin: event-file converters (Prophesee RAW EVT 3.0/2.0, DSEC-style HDF5).
+
+The import sits inside the hook, so the command line starts without loading this plugin's modules.
+"""
+
+from __future__ import annotations
+
+from pstoolkit import hookimpl
+from pstoolkit.registry import Registry
+
+
+@hookimpl
+def pstoolkit_register_converters(registry: Registry) -> None:
+    from pstoolkit_eventfiles.converters import Dsec, Raw
+
+    for converter in (Raw, Dsec):
+        registry.register(converter)

@@ -69,7 +69,26 @@ def describe(capture: psfmt.Capture) -> dict[str, Any]:
         "periods": rate.periods,
         "accounting": "per light period; frames as 24-bit RGB, events as 16-bit EVT 3.0 words; 1.0 = 24 RGB frames",
     }
+    if events is not None:
+        out["event_encoding"] = event_encoding(capture)
     return out
+
+
+def event_encoding(capture: psfmt.Capture) -> dict[str, Any]:
+    """The real EVT 3.0 size of the capture's events (words only, no header) beside the 16-bit
+    estimate, and the data rate with the real size."""
+    from psfmt.evt3 import encoded_size  # here, so that other commands start without numba's import
+
+    assert capture.events is not None
+    evt3 = encoded_size(capture.events.chunks())
+    rate = psfmt.data_rate(capture, event_bytes=evt3)
+    return {
+        "evt3_bytes": evt3,
+        "estimate_bytes": 2 * len(capture.events),
+        "bytes_per_event": evt3 / len(capture.events) if len(capture.events) else 0.0,
+        "data_rate_total": rate.rate,
+        "data_rate_events": rate.event_rate,
+    }
 
 
 def _text(d: dict[str, Any]) -> str:
@@ -108,6 +127,13 @@ def _text(d: dict[str, Any]) -> str:
         f"  data rate: {100 * r['total']:.1f} % of 24 RGB frames per period "
         f"(frames {100 * r['frames']:.1f} %, events {100 * r['events']:.1f} %, {r['periods']:g} period(s))"
     )
+    if "event_encoding" in d:
+        e = d["event_encoding"]
+        lines.append(
+            f"  EVT 3.0: {e['evt3_bytes']:,} bytes ({e['bytes_per_event']:.2f} per event; 16-bit estimate "
+            f"{e['estimate_bytes']:,}), data rate {100 * e['data_rate_total']:.1f} % "
+            f"(events {100 * e['data_rate_events']:.1f} %)"
+        )
     return "\n".join(lines)
 
 

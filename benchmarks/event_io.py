@@ -1,0 +1,132 @@
+"""EVT 3.0 decode and encode throughput, side by side with the ``evt3`` package (extra ``bench``).
+
+Makes a 10 M-event stream shaped like a sensor's output (bursts of neighbouring pixels of one row,
+time and polarity, as moving edges give, plus 30 % isolated events; 1280×720, about 2 s, crossing
+no wrap), writes it as a RAW file with psfmt's encoder, then decodes the same file with ``evt3``
+and with psfmt's engines (compiled numba loop when installed, vectorised numpy always), checks that
+every engine gives exactly ``evt3``'s events, and times encoding per engine. Each figure is the best
+of ``--repeats`` runs. Prints a table and writes ``benchmarks/results/event_io.json``.
+
+Targets: decode ≥ 50 % of ``evt3``'s events/s on the same file; encode ≥ 20 M events/s.
+
+    python benchmarks/event_io.py [--events 10000000] [--repeats 3] [--seed 0]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import psfmt
+from psfmt import evt3
+from psfmt.rawheader import read_header
+
+RESULTS = Path(__file__).resolve().parent / "results" / "event_io.json"
+SENSOR_W, SENSOR_H = 1280, 720
+DURATION_US = 2_000_000
+TARGET_DECODE_SHARE = 0.5
+TARGET_ENCODE_EV_S = 20e6
+
+
+def make_events(n: int, rng: np.random.Generator) -> psfmt.EventArray:
+    """Bursts (mean 8 pixels, 70 % of a run of one row filled) and isolated events, sorted by
+    (t, y, x) as a sensor reads them out."""
+    isolated = int(0.3 * n)
+    bursts = (n - isolated) // 8 + 1
+    length = rng.integers(2, 15, bursts)
+    start = np.repeat(np.cumsum(length) - length, length)
+    offset = np.arange(int(length.sum())) - start
+    burst = np.repeat(np.arange(bursts), length)
+    keep = rng.random(len(burst)) < 0.7
+    burst, offset = burst[keep], offset[keep]
+    bx, by = rng.integers(0, SENSOR_W - 16, bursts), rng.integers(0, SENSOR_H, bursts)
+    bt, bp = rng.integers(0, DURATION_US, bursts), rng.choice(np.array([-1, 1], np.int8), bursts)
+    m = n - isolated
+    burst, offset = burst[:m], offset[:m]
+    x = np.concatenate([bx[burst] + offset, rng.integers(0, SENSOR_W, n - len(burst))])
+    y = np.concatenate([by[burst], rng.integers(0, SENSOR_H, n - len(burst))])
+    t = np.concatenate([bt[burst], rng.integers(0, DURATION_US, n - len(burst))])
+    p = np.concatenate([bp[burst], rng.choice(np.array([-1, 1], np.int8), n - len(burst))])
+    order = np.lexsort((x, y, t))
+    return psfmt.EventArray(x[order], y[order], t[order], p[order])
+
+
+def best(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
+    times, out = [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return min(times), out
+
+
+def same(a: psfmt.EventArray, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray) -> bool:
+    return (
+        len(a) == len(t)
+        and np.array_equal(a.x, x)
+        and np.array_equal(a.y, y)
+        and np.array_equal(a.t, np.asarray(t, np.int64))
+        and np.array_equal(a.p, np.where(np.asarray(p) > 0, 1, -1))
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--events", type=int, default=10_000_000)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    events = make_events(args.events, np.random.default_rng(args.seed))
+    n = len(events)
+    engines = ["numba", "numpy"] if evt3.has_numba() else ["numpy"]
+    rows: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "bench.raw"
+        evt3.write_raw(path, [events], SENSOR_W, SENSOR_H)
+        size = path.stat().st_size
+        written = path.read_bytes()[read_header(path).data_offset :]
+        try:
+            import evt3 as vendor
+        except ImportError:
+            vendor = None
+        vendor_rate = None
+        if vendor is not None:
+            seconds, theirs = best(lambda: vendor.decode_file(str(path)), args.repeats)
+            vendor_rate = n / seconds
+            rows.append({"what": f"decode evt3 {vendor.__version__}", "seconds": seconds, "ev_per_s": vendor_rate, "exact": True})
+            reference = (theirs.x, theirs.y, theirs.t, theirs.p)
+        for engine in engines:
+            evt3.Evt3File(path, engine=engine, chunk_words=1 << 12).read()  # compile / warm up
+            seconds, (ours, _) = best(lambda e=engine: evt3.Evt3File(path, engine=e).read(), args.repeats)
+            exact = same(ours, *reference) if vendor is not None else same(ours, events.x, events.y, events.t, events.p)
+            row = {"what": f"decode psfmt {engine}", "seconds": seconds, "ev_per_s": n / seconds, "exact": exact}
+            if vendor_rate:
+                row["share_of_evt3"] = (n / seconds) / vendor_rate
+            rows.append(row)
+        for engine in engines:
+            evt3.encode(events[:1000], engine=engine)
+            seconds, data = best(lambda e=engine: evt3.encode(events, engine=e), args.repeats)
+            rows.append({"what": f"encode psfmt {engine}", "seconds": seconds, "ev_per_s": n / seconds, "exact": data == written})
+    print(f"{n:,} events, EVT 3.0 file {size / 1e6:.1f} MB ({size / n:.2f} bytes/event); {platform.processor() or platform.machine()}")
+    print(f"{'':24} {'seconds':>9} {'M events/s':>11} {'of evt3':>8}  exact")
+    for r in rows:
+        share = f"{100 * r['share_of_evt3']:.0f} %" if "share_of_evt3" in r else ""
+        print(f"{r['what']:24} {r['seconds']:9.3f} {r['ev_per_s'] / 1e6:11.1f} {share:>8}  {r['exact']}")
+    decode_ok = [r for r in rows if r["what"].startswith("decode psfmt") and r.get("share_of_evt3", 0) >= TARGET_DECODE_SHARE]
+    encode_ok = [r for r in rows if r["what"].startswith("encode") and r["ev_per_s"] >= TARGET_ENCODE_EV_S]
+    print(f"targets: decode ≥ {100 * TARGET_DECODE_SHARE:.0f} % of evt3: {'met by ' + decode_ok[0]['what'] if decode_ok else 'NOT met'}; "
+          f"encode ≥ {TARGET_ENCODE_EV_S / 1e6:.0f} M events/s: {'met by ' + encode_ok[0]['what'] if encode_ok else 'NOT met'}")
+    RESULTS.parent.mkdir(exist_ok=True)
+    RESULTS.write_text(json.dumps({"events": n, "file_bytes": size, "engines": engines, "rows": rows}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
