@@ -1,0 +1,154 @@
+"""Approximated irradiance at the super pixels over one period (supplement eq. 1).
+
+Î(t) = s_j · exp(L(t)) · (1 − m_c(t)), where L is the cumulative log change of the events,
+
+    L_k = Σ_{κ ≤ k} (log α_κ + p_κ C^{p_κ}),
+
+α_κ compensates the change the sensor missed in its refractory period R after event κ−1 (it is
+blind then and resets its reference at the end, ``pstoolkit.eventmodel``): assuming the log changed
+at a constant rate over the interval, log α_κ = p_κ C · R / (Δt_κ − R), with the denominator floored
+at R so at most one more threshold is credited. L is linear between events (that same constant
+rate), and the residual drift over the period (what the compensation could not recover, mostly
+at shadow edges) is removed linearly in time so L is periodic. The scale s takes one value per
+exposure window — at most three per period for three frames — chosen so that ∫ Î dt over the window
+equals the super pixel's frame value (the area mean of its frame pixels, in saturation units):
+the frames fix the absolute level the events cannot. Inside detected shadows Î = 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pstoolkit.lights import US_PER_S
+from pstoolkit_dualres.shadows import ShadowTable
+
+# Midpoint-rule samples per exposure window when fitting the scale s.
+SCALE_SAMPLES = 96
+# Super pixels per block when fitting the scale, so a block's (pixels, samples) arrays stay small.
+SCALE_BLOCK = 4096
+
+
+def refractory_log_alpha(p: np.ndarray, contrast: np.ndarray, interval_us: np.ndarray, refractory_us: float) -> np.ndarray:
+    """log α: the log change credited to the refractory period before each event (constant-rate
+    assumption; ``interval_us`` is the time since the previous event of the pixel)."""
+    if refractory_us <= 0:
+        return np.zeros(len(p))
+    seen = np.maximum(np.asarray(interval_us, dtype=np.float64) - refractory_us, refractory_us)
+    return p * contrast * refractory_us / seen
+
+
+@dataclass
+class Irradiance:
+    """Î per super pixel as knots of L (keys ``pixel·3T + T + phase``, phases in [−T, 2T) so every
+    pixel's knots cover its whole period), the scale ``scale`` (n_pixels, J) per window (saturation
+    units per second) of windows ``bounds_us`` (J+1,) phases, and the shadows ``shadows``."""
+
+    knot_key: np.ndarray
+    knot_log: np.ndarray
+    scale: np.ndarray
+    bounds_us: np.ndarray
+    shadows: ShadowTable | None
+    period_us: float
+
+    def log_level(self, pixel: np.ndarray, phase_us: np.ndarray) -> np.ndarray:
+        """L at event pixels ``pixel`` and phases ``phase_us`` (reduced modulo the period)."""
+        period = self.period_us
+        key = np.asarray(pixel, dtype=np.float64) * 3.0 * period + period + np.mod(phase_us, period)
+        return np.interp(key, self.knot_key, self.knot_log)
+
+    def window(self, phase_us: np.ndarray) -> np.ndarray:
+        """Index of the exposure window holding each phase (the last one past its end)."""
+        phase = np.mod(np.asarray(phase_us, dtype=np.float64), self.period_us)
+        return np.clip(np.searchsorted(self.bounds_us, phase, side="right") - 1, 0, len(self.bounds_us) - 2)
+
+    def lit(self, pixel: np.ndarray, phase_us: np.ndarray) -> np.ndarray:
+        """1 − m_c: False inside a detected shadow."""
+        if self.shadows is None:
+            return np.ones(np.shape(phase_us), dtype=bool)
+        return ~self.shadows.contains(pixel, phase_us)
+
+    def value(self, pixel: np.ndarray, phase_us: np.ndarray) -> np.ndarray:
+        """Î (saturation units per second) at event pixels and phases."""
+        pixel = np.asarray(pixel, dtype=np.int64)
+        level = np.exp(self.log_level(pixel, phase_us))
+        return self.scale[pixel, self.window(phase_us)] * level * self.lit(pixel, phase_us)
+
+
+def approximate(
+    pixel: np.ndarray,
+    t_us: np.ndarray,
+    p: np.ndarray,
+    first: np.ndarray,
+    count: np.ndarray,
+    *,
+    n_pixels: int,
+    period_us: float,
+    contrast_pos: float,
+    contrast_neg: float,
+    refractory_us: float,
+    bounds_us: np.ndarray,
+    frame_values: np.ndarray,
+    shadows: ShadowTable | None,
+) -> Irradiance:
+    """Î from one period's events grouped by pixel (``pixel``, phase ``t_us``, polarity ``p``,
+    ``first``/``count`` as in ``profile.Profile``) and the super pixels' frame values
+    ``frame_values`` (n_pixels, J) over windows ``bounds_us`` (J+1,) phases."""
+    period = float(period_us)
+    n = len(t_us)
+    local = np.arange(n) - first
+    previous = first + np.mod(local - 1, np.maximum(count, 1))
+    interval = np.where(count == 1, period, np.mod(t_us - t_us[previous], period))
+    contrast = np.where(p > 0, contrast_pos, contrast_neg)
+    step = p * contrast + refractory_log_alpha(p, contrast, interval, refractory_us)
+    # the first event of a pixel is the origin L = 0; its step closes the cycle
+    step_after_first = np.where(local == 0, 0.0, step)
+    level = _grouped_cumsum(step_after_first, first)
+    drift = np.bincount(pixel, weights=step, minlength=n_pixels)[pixel] if n else np.empty(0)
+    level -= drift * (t_us - t_us[first]) / period
+    keys, logs = _knots(pixel, t_us, level, first, count, n_pixels, period)
+    irradiance = Irradiance(keys, logs, np.ones((n_pixels, len(bounds_us) - 1)), np.asarray(bounds_us, float), shadows, period)
+    irradiance.scale = _fit_scale(irradiance, np.asarray(frame_values, dtype=np.float64))
+    return irradiance
+
+
+def _grouped_cumsum(values: np.ndarray, first: np.ndarray) -> np.ndarray:
+    """Cumulative sum restarting at each group's first element."""
+    total = np.cumsum(values)
+    return total - (total[first] - values[first])
+
+
+def _knots(
+    pixel: np.ndarray, t_us: np.ndarray, level: np.ndarray, first: np.ndarray, count: np.ndarray, n_pixels: int, period: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted interpolation knots: every event, plus each pixel's last event one period earlier and
+    its first one period later (so L wraps), plus flat knots at 0 and T for pixels without events."""
+    starts = np.flatnonzero(np.r_[True, pixel[1:] != pixel[:-1]]) if len(pixel) else np.empty(0, np.int64)
+    ends = starts + count[starts] - 1
+    silent = np.setdiff1d(np.arange(n_pixels), pixel[starts])
+    key_pixel = np.concatenate([pixel, pixel[starts], pixel[starts], silent, silent]).astype(np.float64)
+    phase = np.concatenate([t_us, t_us[ends] - period, t_us[starts] + period, np.zeros(len(silent)), np.full(len(silent), period)])
+    logs = np.concatenate([level, level[ends], level[starts], np.zeros(2 * len(silent))])
+    keys = key_pixel * 3.0 * period + period + phase
+    order = np.argsort(keys, kind="stable")
+    return keys[order], logs[order]
+
+
+def _fit_scale(irradiance: Irradiance, frame_values: np.ndarray) -> np.ndarray:
+    """s per (pixel, window) so the midpoint-rule integral of Î over each window is its frame value."""
+    n_pixels, n_windows = frame_values.shape
+    scale = np.zeros((n_pixels, n_windows))
+    bounds = irradiance.bounds_us
+    for j in range(n_windows):
+        width = bounds[j + 1] - bounds[j]
+        phase = bounds[j] + (np.arange(SCALE_SAMPLES) + 0.5) * width / SCALE_SAMPLES
+        dt_s = width / SCALE_SAMPLES / US_PER_S
+        for start in range(0, n_pixels, SCALE_BLOCK):
+            pix = np.arange(start, min(start + SCALE_BLOCK, n_pixels))
+            grid_pixel = np.repeat(pix, SCALE_SAMPLES)
+            grid_phase = np.tile(phase, len(pix))
+            unscaled = np.exp(irradiance.log_level(grid_pixel, grid_phase)) * irradiance.lit(grid_pixel, grid_phase)
+            integral = unscaled.reshape(len(pix), SCALE_SAMPLES).sum(axis=1) * dt_s
+            scale[pix, j] = np.where(integral > 0, frame_values[pix, j] / np.where(integral > 0, integral, 1.0), 0.0)
+    return scale
