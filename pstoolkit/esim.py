@@ -13,6 +13,14 @@ each pixel sees ``L = ln(I + ε)`` and fires by the rule of ``pstoolkit.eventmod
   span. As in ESIM, a change that starts and ends between two samples is not seen. The number of
   samples is set by the fastest pixel: a pixel leaving attached shadow (I from 0, so ln(I + ε)
   jumps by ≈ 7) forces steps near ``min_dt_us``, and the cost is about samples × pixels.
+- **Per-pixel refinement** (optional ``render_pixels(t_us, pixel)``, single pixels at single times):
+  a split interval's new times are rendered only for the pixels whose own ``|ΔL|`` over it exceeds
+  ``max_dlog``; every other pixel takes the value on its line, which is what the rule above assumes
+  of it anyway, so each pixel is sampled as finely as it needs and no finer. The whole-frame renders
+  then follow the share of pixels needing refinement (see ``_adaptive_blocks``), or fixed times
+  (``sample_times_us``), and a terminator sweeping the sensor costs a few pixels per fine step
+  instead of whole frames (the simulator's 256² sphere, one turn: 1383 whole-frame renders before;
+  now only the frames' 510 midpoint samples, shared with them, plus ~0.2 M single event pixels).
 - **Crossings.** ``L`` (held in float32, ≈ 1e-6 absolute) is linear between samples; every crossing
   inside a step is emitted at its own exact time on that line (float64), then rounded half up to
   int64 µs. Positive events step the reference by ``C⁺``, negative by ``C⁻``; per-pixel thresholds
@@ -36,6 +44,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -45,6 +54,12 @@ from pstoolkit.eventmodel import LOG_EPS, log_irradiance
 
 MIN_CONTRAST = 0.01
 Render = Callable[[np.ndarray], np.ndarray]
+RenderPixels = Callable[[np.ndarray, np.ndarray], np.ndarray]
+# Shares of the sensor's pixels needing refinement in one interval above / below which the step of
+# full renders is halved / doubled when pixels can be rendered alone (``render_pixels``): full
+# renders are cheaper per pixel, so they should carry all but a few per cent of the pixels.
+REFINE_SHARE_HIGH = 0.02
+REFINE_SHARE_LOW = 0.002
 
 
 def _check_options(
@@ -69,6 +84,13 @@ def _check_options(
         raise UserError(f"simulate_events: chunk_samples must be at least 2, got {chunk_samples}")
 
 
+def _check_sample_times(sample_times_us: np.ndarray, t0_us: float, t1_us: float) -> np.ndarray:
+    times = np.asarray(sample_times_us, dtype=np.float64).reshape(-1)
+    if times.size and not (times[0] > t0_us and times[-1] < t1_us and np.all(np.diff(times) > 0)):
+        raise UserError("simulate_events: sample_times_us must increase strictly inside (t0_us, t1_us)")
+    return np.append(times, t1_us)
+
+
 def draw_thresholds(rng: np.random.Generator, contrast: float, sigma: float, n_pixels: int) -> np.ndarray:
     """Per-pixel contrast thresholds ``N(contrast, sigma)`` clamped to ≥ ``MIN_CONTRAST``."""
     if sigma == 0:
@@ -84,6 +106,16 @@ def _log_frames(render: Render, t_us: np.ndarray, shape: tuple[int, int], eps: f
     if not (irradiance.min() >= 0 and np.isfinite(irradiance.max())):
         raise UserError("simulate_events: render returned negative or non-finite irradiance")
     return log_irradiance(irradiance, eps, np.float32).reshape(len(t_us), -1)
+
+
+def _log_pixels(render_pixels: RenderPixels, t_us: np.ndarray, pixel: np.ndarray, eps: float) -> np.ndarray:
+    """``ln(I + ε)`` of single pixels at single times, float32."""
+    irradiance = np.asarray(render_pixels(t_us, pixel))
+    if irradiance.shape != (len(t_us),):
+        raise UserError(f"simulate_events: render_pixels returned shape {irradiance.shape}, expected {(len(t_us),)}")
+    if not (irradiance.size == 0 or (irradiance.min() >= 0 and np.isfinite(irradiance.max()))):
+        raise UserError("simulate_events: render_pixels returned negative or non-finite irradiance")
+    return log_irradiance(irradiance, eps, np.float32)
 
 
 def _largest_change(l_prev: np.ndarray, block: np.ndarray) -> np.ndarray:
@@ -104,12 +136,14 @@ def _rows_change(l_prev: np.ndarray, block: np.ndarray, rows: np.ndarray) -> np.
 
 
 def _refine(
-    log_render: Callable[[np.ndarray], np.ndarray], t_prev: float, l_prev: np.ndarray, times: np.ndarray,
-    block: np.ndarray, max_dlog: float, min_dt_us: float, cap: int,
+    log_render: Callable[[np.ndarray], np.ndarray], log_render_pixels: RenderPixels | None, t_prev: float,
+    l_prev: np.ndarray, times: np.ndarray, block: np.ndarray, max_dlog: float, min_dt_us: float, cap: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Split intervals whose |ΔL| exceeds ``max_dlog`` until none does, keeping at most ``cap`` samples
     (a prefix of the block: later samples are dropped rather than held). Returns times, frames and
-    each interval's largest |ΔL|."""
+    each interval's largest |ΔL|. With ``log_render_pixels`` only the pixels whose own |ΔL| over a
+    split interval exceeds ``max_dlog`` are rendered at the new times; the others take the value on
+    their line, which is what they would be assumed to do anyway."""
     change = _largest_change(l_prev, block)
     while True:
         starts = np.concatenate(([t_prev], times[:-1]))
@@ -125,6 +159,9 @@ def _refine(
         keep = max(1, int(np.searchsorted(np.cumsum(pieces), cap, side="right")))
         pieces = pieces[:keep]
         pieces[0] = min(pieces[0], cap)
+        if np.all(pieces == 1):
+            # the cap fell just before the first interval to split: the prefix is final as it is
+            return times[:keep], block[:keep], change[:keep]
         ends = np.cumsum(pieces) - 1
         new_count = pieces - 1
         owner = np.repeat(np.arange(keep), new_count)
@@ -135,7 +172,10 @@ def _refine(
         merged_times[new_slots] = starts[owner] + lengths[owner] * rank / pieces[owner]
         merged = np.empty((ends[-1] + 1, block.shape[1]), dtype=block.dtype)
         merged[ends] = block[:keep]
-        merged[new_slots] = log_render(merged_times[new_slots])
+        if log_render_pixels is None:
+            merged[new_slots] = log_render(merged_times[new_slots])
+        else:
+            _fill_split(log_render_pixels, merged, merged_times, l_prev, ends, owner, rank, pieces, new_slots, max_dlog)
         merged_change = np.empty(ends[-1] + 1)
         merged_change[ends] = change[:keep]
         redo = np.concatenate((new_slots, ends[pieces > 1]))
@@ -143,19 +183,69 @@ def _refine(
         times, block, change = merged_times, merged, merged_change
 
 
+def _fill_split(
+    log_render_pixels: RenderPixels, merged: np.ndarray, merged_times: np.ndarray, l_prev: np.ndarray,
+    ends: np.ndarray, owner: np.ndarray, rank: np.ndarray, pieces: np.ndarray, new_slots: np.ndarray,
+    max_dlog: float,
+) -> None:
+    """Fill the new rows ``new_slots`` of ``merged``: every pixel on the line between its owner
+    interval's end samples, then the pixels whose change over that interval exceeds ``max_dlog``
+    rendered at the new times."""
+    end_rows = ends[owner]
+    start_rows = end_rows - pieces[owner]
+    end = merged[end_rows]
+    start = merged[np.maximum(start_rows, 0)]
+    start[start_rows < 0] = l_prev
+    change = end - start
+    frac = (rank / pieces[owner]).astype(merged.dtype)[:, None]
+    filled = start + frac * change
+    row, pixel = np.nonzero(np.abs(change) > max_dlog)
+    if row.size:
+        filled[row, pixel] = log_render_pixels(merged_times[new_slots][row], pixel)
+    merged[new_slots] = filled
+
+
+def _share_over(l_prev: np.ndarray, block: np.ndarray, max_dlog: float) -> float:
+    """Largest share of pixels whose |ΔL| exceeds ``max_dlog`` over one interval of the block."""
+    before = np.concatenate((l_prev[None], block[:-1]))
+    return float((np.abs(block - before) > max_dlog).mean(axis=1).max())
+
+
 def _adaptive_blocks(
-    log_render: Callable[[np.ndarray], np.ndarray], t0_us: float, t1_us: float, l_start: np.ndarray,
-    max_dlog: float, initial_dt_us: float, min_dt_us: float, cap: int,
+    log_render: Callable[[np.ndarray], np.ndarray], log_render_pixels: RenderPixels | None, t0_us: float,
+    t1_us: float, l_start: np.ndarray, max_dlog: float, initial_dt_us: float, min_dt_us: float, cap: int,
+    sample_times_us: np.ndarray | None = None,
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    """Blocks of (sample times (n,), log frames (n, H·W)) covering (t0_us, t1_us], in order."""
+    """Blocks of (sample times (n,), log frames (n, H·W)) covering (t0_us, t1_us], in order; the full
+    renders are at ``sample_times_us`` (sorted, ending at ``t1_us``) when given, else stepped adaptively.
+
+    Without ``log_render_pixels`` the step of the next block follows the mean step of this one
+    (refinement included). With it, refinement is per pixel and cheap, so the step of the full
+    renders follows the share of pixels that needed refining instead: halved above
+    ``REFINE_SHARE_HIGH``, doubled below ``REFINE_SHARE_LOW``. A block then renders at most a
+    quarter of ``cap`` full frames, leaving room for the refined samples."""
     t_prev, l_prev, dt = float(t0_us), l_start, float(initial_dt_us)
+    base_cap = cap if log_render_pixels is None else max(2, cap // 4)
     while t_prev < t1_us:
-        n = int(min(cap, math.ceil((t1_us - t_prev) / dt)))
-        times = t_prev + dt * np.arange(1, n + 1)
-        times[-1] = min(times[-1], t1_us)
-        times, block, change = _refine(log_render, t_prev, l_prev, times, log_render(times), max_dlog, min_dt_us, cap)
-        mean_step = (times[-1] - t_prev) / len(times)
-        dt = mean_step * float(np.clip(0.8 * max_dlog / max(change.max(), 1e-12), 1.0, 2.0))
+        if sample_times_us is not None:
+            first = int(np.searchsorted(sample_times_us, t_prev, side="right"))
+            times = sample_times_us[first : first + base_cap]
+        else:
+            n = int(min(base_cap, math.ceil((t1_us - t_prev) / dt)))
+            times = t_prev + dt * np.arange(1, n + 1)
+            times[-1] = min(times[-1], t1_us)
+        block = log_render(times)
+        adaptive = log_render_pixels is not None and sample_times_us is None
+        share = _share_over(l_prev, block, max_dlog) if adaptive else 0.0
+        times, block, change = _refine(log_render, log_render_pixels, t_prev, l_prev, times, block, max_dlog,
+                                       min_dt_us, cap)
+        if log_render_pixels is None:
+            mean_step = (times[-1] - t_prev) / len(times)
+            dt = mean_step * float(np.clip(0.8 * max_dlog / max(change.max(), 1e-12), 1.0, 2.0))
+        elif share > REFINE_SHARE_HIGH:
+            dt = max(0.5 * dt, min_dt_us)
+        elif share < REFINE_SHARE_LOW:
+            dt = 2.0 * dt
         t_prev, l_prev = float(times[-1]), block[-1].copy()
         yield times, block
 
@@ -309,6 +399,8 @@ def simulate_events(
     min_dt_us: float = 1.0,
     shot_noise_hz: float = 0.0,
     leak_hz: float = 0.0,
+    render_pixels: RenderPixels | None = None,
+    sample_times_us: np.ndarray | None = None,
 ) -> Iterator[EventArray]:
     """Events of a ``width``×``height`` sensor watching ``render`` from ``t0_us`` to ``t1_us`` (see the
     module docstring for the model). Yields non-empty ``EventArray`` chunks in time order.
@@ -318,13 +410,20 @@ def simulate_events(
     largest log change allowed between samples (default ``0.5·min(C⁺, C⁻)``), ``initial_dt_us`` the
     first sampling step, ``chunk_samples`` the most times rendered or held at once, ``min_dt_us`` the
     shortest interval that is still split (a jump in irradiance is resolved to this), ``leak_hz`` and
-    ``shot_noise_hz`` the noise rates per pixel.
+    ``shot_noise_hz`` the noise rates per pixel. ``render_pixels(t_us (M,), pixel (M,)) -> (M,)``,
+    optional, gives the irradiance of single pixels (``pixel`` = y·width + x) at single times: with
+    it, refinement renders only the pixels that need it (see the module docstring).
+    ``sample_times_us``, optional, fixes the times of the whole-frame renders (increasing, inside
+    (t0_us, t1_us); t1_us is added) instead of the adaptive steps, so a caller can share them with
+    other work (the simulator integrates its frames on them); refinement still applies.
     """
     if max_dlog is None:
         max_dlog = 0.5 * min(contrast_pos, contrast_neg)
     _check_options(t0_us, t1_us, width, height, {"contrast_pos": contrast_pos, "contrast_neg": contrast_neg},
                    sigma, refractory_us, eps, max_dlog, initial_dt_us, chunk_samples, min_dt_us,
                    {"shot_noise_hz": shot_noise_hz, "leak_hz": leak_hz})
+    if sample_times_us is not None:
+        sample_times_us = _check_sample_times(sample_times_us, float(t0_us), float(t1_us))
     n_pixels = width * height
     rng_thresholds, rng_leak, rng_shot = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
     c_pos = draw_thresholds(rng_thresholds, contrast_pos, sigma, n_pixels)
@@ -344,8 +443,11 @@ def simulate_events(
                      np.full(n_pixels, np.inf), float(refractory_us))
 
     t_prev, m_prev = float(t0_us), l_start
-    for times, block in _adaptive_blocks(log_render, float(t0_us), float(t1_us), l_start, max_dlog,
-                                         float(initial_dt_us), float(min_dt_us), int(chunk_samples)):
+    log_render_pixels = None if render_pixels is None else partial(_log_pixels, render_pixels, eps=eps)
+
+    for times, block in _adaptive_blocks(log_render, log_render_pixels, float(t0_us), float(t1_us), l_start, max_dlog,
+                                         float(initial_dt_us), float(min_dt_us), int(chunk_samples),
+                                         sample_times_us):
         if leak_hz > 0:
             block += leak_per_us * (times - t0_us)[:, None]
         pix, t, pol = pixels.advance(t_prev, m_prev, times, block)

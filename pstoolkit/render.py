@@ -6,16 +6,24 @@ the depth map towards the light.
     rgb = renderer.image(t_us)                  # (T, H, W, 3) linear irradiance at frame resolution
     grey = renderer.event_grey(t_us, 0.5)       # (T, H/2, W/2) grey, area-averaged to the event grid
     exposure = integrate(renderer, 0, 11111)    # (H, W, 3) ∫ I dt over a window, dt in seconds
+
+    fast = Renderer(maps, light, brdf, shadow_step_us=65.0)   # cast shadows on a time grid
+    grey = fast.event_pixels(t_us, pixel, 0.5)  # (M,) single event pixels at single times
+
+The simulator's speed comes from ``shadow_step_us`` (one shadow sweep serves every render near it),
+the closed-form shading of the built-in BRDFs and ``event_pixels`` (see ``Renderer``).
 """
 
 from __future__ import annotations
 
+import math
+from collections import OrderedDict
 from collections.abc import Sequence
 
 import numpy as np
 import torch
 
-from pstoolkit.brdf import BRDF
+from pstoolkit.brdf import BRDF, GGX, MIN_ROUGHNESS, Lambertian
 from pstoolkit.equivalent import sample_times
 from pstoolkit.errors import UserError
 from pstoolkit.lights import US_PER_S, LightModel
@@ -33,6 +41,10 @@ MAX_STEP_DEG = 0.5
 MIN_SAMPLES = 16
 # Work is chunked so one (T, P, 3) float tensor holds about this many values.
 CHUNK_VALUES = 1 << 21
+# Shadow margins kept for reuse on the shadow grid (``Renderer(shadow_step_us=…)``), in values.
+MARGIN_CACHE_VALUES = 1 << 22
+# Keeps the half vector's normalisation finite when l = −v, as in ``pstoolkit.brdf``.
+_HALF_EPS = 1e-12
 _NO_OCCLUDER = -1e9
 _LOW_MARGIN = -1e3
 
@@ -157,7 +169,12 @@ def shadow_margin(
 def visibility_from_margin(margin: np.ndarray, bias_px: float = SHADOW_BIAS_PX, penumbra_px: float = PENUMBRA_PX) -> np.ndarray:
     """V in [0, 1] from ``shadow_margin``: 1 while occluders stay below ``bias_px`` above the ray, then
     a linear fade to 0 over ``penumbra_px`` (the soft edge of a light of finite size)."""
-    return np.clip(1.0 - (margin - bias_px) / penumbra_px, 0.0, 1.0)
+    return np.clip(_openness(margin, bias_px, penumbra_px), 0.0, 1.0)
+
+
+def _openness(margin: np.ndarray, bias_px: float = SHADOW_BIAS_PX, penumbra_px: float = PENUMBRA_PX) -> np.ndarray:
+    """V before clipping to [0, 1]: affine in the margin, so it interpolates like the margin."""
+    return 1.0 - (margin - bias_px) / penumbra_px
 
 
 def cast_shadow_mask(depth: np.ndarray, mask: np.ndarray, directions: np.ndarray) -> np.ndarray:
@@ -182,6 +199,29 @@ def event_shape(height: int, width: int, event_scale: float) -> tuple[int, int]:
     return max(1, int(round(height * event_scale))), max(1, int(round(width * event_scale)))
 
 
+def _event_footprints(height: int, width: int, event_scale: float, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which masked frame pixels each event pixel averages: (E, K) positions into the masked pixels
+    ``index`` (0 where unused) and (E, K) area weights (0 for unused slots and unmasked pixels)."""
+    he, we = event_shape(height, width, event_scale)
+    av, au = area_weights(he, height, event_scale), area_weights(we, width, event_scale)
+    (r_idx, r_w), (c_idx, c_w) = _band(av), _band(au)
+    frame = (r_idx[:, None, :, None] * width + c_idx[None, :, None, :]).reshape(he * we, -1)
+    weight = (r_w[:, None, :, None] * c_w[None, :, None, :]).reshape(he * we, -1)
+    position = np.full(height * width, -1, dtype=np.int64)
+    position[index] = np.arange(index.size)
+    masked = position[frame]
+    return np.maximum(masked, 0), np.where(masked >= 0, weight, 0.0)
+
+
+def _band(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The nonzero band of each row of an ``area_weights`` matrix: (n, B) columns and weights."""
+    nonzero = weights > 0
+    first = nonzero.argmax(axis=1)
+    width = int(nonzero.sum(axis=1).max())
+    columns = np.minimum(first[:, None] + np.arange(width), weights.shape[1] - 1)
+    return columns, np.take_along_axis(weights, columns, axis=1) * (columns == first[:, None] + np.arange(width))
+
+
 class Renderer:
     """Renders one scene under one light model and BRDF at any times, on ``device``.
 
@@ -190,6 +230,18 @@ class Renderer:
     provides through ``light.pixel_points(height, width, depth_mm)`` (depth in mm = depth in pixels ×
     the model's ``pixel_pitch_mm``); their cast shadows march towards the light direction seen from the
     middle of the mask, as if the light were far.
+
+    Speed (the simulator renders thousands of times per light turn):
+
+    - ``shadow_step_us`` (optional) puts the cast-shadow sweeps on a time grid of that step: the
+      margin of ``shadow_margin`` (continuous in the light direction by design) is computed at the
+      grid times, kept in a bounded cache, and interpolated linearly in between. One sweep then serves
+      every render, single pixels included (``event_pixels``); without it each time is swept exactly.
+    - Directional lights with the ``ggx`` or ``lambertian`` BRDF are shaded in closed form from
+      precomputed per-pixel constants (n·v's G1 term, α², |n|²) with the dot products as matrix
+      products, as ``e_c · n·l · (albedo_c + ratio · f0_c)``; grey and exposure sums are then matrix
+      products with the light's RGB intensity, never (T, P, 3) temporaries. The result is
+      ``brdf.shade``'s (in float64; ``tests/test_render_fast.py`` compares them).
     """
 
     def __init__(
@@ -201,6 +253,7 @@ class Renderer:
         shadows: bool = True,
         device: str | torch.device = "cpu",
         dtype: torch.dtype = torch.float32,
+        shadow_step_us: float | None = None,
     ) -> None:
         self.maps = maps
         self.light = light
@@ -208,6 +261,7 @@ class Renderer:
         self.shadows = shadows
         self.device = torch.device(device)
         self.dtype = dtype
+        self.shadow_step_us = shadow_step_us
         self.index = np.flatnonzero(maps.mask.ravel())
         flat = {
             "normal": maps.normal.reshape(-1, 3),
@@ -222,6 +276,10 @@ class Renderer:
             pitch = float(light.pixel_pitch_mm)  # type: ignore[attr-defined]
             points = light.pixel_points(maps.height, maps.width, maps.depth * pitch)  # type: ignore[attr-defined]
             self._points = points[self.index]
+        self._margins: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._footprints: dict[float, tuple[np.ndarray, np.ndarray]] = {}
+        self._constants: dict[str, torch.Tensor] | None = None
+        self._rgb64: dict[str, torch.Tensor] = {}
 
     def _tensor(self, array: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(np.ascontiguousarray(array), dtype=self.dtype, device=self.device)
@@ -236,15 +294,121 @@ class Renderer:
             raise UserError(f"BRDF {brdf.name!r} needs map(s) {', '.join(missing)} that scenes do not provide")
         return {k: self._t[k] for k in brdf.params}
 
+    @staticmethod
+    def _shadow_directions(direction: np.ndarray) -> np.ndarray:
+        """(T, 3) directions to march shadows towards: a near light's (T, P, 3) directions averaged."""
+        if direction.ndim == 3:
+            direction = direction.mean(axis=1)
+            direction /= np.linalg.norm(direction, axis=-1, keepdims=True)
+        return direction
+
+    def _grid_margins(self, t_us: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Unclipped V (``_openness`` of the margins) on the shadow grid around ``t_us``: a (K, P)
+        table of the grid times needed, the rows of the grid times before and after each time, and
+        the weight of the one after."""
+        step = float(self.shadow_step_us)  # type: ignore[arg-type]
+        x = np.asarray(t_us, dtype=np.float64) / step
+        j0 = np.floor(x)
+        after = (x - j0).astype(np.float32)
+        period = self.light.period_us
+        turn = round(period / step) if period else 0
+        wrap = turn > 0 and abs(turn * step - period) < 1e-9 * period  # type: ignore[operator]
+        key0 = j0.astype(np.int64)
+        key0, key1 = (key0 % turn, (key0 + 1) % turn) if wrap else (key0, key0 + 1)
+        keys, inverse = np.unique(np.concatenate((key0, key1)), return_inverse=True)
+        missing = [int(k) for k in keys if int(k) not in self._margins]
+        if missing:
+            direction, _ = self.light.evaluate(np.array(missing) * step, self._points)
+            margin = shadow_margin(self.maps.depth, self.maps.mask, self._shadow_directions(direction))
+            for key, m in zip(missing, margin.reshape(len(missing), -1)[:, self.index]):
+                self._margins[key] = _openness(m).astype(np.float32)
+        table = np.stack([self._margins[int(k)] for k in keys])
+        for key in keys:
+            self._margins.move_to_end(int(key))
+        while len(self._margins) > max(2, MARGIN_CACHE_VALUES // max(1, self.pixels)):
+            self._margins.popitem(last=False)
+        n = len(key0)
+        return table, inverse[:n], inverse[n:], after
+
     def visibility(self, t_us: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """(T, P) float32 V in [0, 1]: how much of each masked pixel is out of cast shadow at ``t_us``."""
         if not self.shadows:
             return np.ones((len(t_us), self.pixels), dtype=np.float32)
-        if directions.ndim == 3:
-            directions = directions.mean(axis=1)
-            directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
-        margin = shadow_margin(self.maps.depth, self.maps.mask, directions)
+        if self.shadow_step_us is not None:
+            table, row0, row1, after = self._grid_margins(t_us)
+            visible = table[row0]
+            visible *= 1.0 - after[:, None]
+            visible += table[row1] * after[:, None]
+            return np.clip(visible, 0.0, 1.0, out=visible)
+        margin = shadow_margin(self.maps.depth, self.maps.mask, self._shadow_directions(directions))
         return visibility_from_margin(margin.reshape(len(t_us), -1)[:, self.index])
+
+    def _pixel_visibility(self, t_us: np.ndarray, pixel: np.ndarray) -> np.ndarray:
+        """(M,) V of masked pixels ``pixel`` at times ``t_us`` (M,), from the shadow grid."""
+        if not self.shadows:
+            return np.ones(len(t_us), dtype=np.float32)
+        table, row0, row1, after = self._grid_margins(t_us)
+        return np.clip(table[row0, pixel] * (1.0 - after) + table[row1, pixel] * after, 0.0, 1.0)
+
+    def _fast(self, brdfs: Sequence[BRDF]) -> bool:
+        return not self.light.near and all(type(b) in (GGX, Lambertian) for b in brdfs)
+
+    def _closed_form(self, specular: bool, l: torch.Tensor, pixel: torch.Tensor | None = None,
+                     ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """``ggx`` (``specular``) or ``lambertian`` shading in closed form as
+        ``nl · (albedo + ratio · f0)`` per channel: returns [n·l]₊ and the GGX specular ratio
+        D·G/(4 n·l n·v) (None for Lambertian). ``l`` is (T, 3) float64
+        unit directions; both results are (T, P) for all masked pixels, or (M,) for ``pixel`` (M,)
+        with ``l`` (M, 3) one direction per pixel. In-place float64 arithmetic: one pass per
+        operation over (T, P), no (T, P, 3) temporaries."""
+        c = self._closed_form_constants()
+        if pixel is None:
+            nl = l @ c["nT"]
+        else:
+            normal = c["nT"].T[pixel]
+            nl = torch.sum(normal * l, dim=-1)
+        nl.clamp_(min=0.0)
+        if not specular:
+            return nl, None
+        constant = c if pixel is None else {name: value[pixel] for name, value in c.items() if name != "nT"}
+        s = l + torch.tensor([0.0, 0.0, 1.0], dtype=l.dtype, device=l.device)
+        ss = torch.sum(s * s, dim=-1, keepdim=True)
+        h = s / torch.sqrt(ss + _HALF_EPS)
+        hh, lift = ss / (ss + _HALF_EPS), _HALF_EPS / (ss + _HALF_EPS)
+        if pixel is None:
+            q = h @ c["nT"]
+        else:
+            q = torch.sum(normal * h, dim=-1)
+            hh, lift = hh[:, 0], lift[:, 0]
+        # D's denominator sin² + (n·h)²α² with sin² = |n × h|² = |n|²|h|² − (n·h)² (+ the term that keeps
+        # l = −v finite), as in brdf.GGX; float64 keeps the peak of a smooth surface finite.
+        q.mul_(q).mul_(constant["alpha2_1"]).add_(lift).addcmul_(hh, constant["nn"])
+        q.mul_(q)
+        q.mul_(torch.addcmul(constant["k"], nl, constant["1_k"]))
+        return nl, torch.div(constant["dv"], q, out=q)
+
+    def _closed_form_constants(self) -> dict[str, torch.Tensor]:
+        """Per masked pixel: normals (3, P), |n|², α² − 1, k, 1 − k and α²·(1/(4 G1-denominator of
+        n·v))/π, float64 (and float64 albedo and F0 in ``_rgb64``)."""
+        if self._constants is None:
+            n = self._t["normal"].double()
+            r = torch.clamp(self._t["roughness"][:, 0].double(), min=MIN_ROUGHNESS)
+            alpha2, k = r**4, (r + 1.0) ** 2 / 8.0
+            view = 1.0 / (4.0 * (torch.clamp(n[:, 2], min=0.0) * (1.0 - k) + k))
+            self._constants = {
+                "nT": n.T.contiguous(), "nn": torch.sum(n * n, dim=-1), "alpha2_1": alpha2 - 1.0, "k": k,
+                "1_k": 1.0 - k, "dv": alpha2 * view / math.pi,
+            }
+            self._rgb64 = {name: self._t[name].double() for name in ("albedo", "f0")}
+        return self._constants
+
+    def _light(self, t_us: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        direction, intensity = self.light.evaluate(t_us)
+        return (torch.as_tensor(direction, dtype=torch.float64, device=self.device),
+                torch.as_tensor(intensity, dtype=torch.float64, device=self.device))
+
+    def _visible_tensor(self, t_us: np.ndarray, l: torch.Tensor) -> torch.Tensor:
+        return torch.as_tensor(self.visibility(t_us, l.cpu().numpy()), device=self.device)
 
     def shade(self, t_us: np.ndarray, brdfs: Sequence[BRDF]) -> list[torch.Tensor]:
         """(T, P, 3) linear RGB irradiance of the masked pixels at times ``t_us`` (µs), one tensor per
@@ -252,10 +416,20 @@ class Renderer:
         t_us = np.asarray(t_us, dtype=np.float64).reshape(-1)
         outs = [torch.empty((t_us.size, self.pixels, 3), dtype=self.dtype, device=self.device) for _ in brdfs]
         step = max(1, CHUNK_VALUES // max(1, 3 * self.pixels))
+        fast = self._fast(brdfs)
         for start in range(0, t_us.size, step):
             t = t_us[start : start + step]
             direction, intensity = self.light.evaluate(t, self._points)
             visible = self._tensor(self.visibility(t, direction))[..., None]
+            if fast:
+                l, e = self._light(t)
+                for brdf, out in zip(brdfs, outs):
+                    nl, ratio = self._closed_form(type(brdf) is GGX, l)
+                    rgb = self._rgb64["albedo"]
+                    if ratio is not None:
+                        rgb = rgb + ratio[..., None] * self._rgb64["f0"]
+                    out[start : start + t.size] = (e[:, None, :] * nl[..., None] * rgb).to(self.dtype) * visible
+                continue
             l = self._tensor(direction)
             e = self._tensor(intensity)
             if l.dim() == 2:
@@ -264,6 +438,12 @@ class Renderer:
                 shaded = brdf.shade(self._t["normal"], l, self._view, **self._maps(brdf))
                 out[start : start + t.size] = e * shaded * visible
         return outs
+
+    def shade_sum(self, t_us: np.ndarray, brdfs: Sequence[BRDF]) -> list[torch.Tensor]:
+        """(P, 3) float64 Σ_t of the irradiance of the masked pixels over times ``t_us``, one per BRDF
+        (``shade`` summed over time; on the closed-form path a matrix product with the light's RGB
+        intensity, without (T, P, 3) tensors)."""
+        return self._render(t_us, None, brdfs)[1]
 
     def irradiance(self, t_us: np.ndarray) -> torch.Tensor:
         """(T, P, 3) linear RGB irradiance of the masked pixels at times ``t_us`` (µs)."""
@@ -280,21 +460,106 @@ class Renderer:
         """(T, H, W, 3) float32 linear RGB irradiance at frame resolution."""
         return self.scatter(self.irradiance(t_us)).cpu().numpy().astype(np.float32, copy=False)
 
-    def event_grey(self, t_us: np.ndarray, event_scale: float) -> np.ndarray:
-        """(T, He, We) float64 grey irradiance (0.299 R + 0.587 G + 0.114 B) area-averaged from the frame
-        grid to the event grid of ``psfmt.scale_affine(event_scale)``."""
-        he, we = event_shape(self.maps.height, self.maps.width, event_scale)
-        av = self._tensor(area_weights(he, self.maps.height, event_scale))
-        au = self._tensor(area_weights(we, self.maps.width, event_scale))
-        grey_w = self._tensor(np.array(GREY_WEIGHTS))
+    def _footprint(self, event_scale: float) -> tuple[torch.Tensor, torch.Tensor]:
+        if event_scale not in self._footprints:
+            self._footprints[event_scale] = _event_footprints(self.maps.height, self.maps.width, event_scale, self.index)
+        position, weight = self._footprints[event_scale]
+        return torch.as_tensor(position, device=self.device), torch.as_tensor(weight, dtype=torch.float64, device=self.device)
+
+    def _closed_form_sample(self, t: np.ndarray, grey: bool, brdfs: Sequence[BRDF],
+                            ) -> tuple[torch.Tensor | None, list[torch.Tensor]]:
+        """Closed-form path of ``_render`` for one chunk of times: (T, P) grey of the renderer's BRDF
+        (if ``grey``) and the (P, 3) sums over ``t`` of each BRDF of ``brdfs``, from one n·l, one
+        specular ratio and one V: the Lambertian sum is the GGX sum's albedo term."""
+        l, e = self._light(t)
+        gloss_sum = any(type(b) is GGX for b in brdfs)
+        nl, ratio = self._closed_form(gloss_sum or (grey and type(self.brdf) is GGX), l)
+        nl.mul_(self._visible_tensor(t, l))
+        out = None
+        if grey:
+            e_grey = e * torch.tensor(GREY_WEIGHTS, dtype=torch.float64, device=self.device)
+            out = e_grey @ self._rgb64["albedo"].T
+            if type(self.brdf) is GGX and ratio is not None:
+                out.addcmul_(ratio, e_grey @ self._rgb64["f0"].T)
+            out.mul_(nl)
+        sums = []
+        if brdfs:
+            diffuse = self._rgb64["albedo"] * (nl.T @ e)
+            gloss = self._rgb64["f0"] * (ratio.mul_(nl).T @ e) if gloss_sum and ratio is not None else None
+            sums = [diffuse + gloss if type(b) is GGX and gloss is not None else diffuse.clone() for b in brdfs]
+        return out, sums
+
+    def _render(self, t_us: np.ndarray, event_scale: float | None, brdfs: Sequence[BRDF],
+                ) -> tuple[np.ndarray | None, list[torch.Tensor]]:
+        """``event_grey`` at ``event_scale`` (None: skipped) and ``shade_sum`` over ``brdfs`` of the
+        same times, chunked; on the closed-form path both come from one shading of each time."""
         t_us = np.asarray(t_us, dtype=np.float64).reshape(-1)
-        out = np.empty((t_us.size, he, we), dtype=np.float64)
-        step = max(1, CHUNK_VALUES // max(1, self.maps.height * self.maps.width))
+        totals = [torch.zeros((self.pixels, 3), dtype=torch.float64, device=self.device) for _ in brdfs]
+        out = None
+        if event_scale is not None:
+            he, we = event_shape(self.maps.height, self.maps.width, event_scale)
+            position, weight = self._footprint(event_scale)
+            out = np.empty((t_us.size, he, we), dtype=np.float64)
+        grey_w = torch.tensor(GREY_WEIGHTS, dtype=torch.float64, device=self.device)
+        fast = self._fast([self.brdf, *brdfs])
+        step = max(1, CHUNK_VALUES // max(1, 3 * self.pixels))
         for start in range(0, t_us.size, step):
             t = t_us[start : start + step]
-            grey = self.scatter(self.irradiance(t) @ grey_w[:, None])[..., 0]
-            out[start : start + t.size] = (av @ grey @ au.T).cpu().numpy()
-        return out
+            if fast:
+                grey, sums = self._closed_form_sample(t, out is not None, brdfs)
+            else:
+                grey = None if out is None else self.irradiance(t).double() @ grey_w
+                sums = [part.sum(dim=0, dtype=torch.float64) for part in self.shade(t, brdfs)] if brdfs else []
+            for total, part in zip(totals, sums):
+                total += part
+            if out is not None and grey is not None:
+                out[start : start + t.size] = (grey[:, position] * weight).sum(dim=-1).reshape(-1, he, we).cpu().numpy()
+        return out, totals
+
+    def event_grey(self, t_us: np.ndarray, event_scale: float) -> np.ndarray:
+        """(T, He, We) float64 grey irradiance (0.299 R + 0.587 G + 0.114 B) area-averaged from the frame
+        grid to the event grid of ``psfmt.scale_affine(event_scale)``: each event pixel is the weighted
+        sum of the few masked frame pixels it covers (a gather, not a dense matrix product)."""
+        grey, _ = self._render(t_us, event_scale, ())
+        assert grey is not None
+        return grey
+
+    def event_grey_and_sums(self, t_us: np.ndarray, event_scale: float, brdfs: Sequence[BRDF],
+                            ) -> tuple[np.ndarray, list[torch.Tensor]]:
+        """``event_grey(t_us, event_scale)`` and ``shade_sum(t_us, brdfs)`` together: on the
+        closed-form path each time is shaded once for both (the simulator's shared time grid)."""
+        grey, sums = self._render(t_us, event_scale, brdfs)
+        assert grey is not None
+        return grey, sums
+
+    def event_pixels(self, t_us: np.ndarray, pixel: np.ndarray, event_scale: float) -> np.ndarray:
+        """(M,) float64 ``event_grey`` of single event pixels ``pixel`` (y·We + x) at single times
+        ``t_us`` (M,): only the frame pixels under them are shaded. Needs ``shadow_step_us`` (or no
+        shadows), a directional light and the ``ggx`` or ``lambertian`` BRDF (``event_pixels_supported``)."""
+        if not self.event_pixels_supported:
+            raise UserError("Renderer.event_pixels needs a directional light, the ggx or lambertian BRDF and a shadow grid")
+        t_us = np.asarray(t_us, dtype=np.float64).reshape(-1)
+        position, weight = self._footprint(event_scale)
+        pixel_t = torch.as_tensor(np.asarray(pixel, dtype=np.int64), device=self.device)
+        frame = position[pixel_t].reshape(-1)
+        w = weight[pixel_t]
+        taps = w.shape[1]
+        l, e = self._light(t_us)
+        l, e = l.repeat_interleave(taps, dim=0), e.repeat_interleave(taps, dim=0)
+        grey_w = torch.tensor(GREY_WEIGHTS, dtype=torch.float64, device=self.device)
+        nl, ratio = self._closed_form(type(self.brdf) is GGX, l, frame)
+        grey = torch.sum(self._rgb64["albedo"][frame] * e * grey_w, dim=-1)
+        if ratio is not None:
+            grey += ratio * torch.sum(self._rgb64["f0"][frame] * e * grey_w, dim=-1)
+        grey *= nl
+        visible = self._pixel_visibility(np.repeat(t_us, taps), frame.cpu().numpy())
+        grey *= torch.as_tensor(visible, dtype=torch.float64, device=self.device)
+        return (grey.reshape(-1, taps) * w).sum(dim=-1).cpu().numpy()
+
+    @property
+    def event_pixels_supported(self) -> bool:
+        """Whether ``event_pixels`` can render this scene (else render whole event frames)."""
+        return self._fast([self.brdf]) and (self.shadow_step_us is not None or not self.shadows)
 
 
 def exposure_samples(light: LightModel, t0_us: float, t1_us: float, max_step_deg: float = MAX_STEP_DEG) -> int:
@@ -316,6 +581,13 @@ def exposure_samples(light: LightModel, t0_us: float, t1_us: float, max_step_deg
     return max(MIN_SAMPLES, int(np.ceil(swept_deg / max_step_deg)))
 
 
+def exposure_plan(light: LightModel, t0_us: float, t1_us: float, samples: int | None = None) -> tuple[np.ndarray, float]:
+    """The midpoint-rule sample times (µs) of ``integrate`` over [t0_us, t1_us] and the seconds each
+    stands for; ``samples`` defaults to ``exposure_samples``."""
+    n = exposure_samples(light, t0_us, t1_us) if samples is None else int(samples)
+    return sample_times(t0_us, t1_us, n), (float(t1_us) - float(t0_us)) / n / US_PER_S
+
+
 def integrate(
     renderer: Renderer,
     t0_us: float,
@@ -328,12 +600,6 @@ def integrate(
     rule with ``samples`` times (default ``exposure_samples``): one per BRDF of ``brdfs`` (default the
     renderer's), all on the same scene, light and shadows (e.g. the full BRDF and its diffuse part)."""
     brdfs = [renderer.brdf] if brdfs is None else list(brdfs)
-    n = exposure_samples(renderer.light, t0_us, t1_us) if samples is None else int(samples)
-    t = sample_times(t0_us, t1_us, n)
-    dt_s = (float(t1_us) - float(t0_us)) / n / US_PER_S
-    totals = [torch.zeros((renderer.pixels, 3), dtype=torch.float64, device=renderer.device) for _ in brdfs]
-    step = max(1, CHUNK_VALUES // max(1, 3 * renderer.pixels))
-    for start in range(0, n, step):
-        for total, part in zip(totals, renderer.shade(t[start : start + step], brdfs)):
-            total += part.sum(dim=0, dtype=torch.float64)
+    t, dt_s = exposure_plan(renderer.light, t0_us, t1_us, samples)
+    totals = renderer.shade_sum(t, brdfs)
     return [renderer.scatter(total[None] * dt_s)[0].cpu().numpy() for total in totals]

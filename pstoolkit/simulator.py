@@ -6,6 +6,12 @@ per frame pixel over the same time; a classic capture (``discrete_lights=N``) ho
 instantaneous lights spread evenly over one period and no events. Both carry the light model and the
 ground truth (normal, mask, albedo, depth in frame pixels, F0, roughness, metallic).
 
+Speed: one pass over time renders each moment once. The frames' midpoint-rule samples are the
+times of the event simulation's whole-frame renders (``simulate_events(sample_times_us=…)``), each
+render adding to its frame as it feeds the events; only the pixels that change faster get finer
+samples (``render_pixels``), and cast shadows are swept every ``SHADOW_STEP_DEG`` of the light's
+path and interpolated in between. Memory stays bounded: time is processed in blocks.
+
 Frames: exposure (irradiance × seconds) times a gain that puts the brightest diffuse value of any
 frame at ``DIFFUSE_LEVEL`` of saturation, so specular highlights may clip as in an LDR camera; optional
 shot and read noise; quantised to 8, 12 or 16 bits. The same configuration and seed give the same data.
@@ -20,10 +26,12 @@ import json
 import os
 import time
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 import psfmt
 import pstoolkit
@@ -32,12 +40,13 @@ from pstoolkit.esim import simulate_events
 from pstoolkit.lights import RingLight
 from pstoolkit.options import parse_assignments
 from pstoolkit.plugins import get_registries
-from pstoolkit.render import Renderer, event_shape, integrate
+from pstoolkit.render import Renderer, event_shape, exposure_plan, exposure_samples
 from pstoolkit.scenes import SceneMaps
 from pstoolkit.solver import Progress, no_progress
 
 DIFFUSE_LEVEL = 0.8
-# Share of the progress bar given to the frames of a hybrid capture; the events take the rest.
+# Share of the progress bar given to the frames of a capture whose frames come before its events
+# (the semi-real converter); the simulator integrates its frames along with the events.
 FRAMES_SHARE = 0.25
 # Shortest render step of the event simulation, as a fraction of a light turn: a shadow edge or the
 # terminator is resolved to 0.25° of the turn (23 µs at 30 turns/s) instead of ESIM's 1 µs floor, which
@@ -45,6 +54,9 @@ FRAMES_SHARE = 0.25
 # on the interpolated log-irradiance.
 EVENT_MIN_STEP_TURNS = 0.25 / 360.0
 BIT_DEPTHS = {8: np.uint8, 12: np.uint16, 16: np.uint16}
+# Step of the light (degrees of its path) between the cast-shadow sweeps, interpolated in between
+# (``Renderer(shadow_step_us=…)``): one sweep serves all frame and event samples near it.
+SHADOW_STEP_DEG = 1.0
 
 
 @dataclass
@@ -160,7 +172,8 @@ def simulate(config: SimulationConfig, path: str | os.PathLike[str], progress: P
     diffuse = registries.brdfs.get("lambertian").obj()
     maps = build_scene(config)
     light = RingLight(elevation_deg=config.elevation_deg, period_us=config.period_us)
-    renderer = Renderer(maps, light, brdf, shadows=config.shadows, device=config.device)
+    shadow_step_us = config.period_us / exposure_samples(light, 0, config.period_us, SHADOW_STEP_DEG)
+    renderer = Renderer(maps, light, brdf, shadows=config.shadows, device=config.device, shadow_step_us=shadow_step_us)
     noise_rng, _ = (np.random.default_rng(s) for s in np.random.SeedSequence(config.seed).spawn(2))
     n_events = 0
     event_size: tuple[int, int] | None = None
@@ -172,9 +185,7 @@ def simulate(config: SimulationConfig, path: str | os.PathLike[str], progress: P
         if config.discrete_lights:
             _write_discrete(config, renderer, diffuse, writer, noise_rng, report)
         else:
-            _write_exposures(config, renderer, diffuse, writer, noise_rng, report)
-            event_size = event_shape(config.size, config.size, config.event_scale)
-            n_events = _write_events(config, renderer, event_size, writer, report)
+            n_events, event_size = _write_hybrid(config, renderer, diffuse, writer, noise_rng, report)
             writer.set_calibration(
                 psfmt.Calibration(
                     event_to_frame=psfmt.scale_affine(config.event_scale),
@@ -193,33 +204,88 @@ def simulate(config: SimulationConfig, path: str | os.PathLike[str], progress: P
     return SimulationSummary(path, n_frames, n_events, event_size, time.perf_counter() - started)
 
 
-def _write_exposures(
+class _FrameSums:
+    """The long exposures of one period, ∫ I dt by ``exposure_plan``'s midpoint rule, on the time grid
+    the event simulation renders whole frames at (``sample_times_us``): each such render also adds
+    its time's irradiance to its frame (``render``), so one period is shaded once for both, and the
+    cast-shadow sweeps cached for one time serve its neighbours. The light repeats every period, so
+    the frames of the first period are reused for the others."""
+
+    def __init__(self, config: SimulationConfig, renderer: Renderer, brdfs: list[Any]) -> None:
+        period = config.period_us
+        self.bounds = [int(round(k * period / config.frames)) for k in range(config.frames + 1)]
+        plans = [exposure_plan(renderer.light, a, b) for a, b in zip(self.bounds[:-1], self.bounds[1:])]
+        self.times = np.concatenate([times for times, _ in plans])
+        self.window = np.repeat(np.arange(config.frames), [len(times) for times, _ in plans])
+        self.dt_s = [dt_s for _, dt_s in plans]
+        self.done = np.zeros(len(self.times), dtype=bool)
+        self.totals = [[torch.zeros((renderer.pixels, 3), dtype=torch.float64) for _ in brdfs] for _ in plans]
+        self.renderer, self.brdfs, self.config = renderer, brdfs, config
+
+    def sample_times_us(self) -> np.ndarray:
+        """The frame samples of every period, inside (0, periods × period)."""
+        period = self.config.period_us
+        times = np.concatenate([self.times + p * period for p in range(self.config.periods)])
+        return times[(times > 0) & (times < self.config.periods * period)]
+
+    def _add(self, index: np.ndarray, sums: list[torch.Tensor]) -> None:
+        for total, part in zip(self.totals[int(self.window[index[0]])], sums):
+            total += part.cpu()
+        self.done[index] = True
+
+    def render(self, t_us: np.ndarray, event_scale: float) -> np.ndarray:
+        """``event_grey`` at ``t_us``; the frame samples among them not seen before join their frame."""
+        t_us = np.asarray(t_us, dtype=np.float64)
+        slot = np.minimum(np.searchsorted(self.times, t_us), len(self.times) - 1)
+        new = (self.times[slot] == t_us) & ~self.done[slot]
+        if not new.any():
+            return self.renderer.event_grey(t_us, event_scale)
+        he, we = event_shape(self.config.size, self.config.size, event_scale)
+        out = np.empty((len(t_us), he, we))
+        if not new.all():
+            out[~new] = self.renderer.event_grey(t_us[~new], event_scale)
+        for k in np.unique(self.window[slot[new]]):
+            take = new & (self.window[slot] == k)
+            out[take], sums = self.renderer.event_grey_and_sums(t_us[take], event_scale, self.brdfs)
+            self._add(slot[take], sums)
+        return out
+
+    def exposures(self) -> list[list[np.ndarray]]:
+        """Per frame, (H, W, 3) radiant exposure per BRDF (dt in seconds); samples the event
+        simulation did not render are shaded here."""
+        for k in np.unique(self.window[~self.done]):
+            index = np.flatnonzero(~self.done & (self.window == k))
+            self._add(index, self.renderer.shade_sum(self.times[index], self.brdfs))
+        return [
+            [self.renderer.scatter(total[None].to(self.renderer.device) * dt_s)[0].cpu().numpy() for total in totals]
+            for totals, dt_s in zip(self.totals, self.dt_s)
+        ]
+
+
+def _write_hybrid(
     config: SimulationConfig,
     renderer: Renderer,
     diffuse: Any,
     writer: psfmt.CaptureWriter,
     rng: np.random.Generator,
     report: Progress,
-) -> None:
-    """Long exposures tiling each period; the light repeats every period, so one period is rendered
-    and its frames are reused (with fresh noise) for the others."""
-    period = config.period_us
-    bounds = [int(round(k * period / config.frames)) for k in range(config.frames + 1)]
-    exposures, peaks = [], []
-    for k in range(config.frames):
-        brdfs = [renderer.brdf] if config.exposure_gain is not None else [renderer.brdf, diffuse]
-        result = integrate(renderer, bounds[k], bounds[k + 1], brdfs=brdfs)
-        exposures.append(result[0])
-        peaks.append(float(result[-1].max()))
-        report(FRAMES_SHARE * (k + 1) / config.frames, "frames")
-    gain = config.exposure_gain or _auto_gain(max(peaks), config.bit_depth)
+) -> tuple[int, tuple[int, int]]:
+    """Events and long exposures tiling each period, in one pass over time."""
+    brdfs = [renderer.brdf] if config.exposure_gain is not None else [renderer.brdf, diffuse]
+    sums = _FrameSums(config, renderer, brdfs)
+    event_size = event_shape(config.size, config.size, config.event_scale)
+    n_events = _write_events(config, renderer, event_size, writer, report, sums)
+    exposures = sums.exposures()
+    gain = config.exposure_gain or _auto_gain(max(float(e[-1].max()) for e in exposures), config.bit_depth)
+    period, bounds = config.period_us, sums.bounds
     for p in range(config.periods):
         for k, exposure in enumerate(exposures):
             writer.append_frames(
-                quantise(exposure, gain, config.bit_depth, config.noise, rng),
+                quantise(exposure[0], gain, config.bit_depth, config.noise, rng),
                 t_start_us=[p * period + bounds[k]],
                 t_end_us=[p * period + bounds[k + 1]],
             )
+    return n_events, event_size
 
 
 def _write_discrete(
@@ -251,13 +317,18 @@ def _write_events(
     event_size: tuple[int, int],
     writer: psfmt.CaptureWriter,
     report: Progress,
+    sums: _FrameSums,
 ) -> int:
+    """Events over all periods; their whole-frame renders go through ``sums``, which adds the
+    frames' samples among them to the exposures."""
     height, width = event_size
     writer.begin_events(width, height)
     t1 = config.periods * config.period_us
     count = 0
+    scale = config.event_scale
+    render_pixels = partial(renderer.event_pixels, event_scale=scale) if renderer.event_pixels_supported else None
     for chunk in simulate_events(
-        lambda t: renderer.event_grey(t, config.event_scale),
+        partial(sums.render, event_scale=scale),
         0,
         t1,
         width=width,
@@ -268,9 +339,11 @@ def _write_events(
         refractory_us=config.refractory_us,
         seed=config.seed,
         min_dt_us=max(1.0, config.period_us * EVENT_MIN_STEP_TURNS),
+        render_pixels=render_pixels,
+        sample_times_us=sums.sample_times_us(),
     ):
         writer.append_events(chunk)
         count += len(chunk)
-        report(FRAMES_SHARE + (1.0 - FRAMES_SHARE) * min(1.0, float(chunk.t[-1]) / t1), "events")
+        report(min(1.0, float(chunk.t[-1]) / t1), "events")
     report(1.0, "events")
     return count

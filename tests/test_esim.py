@@ -197,3 +197,17 @@ def test_bad_render_output() -> None:
         next(simulate_events(lambda t: np.ones((len(t), 4, 4)), 0, 1000, width=SIZE, height=SIZE))
     with pytest.raises(UserError, match="render returned negative or non-finite irradiance"):
         next(simulate_events(lambda t: -np.ones((len(t), SIZE, SIZE)), 0, 1000, width=SIZE, height=SIZE))
+
+
+def test_a_step_in_irradiance_fires_every_crossing_at_the_step() -> None:
+    """A jump between two samples (a hard shadow edge) is refined down to min_dt and its crossings all
+    land at the step, without the sampler ever asking for an empty render."""
+    def render(t_us: np.ndarray) -> np.ndarray:
+        level = np.where(np.asarray(t_us, dtype=np.float64) > 5000.0, 2.0, 0.1)
+        return level[:, None, None] * np.ones((1, 8, 8))
+
+    events = EventArray.concatenate(list(simulate_events(render, 0, 10_000, width=8, height=8)))
+    expected = int(np.floor((np.log(2.0 + LOG_EPS) - np.log(0.1 + LOG_EPS)) / 0.15))
+    assert len(events) == 64 * expected
+    assert np.all(events.p == 1)
+    assert events.t.min() >= 4999 and events.t.max() <= 5001
