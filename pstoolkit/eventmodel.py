@@ -28,6 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+GREY_WEIGHTS = (0.299, 0.587, 0.114)
+"""Rec. 601 luma: the grey an event sensor (and a grey solve) sees of linear RGB (facts §3)."""
+
 from psfmt import EventArray
 
 LOG_EPS = 1e-3

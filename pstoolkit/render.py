@@ -26,10 +26,10 @@ import torch
 from pstoolkit.brdf import BRDF, GGX, MIN_ROUGHNESS, Lambertian
 from pstoolkit.equivalent import sample_times
 from pstoolkit.errors import UserError
+from pstoolkit.eventmodel import GREY_WEIGHTS
 from pstoolkit.lights import US_PER_S, LightModel
 from pstoolkit.scenes import SceneMaps
 
-GREY_WEIGHTS = (0.299, 0.587, 0.114)
 # An occluder must rise this far (pixels) above a shadow ray to count: it keeps interpolated height
 # samples of a smooth surface from shadowing the surface itself.
 SHADOW_BIAS_PX = 0.1

@@ -17,11 +17,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from psfmt import EventArray
-from pstoolkit.eventmodel import consecutive_pairs, reference_time_us
+from pstoolkit.eventmodel import GREY_WEIGHTS, consecutive_pairs, reference_time_us
 from pstoolkit.lights import LightModel
 
-GREY_WEIGHTS = np.array([0.299, 0.587, 0.114])
-"""Rec. 601 luma, the grey the event sensor sees (facts §3)."""
 # The upper triangle of a symmetric 3×3 matrix, in the order the sums are accumulated.
 _ROWS = np.array([0, 0, 0, 1, 1, 2])
 _COLS = np.array([0, 1, 2, 1, 2, 2])
@@ -45,7 +43,7 @@ class Constraints:
 def grey_light(light: LightModel, t_us: np.ndarray) -> np.ndarray:
     """l(t) = direction × luma of the RGB intensity, (3, N) component-major."""
     direction, intensity = light.evaluate(t_us)
-    return (direction * (intensity @ GREY_WEIGHTS)[:, None]).T
+    return (direction * (intensity @ np.asarray(GREY_WEIGHTS))[:, None]).T
 
 
 def grey_lights_at(light: LightModel, *times_us: np.ndarray) -> list[np.ndarray]:

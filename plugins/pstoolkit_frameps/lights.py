@@ -7,16 +7,14 @@ import numpy as np
 import psfmt
 from pstoolkit.equivalent import equivalent_lights
 from pstoolkit.errors import UserError
+from pstoolkit.eventmodel import GREY_WEIGHTS
 from pstoolkit.lights import build_light_model
-
-GREY_WEIGHTS = np.array([0.299, 0.587, 0.114])
-"""Rec. 601 luma: the grey of the semi-real recipe (facts §3), the same the event sensor sees."""
 
 
 def channel_weights(channels: int) -> np.ndarray:
     """Weights that turn ``channels`` colour channels into grey (RGB → luma, one channel → itself)."""
     if channels == 3:
-        return GREY_WEIGHTS
+        return np.asarray(GREY_WEIGHTS)
     if channels == 1:
         return np.ones(1)
     raise UserError(f"frameps: frames with {channels} channels are not supported (expected 1 or 3)")
@@ -68,5 +66,5 @@ def frame_lights(capture: psfmt.Capture, indices: np.ndarray) -> tuple[np.ndarra
         )
         kind = "equivalent"
     if channels == 1:
-        per_rgb = np.einsum("c,kcx->kx", GREY_WEIGHTS, per_rgb)[:, None, :]
+        per_rgb = np.einsum("c,kcx->kx", np.asarray(GREY_WEIGHTS), per_rgb)[:, None, :]
     return per_rgb, kind
