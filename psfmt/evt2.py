@@ -23,7 +23,7 @@ from psfmt.rawheader import (
     concat_triggers,
     format_header,
     iter_words,
-    read_header,
+    read_sized_header,
 )
 
 CD_OFF, CD_ON, TIME_HIGH, EXT_TRIGGER = 0x0, 0x1, 0x8, 0xA
@@ -118,12 +118,7 @@ class Evt2File:
 
     def __init__(self, path: str | os.PathLike[str], *, chunk_words: int = DEFAULT_CHUNK_WORDS) -> None:
         self.path = Path(path)
-        self.header: RawHeader = read_header(self.path)
-        if self.header.encoding not in (None, "EVT2"):
-            raise FormatError(self.path, f"RAW file is {self.header.encoding}, not EVT 2.0")
-        if self.header.width is None or self.header.height is None:
-            raise FormatError(self.path, "RAW header declares no sensor geometry (% geometry WxH)")
-        self.width, self.height = int(self.header.width), int(self.header.height)
+        self.header, self.width, self.height = read_sized_header(self.path, "EVT2", "EVT 2.0")
         self.chunk_words = int(chunk_words)
         self.stats = DecodeStats()
 

@@ -34,7 +34,7 @@ from psfmt.rawheader import (
     concat_triggers,
     format_header,
     iter_words,
-    read_header,
+    read_sized_header,
 )
 
 try:  # the compiled fast path is optional: psfmt must work with numpy and h5py alone
@@ -358,12 +358,7 @@ class Evt3File:
 
     def __init__(self, path: str | os.PathLike[str], *, engine: str = "auto", chunk_words: int = DEFAULT_CHUNK_WORDS) -> None:
         self.path = Path(path)
-        self.header: RawHeader = read_header(self.path)
-        if self.header.encoding not in (None, "EVT3"):
-            raise FormatError(self.path, f"RAW file is {self.header.encoding}, not EVT 3.0")
-        if self.header.width is None or self.header.height is None:
-            raise FormatError(self.path, "RAW header declares no sensor geometry (% geometry WxH)")
-        self.width, self.height = int(self.header.width), int(self.header.height)
+        self.header, self.width, self.height = read_sized_header(self.path, "EVT3", "EVT 3.0")
         self.engine = _engine(engine)
         self.chunk_words = int(chunk_words)
         self.stats = DecodeStats()

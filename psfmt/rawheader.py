@@ -100,6 +100,17 @@ def read_header(path: str | os.PathLike[str]) -> RawHeader:
         return parse_header(fh, path)
 
 
+def read_sized_header(path: Path, encoding: str, label: str) -> tuple[RawHeader, int, int]:
+    """The header of a RAW file that must be ``encoding`` (or undeclared) and declare its sensor size:
+    the header, width and height; a FormatError naming ``label`` (e.g. "EVT 3.0") otherwise."""
+    header = read_header(path)
+    if header.encoding not in (None, encoding):
+        raise FormatError(path, f"RAW file is {header.encoding}, not {label}")
+    if header.width is None or header.height is None:
+        raise FormatError(path, "RAW header declares no sensor geometry (% geometry WxH)")
+    return header, int(header.width), int(header.height)
+
+
 @dataclass
 class DecodeStats:
     """What a RAW decoder met besides events: words skipped by reason, events dropped, a cut-off tail.

@@ -45,9 +45,6 @@ from pstoolkit.scenes import SceneMaps
 from pstoolkit.solver import Progress, no_progress
 
 DIFFUSE_LEVEL = 0.8
-# Share of the progress bar given to the frames of a capture whose frames come before its events
-# (the semi-real converter); the simulator integrates its frames along with the events.
-FRAMES_SHARE = 0.25
 # Shortest render step of the event simulation, as a fraction of a light turn: a shadow edge or the
 # terminator is resolved to 0.25° of the turn (23 µs at 30 turns/s) instead of ESIM's 1 µs floor, which
 # cuts render calls ~10× at the same event count; crossings inside a step are still placed exactly
@@ -109,12 +106,23 @@ class SimulationConfig:
         ]
         if self.exposure_gain is not None:
             limits.append(("--exposure-gain", self.exposure_gain > 0, "must be positive"))
-        for name, ok, message in limits:
-            if not ok:
-                raise UserError(f"{name} {getattr(self, name[2:].replace('-', '_'))!r} {message}")
-        pixels = self.size * self.event_scale
-        if abs(pixels - round(pixels)) > 1e-9:
-            raise UserError(f"--size {self.size} × --event-scale {self.event_scale:g} = {pixels:g} is not a whole number of event pixels")
+        check_limits(self, limits)
+        check_event_grid(self.size, self.event_scale)
+
+
+def check_limits(config: object, limits: list[tuple[str, bool, str]]) -> None:
+    """Raise UserError for the first ``(flag, ok, message)`` that is not ok, naming the flag and the
+    configured value (the attribute the flag names, ``--period-ms`` → ``period_ms``)."""
+    for flag, ok, message in limits:
+        if not ok:
+            raise UserError(f"{flag} {getattr(config, flag[2:].replace('-', '_'))!r} {message}")
+
+
+def check_event_grid(size: int, event_scale: float) -> None:
+    """UserError unless ``size`` frame pixels at ``event_scale`` make a whole number of event pixels."""
+    pixels = size * event_scale
+    if abs(pixels - round(pixels)) > 1e-9:
+        raise UserError(f"--size {size} × --event-scale {event_scale:g} = {pixels:g} is not a whole number of event pixels")
 
 
 @dataclass

@@ -33,7 +33,10 @@ from pstoolkit.esim import Render, simulate_events
 from pstoolkit.eventmodel import LOG_EPS, log_irradiance
 from pstoolkit.lights import SampledLight
 from pstoolkit.render import GREY_WEIGHTS, area_weights, event_shape
-from pstoolkit.simulator import EVENT_MIN_STEP_TURNS, FRAMES_SHARE
+from pstoolkit.simulator import EVENT_MIN_STEP_TURNS, check_event_grid, check_limits
+
+# Share of the progress bar given to reading and normalising the key images; the events take the rest.
+FRAMES_SHARE = 0.25
 from pstoolkit.solver import Progress
 from pstoolkit_diligent.folder import ObjectFolder
 from pstoolkit_diligent.geometry import area_resize, crop, resize_truth, square_around
@@ -77,12 +80,8 @@ class SemiRealConfig:
             ("--refractory-us", 0 <= self.refractory_us <= self.period_us, "must be between 0 and the period"),
             ("--discrete-lights", 0 <= self.discrete_lights <= len(BOUNDARY_LOOP), f"must be between 0 and {len(BOUNDARY_LOOP)}"),
         ]
-        for flag, ok, message in limits:
-            if not ok:
-                raise UserError(f"{flag} {getattr(self, flag[2:].replace('-', '_'))!r} {message}")
-        pixels = self.size * self.event_scale
-        if abs(pixels - round(pixels)) > 1e-9:
-            raise UserError(f"--size {self.size} × --event-scale {self.event_scale:g} = {pixels:g} is not a whole number of event pixels")
+        check_limits(self, limits)
+        check_event_grid(self.size, self.event_scale)
 
 
 @dataclass
