@@ -30,7 +30,6 @@ from psfmt.errors import FormatError
 from psfmt.events import EventArray, Triggers
 from psfmt.rawheader import (
     DecodeStats,
-    RawHeader,
     concat_triggers,
     format_header,
     iter_words,
