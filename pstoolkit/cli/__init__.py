@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from pstoolkit.cli import convert, eval, info, plugins, run, simulate, validate  # noqa: F401  (registers the commands)
+from pstoolkit.cli import batch, calibrate, capture, convert, eval, export, info, plugins, report, run, simulate, validate  # noqa: F401  (registers the commands)
 from pstoolkit.cli.app import app, main
 from pstoolkit.plugins import add_commands
 
