@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import resource
 import sys
@@ -78,7 +79,7 @@ def main() -> None:
             rows.append(min(runs, key=lambda r: r["seconds"]))
     peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print(f"{args.size}×{args.size} frames, {args.size // 2}×{args.size // 2} events, one period, C = 0.15, "
-          f"refractory {args.refractory_us:g} µs, device {args.device}, {torch.get_num_threads()} torch threads")
+          f"refractory {args.refractory_us:g} µs, device {args.device} (the simulator renders single-threaded on the CPU)")
     print(f"{'scene':8s} {'events':>9s} {'total s':>8s} {'CPU s':>7s} {'M ev/s':>7s} {'traced MB':>10s} {'rate %':>7s}")
     for r in rows:
         print(f"{r['scene']:8s} {r['events']:9,d} {r['seconds']:8.2f} {r['cpu_seconds']:7.2f} "
@@ -97,7 +98,7 @@ def main() -> None:
         "peak_rss_mb": peak_rss_mb,
         "target_events_per_s": TARGET_EVENTS_PER_S,
         "machine": {"python": platform.python_version(), "numpy": np.__version__, "torch": torch.__version__,
-                    "threads": torch.get_num_threads(), "processor": platform.processor() or platform.machine(),
+                    "cpus": os.cpu_count(), "processor": platform.processor() or platform.machine(),
                     "argv": sys.argv[1:]},
     }
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
