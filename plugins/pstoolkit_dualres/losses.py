@@ -1,0 +1,33 @@
+"""The training losses of DualResPS (eq. 24–26).
+
+- Frames (eq. 24): mean L1 between rendered and measured frame values. A value the sensor clipped
+  (``saturated``) only says the truth was at least 1: it is penalised only while the rendering stays
+  below 1, so highlights that clip do not pull the fit down.
+- Events (eq. 25): weighted squared residual of the log ratio of the rendered grey irradiance at an
+  event and at its reference time against the fired contrast: ln((Ĩ_k + ε)/(Ĩ_ref + ε)) − ln α − p·C.
+- Total variation (eq. 26, the warm-up term of LL22a): mean L1 difference of neighbouring pixels.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def frame_loss(predicted: Tensor, measured: Tensor, saturated: Tensor) -> Tensor:
+    """Mean |Ã − A| over (values, 3); ``saturated`` (values,) bool marks clipped measurements."""
+    residual = torch.where(saturated[:, None], torch.relu(1.0 - predicted), (predicted - measured).abs())
+    return residual.mean()
+
+
+def event_loss(grey_t: Tensor, grey_ref: Tensor, target: Tensor, weight: Tensor, eps: float) -> Tensor:
+    """Σ w·(ln((Ĩ_k + ε)/(Ĩ_ref + ε)) − target)² / N_e with ``target`` = ln α + p·C per event pair."""
+    residual = torch.log(grey_t + eps) - torch.log(grey_ref + eps) - target
+    return torch.sum(weight * residual * residual) / max(int(target.numel()), 1)
+
+
+def tv_loss(values: Tensor, pairs: Tensor) -> Tensor:
+    """Mean |v_a − v_b| over neighbour pairs (Q, 2) of rows of ``values`` (P, C)."""
+    if pairs.numel() == 0:
+        return values.sum() * 0.0
+    return (values[pairs[:, 0]] - values[pairs[:, 1]]).abs().mean()
