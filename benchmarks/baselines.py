@@ -29,7 +29,6 @@ Prints a table and writes ``benchmarks/results/baselines.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import tempfile
 import time
@@ -43,6 +42,7 @@ from pstoolkit.metrics import angular_error_deg
 from pstoolkit.plugins import get_registries
 from pstoolkit.simulator import SimulationConfig, simulate
 from pstoolkit.solver import no_progress, run_solver
+from results_io import write_results
 
 RESULTS = Path(__file__).resolve().parent / "results" / "baselines.json"
 GEOMETRY_ROOT = Path("/work/shared/data/diligent-geometry")
@@ -181,9 +181,7 @@ def main() -> None:
         "rows": rows,
         "eventps_speed": speed,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with psfmt.atomic_path(args.out) as tmp_path:
-        tmp_path.write_text(json.dumps(result, indent=2) + "\n")
+    write_results(args.out, result)
     print(f"wrote {args.out}")
 
 

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 import torch
 from baselines import GEOMETRY_ROOT, run_row, scenes
+from results_io import write_results
 
 import psfmt
 from pstoolkit.simulator import SimulationConfig, simulate
@@ -179,9 +180,7 @@ def main() -> None:
         "ablation": ablation,
         "acceptance": checks,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with psfmt.atomic_path(args.out) as tmp_path:
-        tmp_path.write_text(json.dumps(result, indent=2) + "\n")
+    write_results(args.out, result)
     print(f"wrote {args.out}")
 
 

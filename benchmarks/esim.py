@@ -19,7 +19,6 @@ Target: ≥ 5 M events/s end to end.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import time
 from pathlib import Path
@@ -28,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from pstoolkit.esim import simulate_events
+from results_io import write_results
 
 RESULTS = Path(__file__).resolve().parent / "results" / "esim.json"
 PERIOD_US = 33_333.0
@@ -125,8 +125,7 @@ def main() -> None:
         "rows": rows,
         "target_Mev_per_s": TARGET_EVENTS_PER_S / 1e6,
     }
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(result, indent=2))
+    write_results(RESULTS, result)
     print(f"wrote {RESULTS}")
 
 

@@ -15,7 +15,6 @@ Targets: decode ≥ 50 % of ``evt3``'s events/s on the same file; encode ≥ 20 
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import tempfile
 import time
@@ -28,6 +27,7 @@ import numpy as np
 import psfmt
 from psfmt import evt3
 from psfmt.rawheader import read_header
+from results_io import write_results
 
 RESULTS = Path(__file__).resolve().parent / "results" / "event_io.json"
 SENSOR_W, SENSOR_H = 1280, 720
@@ -124,8 +124,7 @@ def main() -> None:
     encode_ok = [r for r in rows if r["what"].startswith("encode") and r["ev_per_s"] >= TARGET_ENCODE_EV_S]
     print(f"targets: decode ≥ {100 * TARGET_DECODE_SHARE:.0f} % of evt3: {'met by ' + decode_ok[0]['what'] if decode_ok else 'NOT met'}; "
           f"encode ≥ {TARGET_ENCODE_EV_S / 1e6:.0f} M events/s: {'met by ' + encode_ok[0]['what'] if encode_ok else 'NOT met'}")
-    RESULTS.parent.mkdir(exist_ok=True)
-    RESULTS.write_text(json.dumps({"events": n, "file_bytes": size, "engines": engines, "rows": rows}, indent=2))
+    write_results(RESULTS, {"events": n, "file_bytes": size, "engines": engines, "rows": rows})
 
 
 if __name__ == "__main__":

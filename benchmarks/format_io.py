@@ -14,7 +14,6 @@ Targets: full event read ≥ 20 M events/s; a 1 ms window read from a 10 M-event
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import tempfile
 import time
@@ -26,6 +25,7 @@ import h5py
 import numpy as np
 
 import psfmt
+from results_io import write_results
 
 RESULTS = Path(__file__).resolve().parent / "results" / "format_io.json"
 SENSOR_W, SENSOR_H = 1280, 720
@@ -182,8 +182,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="format_io_") as folder:
         result = run(args.events, args.windows, args.seed, Path(folder))
     print_table(result)
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(result, indent=2))
+    write_results(RESULTS, result)
     print(f"wrote {RESULTS}")
 
 

@@ -16,7 +16,6 @@ Target: ≥ 5 M events/s.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import resource
@@ -32,6 +31,7 @@ import torch
 
 import psfmt
 from pstoolkit.simulator import SimulationConfig, simulate
+from results_io import write_results
 
 RESULTS = Path(__file__).resolve().parent / "results" / "simulate.json"
 TARGET_EVENTS_PER_S = 5e6
@@ -101,8 +101,7 @@ def main() -> None:
                     "cpus": os.cpu_count(), "processor": platform.processor() or platform.machine(),
                     "argv": sys.argv[1:]},
     }
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(result, indent=2))
+    write_results(RESULTS, result)
     print(f"wrote {RESULTS}")
 
 
