@@ -20,6 +20,7 @@ import math
 from collections import OrderedDict
 from collections.abc import Sequence
 
+import numba
 import numpy as np
 import torch
 
@@ -49,9 +50,12 @@ _NO_OCCLUDER = -1e9
 _LOW_MARGIN = -1e3
 
 
-def _sweep(occluder: np.ndarray, height: np.ndarray, k: np.ndarray, rise: np.ndarray) -> np.ndarray:
-    """Shadow margins for lights towards increasing column index, (G, R, C) float32: how far (pixels
-    of height) the highest occluder rises above each pixel's ray towards the light (negative: lit).
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _sweep(occluder_t: np.ndarray, height_t: np.ndarray, k: np.ndarray, rise: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """Shadow margins for lights towards increasing column index, (G, C, R) float32 (transposed like
+    the maps): how far (pixels of height) the highest occluder rises above each pixel's ray towards
+    the light (negative: lit). ``occluder_t`` and ``height_t`` are the (C, R) transposed maps, so a
+    column is contiguous.
 
     Light g's rays go one column per step and ``k[g]`` rows per column (|k| ≤ 1), climbing ``rise[g]``
     pixels of height per step. All rays of one light are parallel, so they lie on lines
@@ -61,57 +65,43 @@ def _sweep(occluder: np.ndarray, height: np.ndarray, k: np.ndarray, rise: np.nda
     height, and floored so that an empty line cannot outweigh an occluded one). The mix is exact on
     smooth surfaces and continuous as the light (and with it the lines) moves, so a pixel does not
     flicker when a line sweeps past it; beside a wall parallel to the light it reads as shadowed
-    up to one pixel early. Within one column every line is
-    shifted by the same fraction of a row, so all sampling is by contiguous per-column slices.
+    up to one pixel early. The columns are walked from the light's side, so the running maximum of
+    the columns after the current one is at hand for its pixels before the column joins it.
+    Compiled, in parallel over the lights: one pass over the pixels per light.
     """
-    g, (rows, cols) = len(k), occluder.shape
-    span = int(np.ceil(np.max(np.abs(k)) * (cols - 1))) if g else 0
+    g_count = k.size
+    cols, rows = occluder_t.shape
+    span = int(np.ceil(np.max(np.abs(k)) * (cols - 1))) if g_count else 0
     lines = rows + span + 2
-    c = np.arange(cols, dtype=np.float64)
-    # line j crosses column c at row base + j
-    base = np.floor(np.minimum(0.0, -k * (cols - 1)))[:, None] - 1.0 + k[:, None] * c  # (G, C)
-    i0 = np.floor(base)
-    f = (base - i0).astype(np.float32)[..., None]
-    pad = lines + 2
-    table = np.full((cols, rows + 2 * pad), _NO_OCCLUDER, dtype=np.float32)
-    table[:, pad : pad + rows] = occluder.T
-    # int32 indices halve the memory traffic of the gathers (tables stay far below 2³¹ values)
-    start = (np.arange(cols)[None, :] * table.shape[1] + pad + i0.astype(np.int64)).astype(np.int32)[..., None]
-    index = start + np.arange(lines, dtype=np.int32)
-    flat = table.ravel()
-    ramp = (rise[:, None] * c).astype(np.float32)[..., None]
-    # (1 − f)·a + f·b, not a + f·(b − a): the latter loses a real height against the sentinel
-    along = flat.take(index)
-    along *= 1.0 - f
-    index += 1
-    upper = flat.take(index)
-    del index
-    upper *= f
-    along += upper
-    along -= ramp
-    del upper
-    after = np.empty_like(along)
-    after[:, -1] = _NO_OCCLUDER
-    np.maximum.accumulate(along[:, :0:-1], axis=1, out=after[:, -2::-1])
-    # pixel row r lies at (fractional) line r − base
-    q0 = np.floor(-base)
-    w = (-base - q0).astype(np.float32)[..., None]
-    first = ((np.arange(g)[:, None] * cols + np.arange(cols)[None, :]) * lines + q0.astype(np.int64)).astype(np.int32)
-    pick = first[..., None] + np.arange(rows, dtype=np.int32)
-    flat_after = after.ravel()
-    own = height.T.astype(np.float32)[None] - ramp
-    lower = flat_after.take(pick)
-    lower -= own
-    np.maximum(lower, _LOW_MARGIN, out=lower)
-    pick += 1
-    upper = flat_after.take(pick)
-    del pick
-    upper -= own
-    np.maximum(upper, _LOW_MARGIN, out=upper)
-    lower *= 1.0 - w
-    upper *= w
-    lower += upper
-    return lower.transpose(0, 2, 1)
+    out = np.empty((g_count, cols, rows), dtype=np.float32)
+    no_occluder = np.float32(_NO_OCCLUDER)
+    low = np.float32(_LOW_MARGIN)
+    for g in numba.prange(g_count):
+        running = np.full(lines, no_occluder, dtype=np.float32)
+        first_base = np.floor(min(0.0, -k[g] * (cols - 1))) - 1.0
+        for c in range(cols - 1, -1, -1):
+            # line j crosses column c at row base + j
+            base = first_base + k[g] * c
+            ramp = np.float32(rise[g] * c)
+            # pixel row r lies at (fractional) line r − base
+            q0 = int(np.floor(-base))
+            w = np.float32(-base - q0)
+            for r in range(rows):
+                own = height_t[c, r] - ramp
+                lower = max(running[q0 + r] - own, low)
+                upper = max(running[q0 + r + 1] - own, low)
+                out[g, c, r] = lower * (np.float32(1.0) - w) + upper * w
+            i0 = int(np.floor(base))
+            f = np.float32(base - i0)
+            for j in range(lines):
+                row = i0 + j
+                a = occluder_t[c, row] if 0 <= row < rows else no_occluder
+                b = occluder_t[c, row + 1] if 0 <= row + 1 < rows else no_occluder
+                # (1 − f)·a + f·b, not a + f·(b − a): the latter loses a real height against the sentinel
+                value = a * (np.float32(1.0) - f) + b * f - ramp
+                if value > running[j]:
+                    running[j] = value
+    return out
 
 
 def shadow_margin(
@@ -158,10 +148,11 @@ def shadow_margin(
             step = max(1, chunk_values // per_light)
             for start in range(0, index.size, step):
                 sl = slice(start, start + step)
-                margin = _sweep(np.ascontiguousarray(occ), np.ascontiguousarray(hgt), k[sl], rise[sl])
+                margin = _sweep(np.ascontiguousarray(occ.T, dtype=np.float32), np.ascontiguousarray(hgt.T, dtype=np.float32),
+                                k[sl], rise[sl])
                 if flip:
-                    margin = margin[:, :, ::-1]
-                out[index[sl]] = margin.transpose(0, 2, 1) if transpose else margin
+                    margin = margin[:, ::-1]
+                out[index[sl]] = margin if transpose else margin.transpose(0, 2, 1)
     out[:, ~mask] = _LOW_MARGIN
     return out
 
@@ -175,6 +166,16 @@ def visibility_from_margin(margin: np.ndarray, bias_px: float = SHADOW_BIAS_PX, 
 def _openness(margin: np.ndarray, bias_px: float = SHADOW_BIAS_PX, penumbra_px: float = PENUMBRA_PX) -> np.ndarray:
     """V before clipping to [0, 1]: affine in the margin, so it interpolates like the margin."""
     return 1.0 - (margin - bias_px) / penumbra_px
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _masked_openness(margin: np.ndarray, index: np.ndarray, bias_px: float, penumbra_px: float) -> np.ndarray:  # pragma: no cover - compiled
+    """``_openness`` of the pixels ``index`` of (G, H·W) margins, (G, len(index)) float32, in one pass."""
+    out = np.empty((margin.shape[0], index.size), dtype=np.float32)
+    for g in numba.prange(margin.shape[0]):
+        for j in range(index.size):
+            out[g, j] = 1.0 - (margin[g, index[j]] - bias_px) / penumbra_px
+    return out
 
 
 def cast_shadow_mask(depth: np.ndarray, mask: np.ndarray, directions: np.ndarray) -> np.ndarray:
@@ -318,10 +319,8 @@ class Renderer:
         keys, inverse = np.unique(np.concatenate((key0, key1)), return_inverse=True)
         missing = [int(k) for k in keys if int(k) not in self._margins]
         if missing:
-            direction, _ = self.light.evaluate(np.array(missing) * step, self._points)
-            margin = shadow_margin(self.maps.depth, self.maps.mask, self._shadow_directions(direction))
-            for key, m in zip(missing, margin.reshape(len(missing), -1)[:, self.index]):
-                self._margins[key] = _openness(m).astype(np.float32)
+            for key, row in zip(missing, self._openness_rows(np.array(missing))):
+                self._margins[key] = row
         table = np.stack([self._margins[int(k)] for k in keys])
         for key in keys:
             self._margins.move_to_end(int(key))
@@ -329,6 +328,18 @@ class Renderer:
             self._margins.popitem(last=False)
         n = len(key0)
         return table, inverse[:n], inverse[n:], after
+
+    def _openness_rows(self, keys: np.ndarray) -> np.ndarray:
+        """(N, P) float32 unclipped V (``_openness`` of the margins) of the masked pixels at the shadow
+        grid times ``keys`` × ``shadow_step_us``, swept anew."""
+        direction, _ = self.light.evaluate(np.asarray(keys) * float(self.shadow_step_us), self._points)  # type: ignore[arg-type]
+        margin = shadow_margin(self.maps.depth, self.maps.mask, self._shadow_directions(direction))
+        return _masked_openness(margin.reshape(len(keys), -1), self.index, SHADOW_BIAS_PX, PENUMBRA_PX)
+
+    def grid_openness(self, keys: np.ndarray) -> np.ndarray:
+        """``_openness_rows`` of consecutive grid ``keys``, swept without the cache: a caller walking
+        time in blocks needs each row once (and the cache holds far less than a turn)."""
+        return self._openness_rows(np.asarray(keys))
 
     def visibility(self, t_us: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """(T, P) float32 V in [0, 1]: how much of each masked pixel is out of cast shadow at ``t_us``."""
@@ -386,6 +397,11 @@ class Renderer:
         q.mul_(q)
         q.mul_(torch.addcmul(constant["k"], nl, constant["1_k"]))
         return nl, torch.div(constant["dv"], q, out=q)
+
+    def closed_form_constants(self) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        """Per masked pixel: normals ``nT`` (3, P), |n|² ``nn``, α² − 1 ``alpha2_1``, ``k``, 1 − k ``1_k``
+        and α²·(1/(4 G1-denominator of n·v))/π ``dv``; and (P, 3) ``albedo`` and ``f0``; float64."""
+        return self._closed_form_constants(), self._rgb64
 
     def _closed_form_constants(self) -> dict[str, torch.Tensor]:
         """Per masked pixel: normals (3, P), |n|², α² − 1, k, 1 − k and α²·(1/(4 G1-denominator of
@@ -460,7 +476,9 @@ class Renderer:
         """(T, H, W, 3) float32 linear RGB irradiance at frame resolution."""
         return self.scatter(self.irradiance(t_us)).cpu().numpy().astype(np.float32, copy=False)
 
-    def _footprint(self, event_scale: float) -> tuple[torch.Tensor, torch.Tensor]:
+    def footprint(self, event_scale: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """Which masked frame pixels each event pixel averages: (E, K) positions into the masked pixels
+        and (E, K) float64 area weights (0 for unused slots and unmasked pixels)."""
         if event_scale not in self._footprints:
             self._footprints[event_scale] = _event_footprints(self.maps.height, self.maps.width, event_scale, self.index)
         position, weight = self._footprints[event_scale]
@@ -498,7 +516,7 @@ class Renderer:
         out = None
         if event_scale is not None:
             he, we = event_shape(self.maps.height, self.maps.width, event_scale)
-            position, weight = self._footprint(event_scale)
+            position, weight = self.footprint(event_scale)
             out = np.empty((t_us.size, he, we), dtype=np.float64)
         grey_w = torch.tensor(GREY_WEIGHTS, dtype=torch.float64, device=self.device)
         fast = self._fast([self.brdf, *brdfs])
@@ -539,7 +557,7 @@ class Renderer:
         if not self.event_pixels_supported:
             raise UserError("Renderer.event_pixels needs a directional light, the ggx or lambertian BRDF and a shadow grid")
         t_us = np.asarray(t_us, dtype=np.float64).reshape(-1)
-        position, weight = self._footprint(event_scale)
+        position, weight = self.footprint(event_scale)
         pixel_t = torch.as_tensor(np.asarray(pixel, dtype=np.int64), device=self.device)
         frame = position[pixel_t].reshape(-1)
         w = weight[pixel_t]

@@ -6,11 +6,14 @@ per frame pixel over the same time; a classic capture (``discrete_lights=N``) ho
 instantaneous lights spread evenly over one period and no events. Both carry the light model and the
 ground truth (normal, mask, albedo, depth in frame pixels, F0, roughness, metallic).
 
-Speed: one pass over time renders each moment once. The frames' midpoint-rule samples are the
-times of the event simulation's whole-frame renders (``simulate_events(sample_times_us=…)``), each
-render adding to its frame as it feeds the events; only the pixels that change faster get finer
-samples (``render_pixels``), and cast shadows are swept every ``SHADOW_STEP_DEG`` of the light's
-path and interpolated in between. Memory stays bounded: time is processed in blocks.
+Speed: with the built-in BRDFs on the CPU the compiled engine ``pstoolkit.simkernel`` renders each
+event pixel at its own adaptive times and integrates the frames on the same samples, in parallel
+over event pixels (numba); cast shadows are swept every ``SHADOW_STEP_DEG`` of the light's path and
+interpolated in between. Other BRDFs (plugins) and other devices take the reference engine:
+whole-frame renders on the frames' midpoint-rule samples (``simulate_events(sample_times_us=…)``),
+each adding to its frame as it feeds the events, with per-pixel refinement (``render_pixels``).
+Both follow the event rule of ``pstoolkit.eventmodel``. Memory stays bounded: time is processed in
+blocks.
 
 Frames: exposure (irradiance × seconds) times a gain that puts the brightest diffuse value of any
 frame at ``DIFFUSE_LEVEL`` of saturation, so specular highlights may clip as in an LDR camera; optional
@@ -28,6 +31,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from functools import partial
 from pathlib import Path
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -35,9 +39,11 @@ import torch
 
 import psfmt
 import pstoolkit
+from pstoolkit import simkernel
+from pstoolkit.brdf import GGX
 from pstoolkit.errors import UserError
 from pstoolkit.esim import simulate_events
-from pstoolkit.lights import RingLight
+from pstoolkit.lights import US_PER_S, RingLight
 from pstoolkit.options import parse_assignments
 from pstoolkit.plugins import get_registries
 from pstoolkit.render import Renderer, event_shape, exposure_plan, exposure_samples
@@ -144,6 +150,30 @@ def build_scene(config: SimulationConfig) -> SceneMaps:
         raise UserError(f"scene {config.scene!r}: {exc}") from None
 
 
+def build_renderer(config: SimulationConfig, maps: SceneMaps, brdf: Any) -> Renderer:
+    """The scene under the configured ring light, with cast shadows on the simulator's shadow grid."""
+    light = RingLight(elevation_deg=config.elevation_deg, period_us=config.period_us)
+    shadow_step_us = config.period_us / exposure_samples(light, 0, config.period_us, SHADOW_STEP_DEG)
+    return Renderer(maps, light, brdf, shadows=config.shadows, device=config.device, shadow_step_us=shadow_step_us)
+
+
+def compiled_blocks(config: SimulationConfig, renderer: Renderer) -> Iterator[simkernel.Block]:
+    """``simkernel.simulate_ring`` over all periods of ``config``, with the first period's windows."""
+    period = config.period_us
+    return simkernel.simulate_ring(
+        renderer,
+        event_scale=config.event_scale,
+        t1_us=config.periods * period,
+        window_ends_us=[round(k * period / config.frames) for k in range(1, config.frames + 1)],
+        contrast_pos=config.contrast,
+        contrast_neg=config.contrast,
+        sigma=config.contrast_sigma,
+        refractory_us=config.refractory_us,
+        seed=config.seed,
+        min_dt_us=max(1.0, period * EVENT_MIN_STEP_TURNS),
+    )
+
+
 def quantise(exposure: np.ndarray, gain: float, bit_depth: int, noise: float, rng: np.random.Generator) -> np.ndarray:
     """Pixel values of a linear sensor: gain·exposure plus shot and read noise, clipped at saturation
     and rounded to the integer type of ``bit_depth``."""
@@ -170,9 +200,10 @@ def simulate(config: SimulationConfig, path: str | os.PathLike[str], progress: P
     """Render ``config`` and write the capture to ``path`` atomically; ``progress(fraction, message)``
     is called as work advances. ``config.device`` is a torch device ("cpu", "cuda").
 
-    On the CPU torch runs single-threaded here: a render step is many small tensor operations, where
-    handing work between threads costs more than it saves — ``benchmarks/simulate.py`` took 15 s per
-    period with 2 threads and 2.3 s with 1 on a busy 2-core machine."""
+    On the CPU torch runs single-threaded here: the reference engine's render steps are many small
+    tensor operations, where handing work between threads costs more than it saves (15 s per period
+    with 2 threads against 2.3 s with 1 on a busy 2-core machine); the compiled engine runs on numba's
+    threads (``NUMBA_NUM_THREADS``)."""
     threads = torch.get_num_threads()
     if torch.device(config.device).type == "cpu":
         torch.set_num_threads(1)
@@ -193,9 +224,7 @@ def _simulate(config: SimulationConfig, path: str | os.PathLike[str], progress: 
     brdf = registries.brdfs.get(config.brdf).obj()
     diffuse = registries.brdfs.get("lambertian").obj()
     maps = build_scene(config)
-    light = RingLight(elevation_deg=config.elevation_deg, period_us=config.period_us)
-    shadow_step_us = config.period_us / exposure_samples(light, 0, config.period_us, SHADOW_STEP_DEG)
-    renderer = Renderer(maps, light, brdf, shadows=config.shadows, device=config.device, shadow_step_us=shadow_step_us)
+    renderer = build_renderer(config, maps, brdf)
     noise_rng, _ = (np.random.default_rng(s) for s in np.random.SeedSequence(config.seed).spawn(2))
     n_events = 0
     event_size: tuple[int, int] | None = None
@@ -233,9 +262,8 @@ class _FrameSums:
     cast-shadow sweeps cached for one time serve its neighbours. The light repeats every period, so
     the frames of the first period are reused for the others."""
 
-    def __init__(self, config: SimulationConfig, renderer: Renderer, brdfs: list[Any]) -> None:
-        period = config.period_us
-        self.bounds = [int(round(k * period / config.frames)) for k in range(config.frames + 1)]
+    def __init__(self, config: SimulationConfig, renderer: Renderer, brdfs: list[Any], bounds: list[int]) -> None:
+        self.bounds = bounds
         plans = [exposure_plan(renderer.light, a, b) for a, b in zip(self.bounds[:-1], self.bounds[1:])]
         self.times = np.concatenate([times for times, _ in plans])
         self.window = np.repeat(np.arange(config.frames), [len(times) for times, _ in plans])
@@ -294,12 +322,16 @@ def _write_hybrid(
 ) -> tuple[int, tuple[int, int]]:
     """Events and long exposures tiling each period, in one pass over time."""
     brdfs = [renderer.brdf] if config.exposure_gain is not None else [renderer.brdf, diffuse]
-    sums = _FrameSums(config, renderer, brdfs)
     event_size = event_shape(config.size, config.size, config.event_scale)
-    n_events = _write_events(config, renderer, event_size, writer, report, sums)
-    exposures = sums.exposures()
+    period = config.period_us
+    bounds = [int(round(k * period / config.frames)) for k in range(config.frames + 1)]
+    if simkernel.supported(renderer):
+        n_events, exposures = _write_compiled(config, renderer, event_size, writer, report, brdfs)
+    else:
+        sums = _FrameSums(config, renderer, brdfs, bounds)
+        n_events = _write_events(config, renderer, event_size, writer, report, sums)
+        exposures = sums.exposures()
     gain = config.exposure_gain or _auto_gain(max(float(e[-1].max()) for e in exposures), config.bit_depth)
-    period, bounds = config.period_us, sums.bounds
     for p in range(config.periods):
         for k, exposure in enumerate(exposures):
             writer.append_frames(
@@ -308,6 +340,38 @@ def _write_hybrid(
                 t_end_us=[p * period + bounds[k + 1]],
             )
     return n_events, event_size
+
+
+def _write_compiled(
+    config: SimulationConfig,
+    renderer: Renderer,
+    event_size: tuple[int, int],
+    writer: psfmt.CaptureWriter,
+    report: Progress,
+    brdfs: list[Any],
+) -> tuple[int, list[list[np.ndarray]]]:
+    """Events over all periods and the first period's exposures per BRDF, from ``simkernel``."""
+    height, width = event_size
+    writer.begin_events(width, height)
+    t1 = config.periods * config.period_us
+    count, window_sums = 0, []
+    for block in compiled_blocks(config, renderer):
+        if len(block.events):
+            writer.append_events(block.events)
+            count += len(block.events)
+        if block.window_sums is not None:
+            window_sums.append(block.window_sums)
+        report(min(1.0, block.t_end_us / t1), "events")
+    rgb = renderer.closed_form_constants()[1]
+    albedo, f0 = rgb["albedo"].cpu().numpy(), rgb["f0"].cpu().numpy()
+    intensity = np.asarray(renderer.light.intensity, dtype=np.float64) / US_PER_S  # type: ignore[attr-defined]
+    exposures = []
+    for sums in window_sums:
+        diffuse = albedo * sums[:, :1] * intensity
+        gloss = diffuse + f0 * sums[:, 1:] * intensity
+        per_brdf = [gloss if isinstance(b, GGX) else diffuse for b in brdfs]
+        exposures.append([renderer.scatter(torch.as_tensor(e[None]))[0].numpy() for e in per_brdf])
+    return count, exposures
 
 
 def _write_discrete(
