@@ -62,26 +62,28 @@ REFINE_SHARE_HIGH = 0.02
 REFINE_SHARE_LOW = 0.002
 
 
-def _check_options(
+def check_options(
     t0_us: float, t1_us: float, width: int, height: int, contrasts: dict[str, float], sigma: float,
     refractory_us: float, eps: float, max_dlog: float, initial_dt_us: float, chunk_samples: int,
-    min_dt_us: float, rates: dict[str, float],
+    min_dt_us: float, rates: dict[str, float], caller: str = "simulate_events",
 ) -> None:
+    """UserError naming the first argument of ``simulate_events`` (or of an engine with the same
+    options) that is out of range."""
     if not t1_us > t0_us:
-        raise UserError(f"simulate_events: t1_us ({t1_us}) must be after t0_us ({t0_us})")
+        raise UserError(f"{caller}: t1_us ({t1_us}) must be after t0_us ({t0_us})")
     if width < 1 or height < 1 or width > 65536 or height > 65536:
-        raise UserError(f"simulate_events: sensor size {width}x{height} must be 1 to 65536 pixels per side")
+        raise UserError(f"{caller}: sensor size {width}x{height} must be 1 to 65536 pixels per side")
     positive = {**contrasts, "eps": eps, "max_dlog": max_dlog, "initial_dt_us": initial_dt_us,
                 "min_dt_us": min_dt_us}
     nonnegative = {"sigma": sigma, "refractory_us": refractory_us, **rates}
     for name, value in positive.items():
         if not value > 0 or not math.isfinite(value):
-            raise UserError(f"simulate_events: {name} must be a positive number, got {value}")
+            raise UserError(f"{caller}: {name} must be a positive number, got {value}")
     for name, value in nonnegative.items():
         if not value >= 0 or not math.isfinite(value):
-            raise UserError(f"simulate_events: {name} must be zero or positive, got {value}")
+            raise UserError(f"{caller}: {name} must be zero or positive, got {value}")
     if chunk_samples < 2:
-        raise UserError(f"simulate_events: chunk_samples must be at least 2, got {chunk_samples}")
+        raise UserError(f"{caller}: chunk_samples must be at least 2, got {chunk_samples}")
 
 
 def _check_sample_times(sample_times_us: np.ndarray, t0_us: float, t1_us: float) -> np.ndarray:
@@ -419,7 +421,7 @@ def simulate_events(
     """
     if max_dlog is None:
         max_dlog = 0.5 * min(contrast_pos, contrast_neg)
-    _check_options(t0_us, t1_us, width, height, {"contrast_pos": contrast_pos, "contrast_neg": contrast_neg},
+    check_options(t0_us, t1_us, width, height, {"contrast_pos": contrast_pos, "contrast_neg": contrast_neg},
                    sigma, refractory_us, eps, max_dlog, initial_dt_us, chunk_samples, min_dt_us,
                    {"shot_noise_hz": shot_noise_hz, "leak_hz": leak_hz})
     if sample_times_us is not None:

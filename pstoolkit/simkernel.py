@@ -36,7 +36,7 @@ import torch
 from psfmt import EventArray
 from pstoolkit.brdf import GGX
 from pstoolkit.errors import UserError
-from pstoolkit.esim import draw_thresholds
+from pstoolkit.esim import check_options, draw_thresholds
 from pstoolkit.eventmodel import GREY_WEIGHTS, LOG_EPS
 from pstoolkit.lights import RingLight
 from pstoolkit.render import Renderer, event_shape
@@ -50,6 +50,9 @@ MAX_STEP_TURNS = 8.0 / 360.0
 # between the step's samples is then within about a quarter of it (1e-3) of L, so events keep the
 # threshold rule where L curves (a highlight) even when its change over the step is small.
 MAX_BEND = 4e-3
+# Event pixels handed to a thread at a time: pixels differ a lot in work (a dark background pixel
+# against one a shadow edge sweeps), so threads take small chunks as they finish instead of equal shares.
+PIXELS_PER_TASK = 64
 # Length of a block of time, in shadow-grid intervals: one shadow table and one batch of events.
 BLOCK_GRID_STEPS = 32
 # Keeps the half vector's normalisation finite when l = −v, as in ``pstoolkit.brdf``.
@@ -450,13 +453,18 @@ def simulate_ring(
     assert isinstance(light, RingLight)
     if max_dlog is None:
         max_dlog = 0.5 * min(contrast_pos, contrast_neg)
+    height, width = event_shape(renderer.maps.height, renderer.maps.width, event_scale)
+    check_options(0.0, t1_us, width, height, {"contrast_pos": contrast_pos, "contrast_neg": contrast_neg}, sigma,
+                  refractory_us, eps, max_dlog, 1.0, 2, min_dt_us, {}, caller="simulate_ring")
+    ends = sorted({float(t) for t in window_ends_us} | {float(t1_us)})
+    if ends[0] <= 0 or ends[-1] > t1_us:
+        raise UserError(f"simulate_ring: window ends must lie in (0, t1_us = {t1_us}]")
     grid_dt_us = float(renderer.shadow_step_us or light.period_us / 360.0)
     if max_dt_us is None:
         max_dt_us = light.period_us * MAX_STEP_TURNS
     block_us = BLOCK_GRID_STEPS * grid_dt_us if block_us is None else float(block_us)
     constants = frame_constants(renderer)
     feet = footprints(renderer, event_scale)
-    height, width = event_shape(renderer.maps.height, renderer.maps.width, event_scale)
     n_events = height * width
     rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(3)[0])
     c_pos = draw_thresholds(rng, contrast_pos, sigma, n_events)
@@ -474,7 +482,6 @@ def simulate_ring(
     state.hi[:] = state.level + c_pos
     state.lo[:] = state.level - c_neg
     capacity = max(1, int(capacity))
-    ends = sorted({float(t) for t in window_ends_us} | {float(t1_us)})
     ta = 0.0
     for end in ends:
         while ta < end:
@@ -487,10 +494,11 @@ def simulate_ring(
                 out_t = np.empty((n_events, capacity))
                 out_p = np.empty((n_events, capacity), dtype=np.int8)
                 count = np.zeros(n_events, dtype=np.int64)
-                _advance(ta, tb, feet.pixel, feet.weight, feet.owned, constants.values, constants.specular, ring,
-                         openness, grid, c_pos, c_neg, float(refractory_us), float(eps),
-                         float(max_dlog), float(min_dt_us), float(max_dt_us), grid_dt_us, state.level, state.hi, state.lo,
-                         state.blind_until_us, state.step_us, state.slope, state.shade, state.sums, out_t, out_p, count)
+                with numba.parallel_chunksize(PIXELS_PER_TASK):
+                    _advance(ta, tb, feet.pixel, feet.weight, feet.owned, constants.values, constants.specular, ring,
+                             openness, grid, c_pos, c_neg, float(refractory_us), float(eps),
+                             float(max_dlog), float(min_dt_us), float(max_dt_us), grid_dt_us, state.level, state.hi, state.lo,
+                             state.blind_until_us, state.step_us, state.slope, state.shade, state.sums, out_t, out_p, count)
                 most = int(count.max(initial=0))
                 if most <= capacity:
                     break

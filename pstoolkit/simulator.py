@@ -245,7 +245,7 @@ def _simulate(config: SimulationConfig, path: str | os.PathLike[str], progress: 
                     refractory_us=config.refractory_us,
                 )
             )
-        writer.set_lights(light.to_spec())
+        writer.set_lights(renderer.light.to_spec())
         writer.set_ground_truth(
             psfmt.GroundTruth(
                 normal=maps.normal, mask=maps.mask, albedo=maps.albedo, depth=maps.depth, materials=maps.materials()

@@ -15,6 +15,7 @@ from psfmt import EventArray
 from pstoolkit import simkernel
 from pstoolkit.brdf import GGX, Lambertian
 from pstoolkit.esim import simulate_events
+from pstoolkit.errors import UserError
 from pstoolkit.eventmodel import LOG_EPS, reference_time_us
 from pstoolkit.lights import RingLight
 from pstoolkit.options import defaults
@@ -150,3 +151,15 @@ def test_the_simulator_gives_the_same_capture_through_either_engine(monkeypatch:
         a, b = psfmt.load(fast.path), psfmt.load(slow.path)
         frames_a, frames_b = a.frames.data.astype(np.float64), b.frames.data.astype(np.float64)
         assert np.abs(frames_a - frames_b).max() < 0.005 * 65535
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"contrast_pos": 0.0}, "simulate_ring: contrast_pos must be a positive number, got 0.0"),
+    ({"refractory_us": -1.0}, "simulate_ring: refractory_us must be zero or positive, got -1.0"),
+    ({"window_ends_us": [0.0]}, r"simulate_ring: window ends must lie in \(0, t1_us = 30000.0\]"),
+])
+def test_bad_options_name_the_option(kwargs: dict, message: str) -> None:
+    arguments = {"event_scale": 0.5, "t1_us": PERIOD_US, "window_ends_us": [PERIOD_US], "contrast_pos": C,
+                 "contrast_neg": C, **kwargs}
+    with pytest.raises(UserError, match=message):
+        next(simkernel.simulate_ring(renderer(Sphere(), GGX(), size=16), **arguments))
