@@ -63,25 +63,52 @@ SHADOW_STEP_DEG = 1.0
 
 
 @dataclass
-class SimulationConfig:
-    """Everything that decides a simulated capture. ``scene_options`` are ``key=value`` strings
-    checked against the scene's typed options; ``noise`` is the read-noise standard deviation as a
-    fraction of saturation, with Poisson shot noise of a full well of 1/noise² electrons (0 = none);
-    ``exposure_gain`` (pixel units per irradiance·second) overrides the automatic gain."""
+class CaptureTiming:
+    """The sensor and timing options every synthetic hybrid capture shares (the simulator's and the
+    DiLiGenT semi-real converter's): frame size (pixels, square), event pixels per frame pixel,
+    contrast threshold, refractory period, long exposures per light period, periods and their length,
+    the seed, and ``discrete_lights`` K > 0 for a frames-only capture of K instantaneous lights."""
 
-    scene: str = "sphere"
     size: int = 128
-    seed: int = 0
-    scene_options: list[str] = field(default_factory=list)
     event_scale: float = 0.5
+    contrast: float = 0.15
+    refractory_us: float = 2000.0
     frames: int = 3
-    discrete_lights: int = 0
     periods: int = 1
     period_ms: float = 1000.0 / 30.0
+    seed: int = 0
+    discrete_lights: int = 0
+
+    @property
+    def period_us(self) -> int:
+        return int(round(self.period_ms * 1000.0))
+
+    def check_with(self, limits: list[tuple[str, bool, str]]) -> None:
+        """Raise UserError naming the first option out of range: the shared ones, then ``limits``."""
+        shared = [
+            ("--size", 8 <= self.size <= 8192, "must be between 8 and 8192 pixels"),
+            ("--event-scale", 0 < self.event_scale <= 1, "must be in (0, 1] event pixels per frame pixel"),
+            ("--periods", 1 <= self.periods <= 10000, "must be between 1 and 10000"),
+            ("--contrast", 0.01 <= self.contrast <= 5, "must be between 0.01 and 5"),
+            ("--refractory-us", 0 <= self.refractory_us <= self.period_us, "must be between 0 and the period"),
+            ("--seed", 0 <= self.seed < 2**63, "must be a non-negative integer"),
+        ]
+        check_limits(self, [*shared, *limits])
+        check_event_grid(self.size, self.event_scale)
+
+
+@dataclass
+class SimulationConfig(CaptureTiming):
+    """Everything that decides a simulated capture (``CaptureTiming`` and the scene, light, sensor and
+    renderer). ``scene_options`` are ``key=value`` strings checked against the scene's typed options;
+    ``noise`` is the read-noise standard deviation as a fraction of saturation, with Poisson shot
+    noise of a full well of 1/noise² electrons (0 = none); ``exposure_gain`` (pixel units per
+    irradiance·second) overrides the automatic gain."""
+
+    scene: str = "sphere"
+    scene_options: list[str] = field(default_factory=list)
     elevation_deg: float = 45.0
-    contrast: float = 0.15
     contrast_sigma: float = 0.0
-    refractory_us: float = 2000.0
     noise: float = 0.0
     brdf: str = "ggx"
     bit_depth: int = 8
@@ -89,31 +116,20 @@ class SimulationConfig:
     shadows: bool = True
     device: str = "cpu"
 
-    @property
-    def period_us(self) -> int:
-        return int(round(self.period_ms * 1000.0))
-
     def check(self) -> None:
         """Raise UserError naming the first option out of range."""
         limits: list[tuple[str, bool, str]] = [
-            ("--size", 8 <= self.size <= 8192, "must be between 8 and 8192 pixels"),
-            ("--event-scale", 0 < self.event_scale <= 1, "must be in (0, 1] event pixels per frame pixel"),
             ("--frames", 1 <= self.frames <= 1000, "must be between 1 and 1000"),
             ("--discrete-lights", 0 <= self.discrete_lights <= 10000, "must be between 0 (hybrid capture) and 10000"),
-            ("--periods", 1 <= self.periods <= 10000, "must be between 1 and 10000"),
             ("--period-ms", self.period_us >= 10 * max(self.frames, 1), "is too short for the frames (at least 10 µs per frame)"),
             ("--elevation-deg", 0 < self.elevation_deg <= 90, "must be in (0, 90] degrees"),
-            ("--contrast", 0.01 <= self.contrast <= 5, "must be between 0.01 and 5"),
             ("--contrast-sigma", 0 <= self.contrast_sigma <= 1, "must be between 0 and 1"),
-            ("--refractory-us", 0 <= self.refractory_us <= self.period_us, "must be between 0 and the period"),
             ("--noise", 0 <= self.noise <= 0.5, "must be between 0 and 0.5"),
             ("--bit-depth", self.bit_depth in BIT_DEPTHS, "must be 8, 12 or 16"),
-            ("--seed", 0 <= self.seed < 2**63, "must be a non-negative integer"),
         ]
         if self.exposure_gain is not None:
             limits.append(("--exposure-gain", self.exposure_gain > 0, "must be positive"))
-        check_limits(self, limits)
-        check_event_grid(self.size, self.event_scale)
+        self.check_with(limits)
 
 
 def check_limits(config: object, limits: list[tuple[str, bool, str]]) -> None:

@@ -33,7 +33,7 @@ from pstoolkit.esim import Render, simulate_events
 from pstoolkit.eventmodel import LOG_EPS, log_irradiance
 from pstoolkit.lights import SampledLight
 from pstoolkit.render import GREY_WEIGHTS, area_weights, event_shape
-from pstoolkit.simulator import EVENT_MIN_STEP_TURNS, check_event_grid, check_limits
+from pstoolkit.simulator import EVENT_MIN_STEP_TURNS, CaptureTiming
 
 # Share of the progress bar given to reading and normalising the key images; the events take the rest.
 FRAMES_SHARE = 0.25
@@ -52,36 +52,19 @@ LDR_WHITE = 255
 
 
 @dataclass
-class SemiRealConfig:
+class SemiRealConfig(CaptureTiming):
     """Options of a semi-real capture (see the module docstring); ``discrete_lights`` K > 0 writes
     the frames-only comparison instead of the hybrid capture."""
 
     size: int = 256
-    event_scale: float = 0.5
-    contrast: float = 0.15
-    refractory_us: float = 2000.0
-    frames: int = 3
-    periods: int = 1
-    period_ms: float = 1000.0 / 30.0
-    seed: int = 0
-    discrete_lights: int = 0
-
-    @property
-    def period_us(self) -> int:
-        return round(self.period_ms * 1000.0)
 
     def check(self) -> None:
         """Raise UserError naming the first option out of range."""
-        limits = [
-            ("--size", 8 <= self.size <= 8192, "must be between 8 and 8192 pixels"),
-            ("--event-scale", 0 < self.event_scale <= 1, "must be in (0, 1] event pixels per frame pixel"),
+        self.check_with([
             ("--frames", 1 <= self.frames <= 36, "must be between 1 and 36"),
             ("--period-ms", self.period_us >= 10 * len(BOUNDARY_LOOP), "is too short (at least 10 µs per key light)"),
-            ("--refractory-us", 0 <= self.refractory_us <= self.period_us, "must be between 0 and the period"),
             ("--discrete-lights", 0 <= self.discrete_lights <= len(BOUNDARY_LOOP), f"must be between 0 and {len(BOUNDARY_LOOP)}"),
-        ]
-        check_limits(self, limits)
-        check_event_grid(self.size, self.event_scale)
+        ])
 
 
 @dataclass
