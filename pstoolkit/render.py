@@ -51,11 +51,16 @@ _LOW_MARGIN = -1e3
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _sweep(occluder_t: np.ndarray, height_t: np.ndarray, k: np.ndarray, rise: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
-    """Shadow margins for lights towards increasing column index, (G, C, R) float32 (transposed like
-    the maps): how far (pixels of height) the highest occluder rises above each pixel's ray towards
-    the light (negative: lit). ``occluder_t`` and ``height_t`` are the (C, R) transposed maps, so a
-    column is contiguous.
+def _sweep(
+    occluder_t: np.ndarray, height_t: np.ndarray, inside_t: np.ndarray, k: np.ndarray, rise: np.ndarray,
+    lights: np.ndarray, transpose: bool, flip: bool, out: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """Shadow margins for lights towards increasing column index of the oriented maps: how far
+    (pixels of height) the highest occluder rises above each pixel's ray towards the light (negative:
+    lit), written to ``out[lights[g]]`` (T, H, W) of the original maps. ``occluder_t``, ``height_t``
+    and ``inside_t`` (the mask) are the oriented maps transposed to (C, R), so a column is contiguous;
+    the oriented maps are the originals transposed (``transpose``), then with their columns reversed
+    (``flip``). Pixels outside the mask get ``_LOW_MARGIN``.
 
     Light g's rays go one column per step and ``k[g]`` rows per column (|k| ≤ 1), climbing ``rise[g]``
     pixels of height per step. All rays of one light are parallel, so they lie on lines
@@ -69,14 +74,13 @@ def _sweep(occluder_t: np.ndarray, height_t: np.ndarray, k: np.ndarray, rise: np
     the columns after the current one is at hand for its pixels before the column joins it.
     Compiled, in parallel over the lights: one pass over the pixels per light.
     """
-    g_count = k.size
     cols, rows = occluder_t.shape
-    span = int(np.ceil(np.max(np.abs(k)) * (cols - 1))) if g_count else 0
+    span = int(np.ceil(np.max(np.abs(k)) * (cols - 1))) if k.size else 0
     lines = rows + span + 2
-    out = np.empty((g_count, cols, rows), dtype=np.float32)
     no_occluder = np.float32(_NO_OCCLUDER)
     low = np.float32(_LOW_MARGIN)
-    for g in numba.prange(g_count):
+    for g in numba.prange(k.size):
+        target = out[lights[g]]
         running = np.full(lines, no_occluder, dtype=np.float32)
         first_base = np.floor(min(0.0, -k[g] * (cols - 1))) - 1.0
         for c in range(cols - 1, -1, -1):
@@ -86,11 +90,18 @@ def _sweep(occluder_t: np.ndarray, height_t: np.ndarray, k: np.ndarray, rise: np
             # pixel row r lies at (fractional) line r − base
             q0 = int(np.floor(-base))
             w = np.float32(-base - q0)
+            column = cols - 1 - c if flip else c
             for r in range(rows):
-                own = height_t[c, r] - ramp
-                lower = max(running[q0 + r] - own, low)
-                upper = max(running[q0 + r + 1] - own, low)
-                out[g, c, r] = lower * (np.float32(1.0) - w) + upper * w
+                margin = low
+                if inside_t[c, r]:
+                    own = height_t[c, r] - ramp
+                    lower = max(running[q0 + r] - own, low)
+                    upper = max(running[q0 + r + 1] - own, low)
+                    margin = lower * (np.float32(1.0) - w) + upper * w
+                if transpose:
+                    target[column, r] = margin
+                else:
+                    target[r, column] = margin
             i0 = int(np.floor(base))
             f = np.float32(base - i0)
             for j in range(lines):
@@ -101,15 +112,12 @@ def _sweep(occluder_t: np.ndarray, height_t: np.ndarray, k: np.ndarray, rise: np
                 value = a * (np.float32(1.0) - f) + b * f - ramp
                 if value > running[j]:
                     running[j] = value
-    return out
 
 
 def shadow_margin(
     depth: np.ndarray,
     mask: np.ndarray,
     directions: np.ndarray,
-    *,
-    chunk_values: int = CHUNK_VALUES,
 ) -> np.ndarray:
     """How far (pixels of height) occluders rise above each pixel's ray towards the light, (T, H, W)
     float32, for directional lights ``directions`` (T, 3) (unit, camera frame) coming from infinity;
@@ -117,43 +125,36 @@ def shadow_margin(
 
     ``depth`` is the height towards the camera in pixels; only pixels inside ``mask`` occlude, and
     pixels outside it get a large negative margin. Work per light is linear in the pixel count (a
-    running maximum along the parallel rays, see ``_sweep``), vectorised over pixels and lights and
-    chunked so memory stays bounded. Lights straight overhead cast no shadows.
+    running maximum along the parallel rays, see ``_sweep``, compiled and in parallel over the
+    lights); memory is the output. Lights straight overhead cast no shadows.
     """
     depth = np.asarray(depth, dtype=np.float64)
     mask = np.asarray(mask, dtype=bool)
     l = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
     t = l.shape[0]
     h, w = depth.shape
-    out = np.full((t, h, w), _LOW_MARGIN, dtype=np.float32)
+    out = np.empty((t, h, w), dtype=np.float32)
     du, dv = l[:, 0], -l[:, 1]  # image v points down
     rho = np.hypot(du, dv)
     side = rho > 1e-9
+    out[~side] = _LOW_MARGIN
     tan_e = np.where(side, l[:, 2] / np.where(side, rho, 1.0), 0.0)
-    occluder = np.where(mask, depth, _NO_OCCLUDER)
+    occluder = np.where(mask, depth, _NO_OCCLUDER).astype(np.float32)
+    height = depth.astype(np.float32)
     along_u = np.abs(du) >= np.abs(dv)
     for transpose in (False, True):
         for flip in (False, True):
             main, other = (dv, du) if transpose else (du, dv)
-            chosen = side & (along_u != transpose) & ((main < 0) == flip)
-            index = np.flatnonzero(chosen)
+            index = np.flatnonzero(side & (along_u != transpose) & ((main < 0) == flip))
             if index.size == 0:
                 continue
-            occ, hgt = (occluder.T, depth.T) if transpose else (occluder, depth)
+            oriented = [a.T if transpose else a for a in (occluder, height, mask)]
             if flip:
-                occ, hgt = occ[:, ::-1], hgt[:, ::-1]
+                oriented = [a[:, ::-1] for a in oriented]
             k = other[index] / np.abs(main[index])
             rise = tan_e[index] * np.sqrt(1.0 + k * k)
-            per_light = occ.shape[1] * (occ.shape[0] + occ.shape[1] + 2)
-            step = max(1, chunk_values // per_light)
-            for start in range(0, index.size, step):
-                sl = slice(start, start + step)
-                margin = _sweep(np.ascontiguousarray(occ.T, dtype=np.float32), np.ascontiguousarray(hgt.T, dtype=np.float32),
-                                k[sl], rise[sl])
-                if flip:
-                    margin = margin[:, ::-1]
-                out[index[sl]] = margin if transpose else margin.transpose(0, 2, 1)
-    out[:, ~mask] = _LOW_MARGIN
+            occ_t, hgt_t, inside_t = (np.ascontiguousarray(a.T) for a in oriented)
+            _sweep(occ_t, hgt_t, inside_t, k, rise, index, transpose, flip, out)
     return out
 
 
