@@ -37,7 +37,7 @@ def simulate_command(
     shadows: bool = typer.Option(True, "--shadows/--no-shadows", help="Render cast shadows."),
     source: Path | None = typer.Option(None, "--source", help="Folder of the geometry scene (normal_map.png, depth_gt.npz, mask.png, K.txt)."),
     assignments: list[str] = typer.Option([], "--set", help="A scene option as key=value (see `pstoolkit plugins`); repeat for more."),
-    device: str = typer.Option("cpu", "--device", help="Torch device for rendering: cpu, cuda or auto."),
+    device: str = typer.Option("cpu", "--device", help="cpu (the compiled engine for the ggx and lambertian BRDFs), cuda or auto (torch rendering; also any plugin BRDF)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no summary line."),
 ) -> None:
     """Render SCENE under a ring light and write a capture with ground truth: long-exposure frames and
