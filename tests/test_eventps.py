@@ -147,7 +147,7 @@ def test_missing_calibration_is_one_clear_error() -> None:
 
 
 def test_closed_form_eigenvectors_match_lapack() -> None:
-    from pstoolkit_eventps.constraints import symmetric_eigen
+    from pstoolkit.eventnormals import symmetric_eigen
 
     rng = np.random.default_rng(3)
     v = rng.normal(size=(500, 6, 3))

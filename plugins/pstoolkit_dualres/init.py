@@ -12,10 +12,12 @@ albedo is then fitted per channel by least squares on the shading.
 
 A window's light is *effective* when its length is at least ``EFFECTIVE_SHARE`` of the unshadowed,
 unclamped light of that window. Table 1: with three effective lights the normal and albedo are the
-closed form; with two, the normal keeps the one free direction from its neighbours (the normal
-interpolated from pixels with three lights, projected onto the plane the two frames' ratio allows);
-with one or none, the normal is the interpolated one; the albedo is fitted from the effective
-frames, or interpolated where there are none.
+closed form. With fewer, the normal is interpolated — from the super pixels (their normals from
+events alone, ``eventnormal``, bilinearly interpolated to frame pixels) where the adjacent super
+pixels have one, else from the frame pixels with three lights (normalised Gaussian fill); with two
+lights only the one free direction comes from it: the interpolated normal is projected onto the
+plane of normals the two frames' ratio allows. The albedo is fitted from the effective frames (the
+events cannot tell it, albedo invariance), or interpolated from frame pixels where there are none.
 """
 
 from __future__ import annotations
@@ -118,9 +120,11 @@ def closed_form(
     visibility: Visibility | None,
     iterations: int,
     n_samples: int,
+    super_normal: np.ndarray | None = None,
 ) -> Init:
     """Initial maps from ``frames`` (J, H, W, 3) of windows ``windows_us`` (J, 2) (one per distinct
-    window of the period, saturation units) inside ``mask``."""
+    window of the period, saturation units) inside ``mask``; ``super_normal`` (H, W, 3) the normals
+    of the super pixels from their events interpolated to the frame pixels (zero where unknown)."""
     n_windows, height, width, _ = frames.shape
     pixels = np.flatnonzero(mask.ravel())
     rgb = frames.reshape(n_windows, -1, 3)[:, pixels]
@@ -158,6 +162,13 @@ def closed_form(
     known = np.zeros(height * width, dtype=bool)
     known[pixels[full]] = True
     filled = _unit(fill(normal_map, known.reshape(height, width), mask)).reshape(-1, 3)[pixels]
+    if super_normal is not None:
+        # The super pixels' own estimate beats a fill from the nearest frame pixels with three
+        # lights, which may lie far inside: on the rim of a simulated 64 px sphere (GGX, the pixels
+        # with two effective lights) the projected normal errs 1.96° instead of 5.87°, and their
+        # mean 3.76°.
+        from_events = super_normal.reshape(-1, 3)[pixels]
+        filled = np.where(np.linalg.norm(from_events, axis=1, keepdims=True) > 0.5, from_events, filled)
     normal = np.where(full[:, None], normal, filled)
     two = ~full & (count == 2)
     normal[two] = _two_light_normal(grey[:, two], _grey(lights)[:, two], effective[:, two], normal[two])

@@ -1,6 +1,6 @@
 """Approximated irradiance at the super pixels over one period (supplement eq. 1).
 
-Î(t) = s_j · exp(L(t)) · (1 − m_c(t)), where L is the cumulative log change of the events,
+Î(t) = s(t) · exp(L(t)) · (1 − m_c(t)), where L is the cumulative log change of the events,
 
     L_k = Σ_{κ ≤ k} (log α_κ + p_κ C^{p_κ}),
 
@@ -8,11 +8,19 @@
 blind then and resets its reference at the end, ``pstoolkit.eventmodel``): assuming the log changed
 at a constant rate over the interval, log α_κ = p_κ C · R / (Δt_κ − R), with the denominator floored
 at R so at most one more threshold is credited. L is linear between events (that same constant
-rate), and the residual drift over the period (what the compensation could not recover, mostly
-at shadow edges) is removed linearly in time so L is periodic. The scale s takes one value per
-exposure window — at most three per period for three frames — chosen so that ∫ Î dt over the window
-equals the super pixel's frame value (the area mean of its frame pixels, in saturation units):
-the frames fix the absolute level the events cannot. Inside detected shadows Î = 0.
+rate), and the residual drift over the period is removed linearly in time so L is periodic.
+
+The scale s is piecewise constant with at most ``MAX_PIECES`` values per period. It changes value
+only where the interval profile |f| (eq. 20) reaches ``threshold_per_s`` — an abrupt change where
+the refractory compensation may have failed: at the end of each run of such events (the burst of
+one edge), the (up to) three with the largest |f| of the super pixel; k change points cut the
+cyclic period into k pieces (none or one: s is constant). ``approximate`` without the profile puts
+the changes at the exposure window bounds instead (one value per window). The values are the least-squares solution of the frames' constraint
+Σ_m s_m ∫_{window j ∩ piece m} exp(L)(1 − m_c) dt = A_j: three windows, at most three unknowns, so the
+frame values (the area mean of the super pixel's frame pixels, in saturation units) fix the
+absolute level and the jumps the events cannot, and the system is never underdetermined. A fit
+that gives a piece a negative or non-finite value falls back to one constant s. Inside detected
+shadows Î = 0.
 """
 
 from __future__ import annotations
@@ -26,6 +34,8 @@ from pstoolkit_dualres.shadows import ShadowTable
 
 # Midpoint-rule samples per exposure window when fitting the scale s.
 SCALE_SAMPLES = 96
+# Most distinct values of s per period (supplement §2.2).
+MAX_PIECES = 3
 # Super pixels per block when fitting the scale, so a block's (pixels, samples) arrays stay small.
 SCALE_BLOCK = 4096
 
@@ -42,11 +52,13 @@ def refractory_log_alpha(p: np.ndarray, contrast: np.ndarray, interval_us: np.nd
 @dataclass
 class Irradiance:
     """Î per super pixel as knots of L (keys ``pixel·3T + T + phase``, phases in [−T, 2T) so every
-    pixel's knots cover its whole period), the scale ``scale`` (n_pixels, J) per window (saturation
-    units per second) of windows ``bounds_us`` (J+1,) phases, and the shadows ``shadows``."""
+    pixel's knots cover its whole period), the phases where s changes ``change_us`` (n_pixels, M)
+    (sorted, NaN-padded), the scale ``scale`` (n_pixels, M) per piece (saturation units per second), the exposure windows ``bounds_us`` (J+1,) phases, and the
+    shadows ``shadows``."""
 
     knot_key: np.ndarray
     knot_log: np.ndarray
+    change_us: np.ndarray
     scale: np.ndarray
     bounds_us: np.ndarray
     shadows: ShadowTable | None
@@ -63,6 +75,15 @@ class Irradiance:
         phase = np.mod(np.asarray(phase_us, dtype=np.float64), self.period_us)
         return np.clip(np.searchsorted(self.bounds_us, phase, side="right") - 1, 0, len(self.bounds_us) - 2)
 
+    def piece(self, pixel: np.ndarray, phase_us: np.ndarray) -> np.ndarray:
+        """Index of the piece of s holding each phase: k change points cut the cycle into k pieces,
+        piece m starting at the m-th one (the time before the first belongs to the last piece)."""
+        changes = self.change_us[np.asarray(pixel, dtype=np.int64)]
+        phase = np.mod(np.asarray(phase_us, dtype=np.float64), self.period_us)
+        k = np.sum(np.isfinite(changes), axis=-1)
+        passed = np.sum(changes <= phase[..., None], axis=-1)
+        return np.where(k > 0, np.mod(passed - 1, np.maximum(k, 1)), 0)
+
     def lit(self, pixel: np.ndarray, phase_us: np.ndarray) -> np.ndarray:
         """1 − m_c: False inside a detected shadow."""
         if self.shadows is None:
@@ -73,7 +94,7 @@ class Irradiance:
         """Î (saturation units per second) at event pixels and phases."""
         pixel = np.asarray(pixel, dtype=np.int64)
         level = np.exp(self.log_level(pixel, phase_us))
-        return self.scale[pixel, self.window(phase_us)] * level * self.lit(pixel, phase_us)
+        return self.scale[pixel, self.piece(pixel, phase_us)] * level * self.lit(pixel, phase_us)
 
 
 def approximate(
@@ -91,10 +112,14 @@ def approximate(
     bounds_us: np.ndarray,
     frame_values: np.ndarray,
     shadows: ShadowTable | None,
+    f: np.ndarray | None = None,
+    threshold_per_s: float = np.inf,
 ) -> Irradiance:
     """Î from one period's events grouped by pixel (``pixel``, phase ``t_us``, polarity ``p``,
     ``first``/``count`` as in ``profile.Profile``) and the super pixels' frame values
-    ``frame_values`` (n_pixels, J) over windows ``bounds_us`` (J+1,) phases."""
+    ``frame_values`` (n_pixels, J) over windows ``bounds_us`` (J+1,) phases. With the events'
+    interval profile ``f``, s changes at events with |f| ≥ ``threshold_per_s`` (the paper's rule);
+    without, at the window bounds (one value per window)."""
     period = float(period_us)
     n = len(t_us)
     local = np.arange(n) - first
@@ -108,9 +133,34 @@ def approximate(
     drift = np.bincount(pixel, weights=step, minlength=n_pixels)[pixel] if n else np.empty(0)
     level -= drift * (t_us - t_us[first]) / period
     keys, logs = _knots(pixel, t_us, level, first, count, n_pixels, period)
-    irradiance = Irradiance(keys, logs, np.ones((n_pixels, len(bounds_us) - 1)), np.asarray(bounds_us, float), shadows, period)
+    bounds = np.asarray(bounds_us, dtype=np.float64)
+    if f is None:
+        changes = np.tile(bounds[:-1], (n_pixels, 1))
+    else:
+        changes = _change_points(f, t_us, pixel, first, count, threshold_per_s, n_pixels)
+    irradiance = Irradiance(keys, logs, changes, np.ones(changes.shape), bounds, shadows, period)
     irradiance.scale = _fit_scale(irradiance, np.asarray(frame_values, dtype=np.float64))
     return irradiance
+
+
+def _change_points(f: np.ndarray, t_us: np.ndarray, pixel: np.ndarray, first: np.ndarray, count: np.ndarray,
+                   threshold: float, n_pixels: int) -> np.ndarray:
+    """(n_pixels, MAX_PIECES) phases where s changes, sorted, NaN where a pixel has fewer: the ends
+    of each pixel's runs of consecutive events with |f| ≥ ``threshold`` (one abrupt change fires a
+    burst), the MAX_PIECES runs with the largest |f| at their end."""
+    out = np.full((n_pixels, MAX_PIECES), np.nan)
+    strong = np.abs(f) >= threshold
+    local = np.arange(len(f)) - first
+    after = first + np.mod(local + 1, np.maximum(count, 1))
+    ends = np.flatnonzero(strong & (~strong[after] | (count == 1)))
+    if ends.size:
+        order = ends[np.lexsort((-np.abs(f[ends]), pixel[ends]))]
+        group = pixel[order]
+        starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+        rank = np.arange(order.size) - np.repeat(starts, np.diff(np.r_[starts, order.size]))
+        keep = rank < MAX_PIECES
+        out[group[keep], rank[keep]] = t_us[order[keep]]
+    return np.sort(out, axis=1)
 
 
 def _grouped_cumsum(values: np.ndarray, first: np.ndarray) -> np.ndarray:
@@ -136,10 +186,12 @@ def _knots(
 
 
 def _fit_scale(irradiance: Irradiance, frame_values: np.ndarray) -> np.ndarray:
-    """s per (pixel, window) so the midpoint-rule integral of Î over each window is its frame value."""
+    """s per (pixel, piece): the least-squares fit of the midpoint-rule integrals of Î over the
+    windows to the frame values (see the module docstring)."""
     n_pixels, n_windows = frame_values.shape
-    scale = np.zeros((n_pixels, n_windows))
     bounds = irradiance.bounds_us
+    pieces = irradiance.change_us.shape[1]
+    integrals = np.zeros((n_pixels, n_windows, pieces))
     for j in range(n_windows):
         width = bounds[j + 1] - bounds[j]
         phase = bounds[j] + (np.arange(SCALE_SAMPLES) + 0.5) * width / SCALE_SAMPLES
@@ -148,7 +200,15 @@ def _fit_scale(irradiance: Irradiance, frame_values: np.ndarray) -> np.ndarray:
             pix = np.arange(start, min(start + SCALE_BLOCK, n_pixels))
             grid_pixel = np.repeat(pix, SCALE_SAMPLES)
             grid_phase = np.tile(phase, len(pix))
-            unscaled = np.exp(irradiance.log_level(grid_pixel, grid_phase)) * irradiance.lit(grid_pixel, grid_phase)
-            integral = unscaled.reshape(len(pix), SCALE_SAMPLES).sum(axis=1) * dt_s
-            scale[pix, j] = np.where(integral > 0, frame_values[pix, j] / np.where(integral > 0, integral, 1.0), 0.0)
+            unscaled = np.exp(irradiance.log_level(grid_pixel, grid_phase)) * irradiance.lit(grid_pixel, grid_phase) * dt_s
+            piece = irradiance.piece(grid_pixel, grid_phase)
+            slot = np.repeat(np.arange(len(pix)), SCALE_SAMPLES) * pieces + piece
+            integrals[pix, j] = np.bincount(slot, weights=unscaled, minlength=len(pix) * pieces).reshape(-1, pieces)
+    scale = np.einsum("pmj,pj->pm", np.linalg.pinv(integrals), frame_values)
+    # one constant s where the pieces' fit is not physical
+    total = integrals.sum(axis=2)
+    energy = np.einsum("pj,pj->p", total, total)
+    constant = np.einsum("pj,pj->p", total, frame_values) / np.where(energy > 0, energy, 1.0)
+    bad = ~np.all(np.isfinite(scale) & (scale >= 0), axis=1)
+    scale[bad] = constant[bad, None]
     return scale

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -73,8 +72,9 @@ class NeuralField(nn.Module):
             self.material_out.weight.mul_(0.1)
             self.material_out.bias.copy_(torch.cat([torch.full((3,), math.log(math.e - 1.0)), material_init]))
 
-    def forward(self) -> FieldOutput:
-        x = self.encoded
+    def forward(self, index: Tensor | None = None) -> FieldOutput:
+        """The maps at the masked pixels ``index`` (all when None)."""
+        x = self.encoded if index is None else self.encoded[index]
         h = x
         for i, layer in enumerate(self.layers):
             if i == self.skip:
@@ -83,20 +83,6 @@ class NeuralField(nn.Module):
         normal = _unit(self.normal_head(h))
         out = self.material_out(self.material(h))
         return normal, nn.functional.softplus(out[:, :3]), out[:, 3:]
-
-
-def bilinear_taps(u: np.ndarray, v: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """Bilinear interpolation on a height×width grid at (u, v) (grid pixel centres at integers, clamped
-    to the grid): (P, 4) flat grid indices and (P, 4) weights."""
-    u = np.clip(u, 0.0, width - 1.0)
-    v = np.clip(v, 0.0, height - 1.0)
-    u0 = np.minimum(np.floor(u).astype(np.int64), max(width - 2, 0))
-    v0 = np.minimum(np.floor(v).astype(np.int64), max(height - 2, 0))
-    u1, v1 = np.minimum(u0 + 1, width - 1), np.minimum(v0 + 1, height - 1)
-    fu, fv = u - u0, v - v0
-    index = np.stack([v0 * width + u0, v0 * width + u1, v1 * width + u0, v1 * width + u1], axis=1)
-    weight = np.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv], axis=1)
-    return index, weight
 
 
 class GridField(nn.Module):
@@ -120,9 +106,13 @@ class GridField(nn.Module):
         self.register_buffer("tap_weight", taps[1].to(init_normal.dtype))
         self.channels = channels
 
-    def grid_raw(self) -> Tensor:
-        """(P, C) raw material channels interpolated to the masked frame pixels."""
-        return torch.sum(self.grid[self.tap_index] * self.tap_weight[..., None], dim=1)
+    def grid_raw(self, index: Tensor | None = None) -> Tensor:
+        """(P, C) raw material channels interpolated to the masked frame pixels ``index`` (all when None)."""
+        taps, weights = (self.tap_index, self.tap_weight) if index is None else (self.tap_index[index], self.tap_weight[index])
+        return torch.sum(self.grid[taps] * weights[..., None], dim=1)
 
-    def forward(self) -> FieldOutput:
-        return _unit(self.normal), torch.exp(self.log_albedo), self.grid_raw()
+    def forward(self, index: Tensor | None = None) -> FieldOutput:
+        """The maps at the masked pixels ``index`` (all when None)."""
+        if index is None:
+            return _unit(self.normal), torch.exp(self.log_albedo), self.grid_raw()
+        return _unit(self.normal[index]), torch.exp(self.log_albedo[index]), self.grid_raw(index)

@@ -21,8 +21,9 @@ from pstoolkit.eventmodel import LOG_EPS
 from pstoolkit.lights import US_PER_S
 from pstoolkit.render import GREY_WEIGHTS, area_weights
 from pstoolkit.solver import Progress
+from pstoolkit_dualres.grid import bilinear_taps, frame_to_event
 from pstoolkit_dualres.losses import event_loss, frame_loss, tv_loss
-from pstoolkit_dualres.model import GridField, NeuralField, bilinear_taps
+from pstoolkit_dualres.model import GridField, NeuralField
 from pstoolkit_dualres.render import (
     Reflectance,
     frame_prediction,
@@ -40,11 +41,18 @@ PROGRESS_EVERY = 10
 
 @dataclass
 class TrainConfig:
-    """Hyper-parameters of one fit: ``epochs`` full passes (one Adam step each), learning rates of the
-    normal/albedo parameters (``lr``) and of the materials (``material_lr``), the loss weights λ_f,
-    λ_e, λ_tv of eq. 26 with the TV term fading linearly to zero over the first ``tv_fraction`` of
-    the epochs, ``event_batch`` event pairs drawn per epoch (0 = all), and ``frame_samples`` per frame
-on a time grid shared by all pixels (0 = the importance samples of preprocessing)."""
+    """Hyper-parameters of one fit: ``epochs`` passes over the data, learning rates of the
+    normal/albedo parameters (``lr``) and of the materials (``material_lr``), decaying exponentially
+    to ``LR_DECAY`` of their start over the epochs, the loss weights λ_f, λ_e, λ_tv of eq. 26 with
+    the TV term fading linearly to zero over the first ``tv_fraction`` of the epochs, and
+    ``frame_samples`` per frame on a time grid shared by all pixels (0 = the importance samples of
+    preprocessing).
+
+    ``batch_pixels`` 0: an epoch is one full-batch Adam step on all pixels, with ``event_batch``
+    event pairs drawn at random (0 = all). Otherwise an epoch is a pass over all pixels in
+    mini-batches of about ``batch_pixels`` frame pixels (one Adam step each): square tiles of
+    ``tile`` frame pixels, shuffled and offset at random every epoch, each batch taking its pixels'
+    frames, the event pairs of the super pixels anchored in its tiles, and the TV pairs inside it."""
 
     preset: str = "fast"
     epochs: int = 50
@@ -56,6 +64,8 @@ on a time grid shared by all pixels (0 = the importance samples of preprocessing
     tv_fraction: float = 0.3
     event_batch: int = 16384
     frame_samples: int = 0
+    batch_pixels: int = 0
+    tile: int = 8
     seed: int = 0
 
 
@@ -179,6 +189,9 @@ def build_problem(pre: Any, view: np.ndarray, *, shadows: bool, device: str, fra
         s_frame = np.asarray(pre.frame_sample_frame, dtype=np.int64)[keep]
         s_t = np.asarray(pre.frame_sample_t_us, dtype=np.float64)[keep]
         s_dt = np.asarray(pre.frame_sample_dt_s, dtype=np.float64)[keep]
+        # grouped by pixel, so a mini-batch takes its pixels' samples as contiguous ranges
+        order = np.argsort(s_pos, kind="stable")
+        s_pos, s_frame, s_t, s_dt = s_pos[order], s_frame[order], s_t[order], s_dt[order]
         s_weight = light.evaluate(s_t)[1] * (s_dt * scale)[:, None]
         lit_s = np.bincount(s_pos, weights=s_dt, minlength=p)
     shadow_fraction = np.zeros(h * w)
@@ -213,9 +226,8 @@ def build_problem(pre: Any, view: np.ndarray, *, shadows: bool, device: str, fra
     dir_ref, int_ref = light.evaluate(t_ref[usable])
     grey_w = np.asarray(GREY_WEIGHTS)
 
-    a = np.asarray(pre.event_to_frame, dtype=np.float64)
     v, u = np.divmod(pixels, w)
-    ue, ve = np.linalg.solve(a[:, :2], np.stack([u - a[0, 2], v - a[1, 2]]))
+    ue, ve = frame_to_event(pre.event_to_frame, u.astype(np.float64), v.astype(np.float64))
     grid_index, grid_weight = bilinear_taps(ue, ve, we, he)
 
     init_normal = np.asarray(pre.init_normal, dtype=np.float64).reshape(h * w, 3)[pixels]
@@ -270,63 +282,197 @@ def _optimizer(field: nn.Module, reflectance: Reflectance, config: TrainConfig) 
     return torch.optim.Adam(groups)
 
 
+@dataclass
+class Batch:
+    """One Adam step's share of the problem. ``pixels`` (N,) the masked-pixel positions the field
+    is evaluated at (None: all, in order), the first ``frame_pixels`` of them (None: all) the pixels
+    whose frames are fitted; ``frame_rows`` their rows of ``Problem.measured`` in frame-major order
+    (None: all); ``samples`` their importance samples (None: all) with ``sample_pixel`` and
+    ``sample_group`` (frame·frame_pixels + pixel) in local positions; ``events`` the event pairs
+    with ``event_taps`` in local positions; ``tv_pairs`` local neighbour pairs."""
+
+    pixels: Tensor | None
+    frame_pixels: int | None
+    frame_rows: Tensor | None
+    samples: Tensor | None
+    sample_pixel: Tensor
+    sample_group: Tensor
+    events: Tensor
+    event_taps: Tensor
+    tv_pairs: Tensor
+
+
+def full_batch(problem: Problem, events: Tensor) -> Batch:
+    """Every pixel and sample, the event pairs ``events``."""
+    return Batch(pixels=None, frame_pixels=None, frame_rows=None, samples=None,
+                 sample_pixel=problem.sample_pixel, sample_group=problem.sample_group,
+                 events=events, event_taps=problem.event_taps[events], tv_pairs=problem.tv_pairs)
+
+
+@dataclass
+class Tiling:
+    """What ``mini_batches`` needs of a problem, as numpy: each masked pixel's (row, column), each
+    event pair's anchor pixel (its footprint's largest tap) and taps, the importance samples'
+    per-pixel ranges and frames, and the TV pairs."""
+
+    row: np.ndarray
+    col: np.ndarray
+    event_anchor: np.ndarray
+    event_taps: np.ndarray
+    sample_start: np.ndarray
+    sample_count: np.ndarray
+    sample_frame: np.ndarray
+    tv_pairs: np.ndarray
+
+    @classmethod
+    def of(cls, problem: Problem) -> Tiling:
+        p = problem.pixels.size
+        row, col = np.divmod(problem.pixels, problem.width)
+        taps = problem.event_taps.cpu().numpy()
+        anchor = taps[np.arange(len(taps)), np.argmax(problem.event_tap_weight.cpu().numpy(), axis=1)] if taps.size else np.zeros(0, np.int64)
+        sample_pixel = problem.sample_pixel.cpu().numpy()
+        count = np.bincount(sample_pixel, minlength=p)
+        return cls(row=row, col=col, event_anchor=anchor, event_taps=taps,
+                   sample_start=np.cumsum(count) - count, sample_count=count,
+                   sample_frame=problem.sample_group.cpu().numpy() // max(p, 1),
+                   tv_pairs=problem.tv_pairs.cpu().numpy())
+
+
+def _ranges(start: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """The concatenated index ranges [start_i, start_i + count_i)."""
+    total = int(count.sum())
+    offsets = np.repeat(start - (np.cumsum(count) - count), count)
+    return np.arange(total, dtype=np.int64) + offsets
+
+
+def mini_batches(problem: Problem, tiling: Tiling, config: TrainConfig, generator: torch.Generator) -> list[Batch]:
+    """One epoch's mini-batches (see ``TrainConfig``): a random tiling offset, tiles in random order
+    grouped into batches of about ``config.batch_pixels`` pixels."""
+    tile = config.tile
+    p = problem.pixels.size
+    shift = torch.randint(0, tile, (2,), generator=generator).numpy()
+    rows = (problem.height + tile) // tile + 1
+    cols = (problem.width + tile) // tile + 1
+    tile_of = ((tiling.row + shift[0]) // tile) * cols + (tiling.col + shift[1]) // tile
+    rank = torch.randperm(rows * cols, generator=generator).numpy()
+    # tiles in random order; a batch closes once it holds batch_pixels pixels
+    size = np.bincount(rank[tile_of], minlength=rows * cols)
+    batch_of_rank = (np.cumsum(size) - size) // config.batch_pixels
+    # a tile larger than batch_pixels skips batch numbers: number the batches densely
+    pixel_batch = np.unique(batch_of_rank[rank[tile_of]], return_inverse=True)[1].reshape(-1)
+    event_batch = pixel_batch[tiling.event_anchor]
+    pair_batch = np.where(pixel_batch[tiling.tv_pairs[:, 0]] == pixel_batch[tiling.tv_pairs[:, 1]],
+                          pixel_batch[tiling.tv_pairs[:, 0]], -1)
+    by_pixel, by_event, by_pair = (np.argsort(b, kind="stable") for b in (pixel_batch, event_batch, pair_batch))
+    n_batches = int(pixel_batch.max()) + 1 if p else 0
+    pixel_bounds = np.searchsorted(pixel_batch[by_pixel], np.arange(n_batches + 1))
+    event_bounds = np.searchsorted(event_batch[by_event], np.arange(n_batches + 1))
+    pair_bounds = np.searchsorted(pair_batch[by_pair], np.arange(n_batches + 1))
+    local = np.full(p, -1, dtype=np.int64)
+    device = problem.coords.device
+    out = []
+    for b in range(n_batches):
+        own = by_pixel[pixel_bounds[b]:pixel_bounds[b + 1]]
+        events = by_event[event_bounds[b]:event_bounds[b + 1]]
+        taps = tiling.event_taps[events]
+        # event footprints that reach outside the batch's tiles need those pixels too
+        extra = np.setdiff1d(taps, own)
+        pixels = np.concatenate([own, extra])
+        local[pixels] = np.arange(pixels.size)
+        n = own.size
+        samples = _ranges(tiling.sample_start[own], tiling.sample_count[own])
+        sample_pixel = np.repeat(np.arange(n), tiling.sample_count[own])
+        pairs = tiling.tv_pairs[by_pair[pair_bounds[b]:pair_bounds[b + 1]]]
+
+        def tensor(array: np.ndarray) -> Tensor:
+            return torch.as_tensor(array, dtype=torch.int64, device=device)
+
+        out.append(Batch(
+            pixels=tensor(pixels), frame_pixels=n,
+            frame_rows=tensor((np.arange(problem.frames)[:, None] * p + own[None, :]).ravel()),
+            samples=tensor(samples), sample_pixel=tensor(sample_pixel),
+            sample_group=tensor(tiling.sample_frame[samples] * n + sample_pixel),
+            events=tensor(events), event_taps=tensor(local[taps]), tv_pairs=tensor(local[pairs]),
+        ))
+        local[pixels] = -1
+    return out
+
+
 def losses(problem: Problem, field: nn.Module, reflectance: Reflectance, config: TrainConfig,
-           event_index: Tensor | None, tv_share: float) -> tuple[Tensor, dict[str, float]]:
-    """The total loss of eq. 26 and its parts for the current parameters."""
-    normal, albedo, raw = field()
+           batch: Batch, tv_share: float) -> tuple[Tensor, dict[str, float]]:
+    """The total loss of eq. 26 and its parts on ``batch`` for the current parameters."""
+    normal, albedo, raw = field(batch.pixels)
+    n = batch.frame_pixels
+    own = (normal, albedo, raw) if n is None else (normal[:n], albedo[:n], raw[:n])
     if problem.shared_light is not None:
-        predicted = frame_prediction_grid(
-            reflectance, normal, albedo, raw, problem.shared_light, problem.shared_weight,
-            problem.shared_visible, problem.view, problem.frames,
-        )
+        visible = problem.shared_visible
+        if visible is not None and batch.pixels is not None:
+            visible = visible[batch.pixels[:n]]
+        predicted = frame_prediction_grid(reflectance, *own, problem.shared_light, problem.shared_weight,
+                                          visible, problem.view, problem.frames)
     else:
-        predicted = frame_prediction(
-            reflectance, normal, albedo, raw, problem.sample_pixel, problem.sample_group,
-            problem.sample_light, problem.sample_weight, problem.view, problem.frames * problem.pixels.size,
-        )
-    lf = frame_loss(predicted, problem.measured, problem.saturated)
+        light, weight = problem.sample_light, problem.sample_weight
+        if batch.samples is not None:
+            light, weight = light[batch.samples], weight[batch.samples]
+        predicted = frame_prediction(reflectance, *own, batch.sample_pixel, batch.sample_group, light, weight,
+                                     problem.view, problem.frames * own[0].shape[0])
+    measured, saturated = problem.measured, problem.saturated
+    if batch.frame_rows is not None:
+        measured, saturated = measured[batch.frame_rows], saturated[batch.frame_rows]
+    lf = frame_loss(predicted, measured, saturated)
     total = config.frame_weight * lf
     parts = {"frame": float(lf.detach())}
-    if event_index is not None and event_index.numel() and config.event_weight > 0:
-        taps, tap_w = problem.event_taps[event_index], problem.event_tap_weight[event_index]
-        grey = superpixel_grey(reflectance, normal, albedo, raw, taps, tap_w,
-                               problem.event_light[event_index], problem.event_grey[event_index], problem.view)
-        grey_ref = superpixel_grey(reflectance, normal, albedo, raw, taps, tap_w,
-                                   problem.event_light_ref[event_index], problem.event_grey_ref[event_index], problem.view)
-        le = event_loss(grey, grey_ref, problem.event_target[event_index], problem.event_weight[event_index], LOG_EPS)
+    e = batch.events
+    if e.numel() and config.event_weight > 0:
+        tap_w = problem.event_tap_weight[e]
+        grey = superpixel_grey(reflectance, normal, albedo, raw, batch.event_taps, tap_w,
+                               problem.event_light[e], problem.event_grey[e], problem.view)
+        grey_ref = superpixel_grey(reflectance, normal, albedo, raw, batch.event_taps, tap_w,
+                                   problem.event_light_ref[e], problem.event_grey_ref[e], problem.view)
+        le = event_loss(grey, grey_ref, problem.event_target[e], problem.event_weight[e], LOG_EPS)
         total = total + config.event_weight * le
         parts["event"] = float(le.detach())
     if tv_share > 0 and config.tv_weight > 0:
-        ltv = tv_loss(normal, problem.tv_pairs) + tv_loss(albedo, problem.tv_pairs)
+        ltv = tv_loss(normal, batch.tv_pairs) + tv_loss(albedo, batch.tv_pairs)
         total = total + config.tv_weight * tv_share * ltv
         parts["tv"] = float(ltv.detach())
     return total, parts
 
 
+def _event_sample(problem: Problem, config: TrainConfig, generator: torch.Generator) -> Tensor:
+    n_events = problem.event_target.numel()
+    if 0 < config.event_batch < n_events:
+        index = torch.randperm(n_events, generator=generator)[: config.event_batch]
+    else:
+        index = torch.arange(n_events)
+    return index.to(problem.event_target.device)
+
+
 def train(problem: Problem, field: nn.Module, reflectance: Reflectance, config: TrainConfig,
           progress: Progress) -> list[dict[str, float]]:
-    """Adam over ``config.epochs`` epochs; returns the loss parts of every PROGRESS_EVERY-th epoch."""
+    """Adam over ``config.epochs`` epochs; returns the loss parts (means over the epoch's batches)
+    of every PROGRESS_EVERY-th epoch."""
     generator = torch.Generator(device="cpu").manual_seed(config.seed)
     optimizer = _optimizer(field, reflectance, config)
     scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, LR_DECAY ** (1.0 / max(config.epochs, 1)))
-    n_events = problem.event_target.numel()
+    tiling = Tiling.of(problem) if config.batch_pixels > 0 else None
     history: list[dict[str, float]] = []
     warmup = max(config.tv_fraction * config.epochs, 1e-9)
     for epoch in range(config.epochs):
-        event_index = None
-        if n_events:
-            if 0 < config.event_batch < n_events:
-                event_index = torch.randperm(n_events, generator=generator)[: config.event_batch]
-            else:
-                event_index = torch.arange(n_events)
-            event_index = event_index.to(problem.event_target.device)
-        loss, parts = losses(problem, field, reflectance, config, event_index, max(0.0, 1.0 - epoch / warmup))
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
+        if tiling is None:
+            batches = [full_batch(problem, _event_sample(problem, config, generator))]
+        else:
+            batches = mini_batches(problem, tiling, config, generator)
+        totals: dict[str, float] = {}
+        for batch in batches:
+            loss, parts = losses(problem, field, reflectance, config, batch, max(0.0, 1.0 - epoch / warmup))
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            for name, value in {"loss": float(loss.detach()), **parts}.items():
+                totals[name] = totals.get(name, 0.0) + value / len(batches)
         scheduler.step()
         if epoch % PROGRESS_EVERY == 0 or epoch == config.epochs - 1:
-            parts = {"epoch": float(epoch), "loss": float(loss.detach()), **parts}
-            history.append(parts)
-            progress((epoch + 1) / config.epochs, f"epoch {epoch + 1}/{config.epochs} loss {parts['loss']:.4g}")
+            history.append({"epoch": float(epoch), "steps": float(len(batches)), **totals})
+            progress((epoch + 1) / config.epochs, f"epoch {epoch + 1}/{config.epochs} loss {totals['loss']:.4g}")
     return history

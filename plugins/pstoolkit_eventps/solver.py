@@ -22,14 +22,10 @@ import numpy as np
 import psfmt
 from pstoolkit import Option, Solver, SolverResult
 from pstoolkit.errors import UserError
+from pstoolkit.eventnormals import Constraints, accumulate, smallest_eigenvectors
 from pstoolkit.lights import LightModel, build_light_model
 from pstoolkit.solver import Progress
-from pstoolkit_eventps.constraints import (
-    Constraints,
-    accumulate,
-    pair_constraints,
-    smallest_eigenvectors,
-)
+from pstoolkit_eventps.constraints import pair_constraints
 from pstoolkit_eventps.resample import event_to_frame_affine, to_target
 
 # Pixel bins (windows × pixels) accumulated at once in windowed mode: 2²⁰ bins hold 72 MiB of sums.
