@@ -32,12 +32,18 @@ from typing import Any
 import numba
 import numpy as np
 import torch
+from results_io import write_results
 
 import psfmt
 from pstoolkit import simkernel
 from pstoolkit.plugins import get_registries
-from pstoolkit.simulator import SimulationConfig, build_renderer, build_scene, compiled_blocks, simulate
-from results_io import write_results
+from pstoolkit.simulator import (
+    SimulationConfig,
+    build_renderer,
+    build_scene,
+    compiled_blocks,
+    simulate,
+)
 
 RESULTS = Path(__file__).resolve().parent / "results" / "simulate.json"
 TARGET_EVENTS_PER_S = 5e6

@@ -25,9 +25,8 @@ per-pixel state, a cast-shadow table for the current block of time, and the bloc
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-
 from collections.abc import Iterator
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -264,7 +263,7 @@ def _advance(
                 l1 = math.log(grey + eps)
                 change = abs(l1 - l0)
                 # how far L left the line of the previous step: 4× the error of the line between samples
-                bend = abs(l1 - l0 - s0 * (t1 - t)) if s0 == s0 else 0.0
+                bend = 0.0 if math.isnan(s0) else abs(l1 - l0 - s0 * (t1 - t))
                 if h_try > min_dt and (change > max_dlog or bend > MAX_BEND):
                     shrink = min(0.9 * max_dlog / max(change, max_dlog), math.sqrt(0.9 * MAX_BEND / max(bend, MAX_BEND)))
                     h_try = max(min_dt, h_try * max(0.2, shrink))

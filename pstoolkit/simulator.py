@@ -28,10 +28,10 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from functools import partial
 from pathlib import Path
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np

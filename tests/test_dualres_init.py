@@ -15,17 +15,11 @@ from pstoolkit_dualres.preprocess import Preprocessed, PreprocessOptions, prepro
 
 import psfmt
 from pstoolkit.metrics import angular_error_deg
-from pstoolkit.simulator import SimulationConfig, simulate
-
-SIZE = 48
 
 
 @pytest.fixture(scope="module")
-def sphere(tmp_path_factory: pytest.TempPathFactory) -> tuple[psfmt.Capture, Preprocessed]:
-    """The default GGX sphere (refractory 2 ms: no cast-shadow mask); its rim has two effective lights."""
-    path: Path = tmp_path_factory.mktemp("dualres_init") / "sphere.h5"
-    simulate(SimulationConfig(scene="sphere", size=SIZE, seed=0), path)
-    capture = psfmt.read(path)
+def sphere(sphere_48: Path) -> tuple[psfmt.Capture, Preprocessed]:
+    capture = psfmt.read(sphere_48)
     return capture, preprocess(capture, PreprocessOptions())
 
 

@@ -26,14 +26,10 @@ from pstoolkit.metrics import angular_error_deg
 from pstoolkit.simulator import SimulationConfig, simulate
 from pstoolkit.solver import no_progress
 
-SIZE = 48
-
 
 @pytest.fixture(scope="module")
-def sphere(tmp_path_factory: pytest.TempPathFactory) -> tuple[psfmt.Capture, Problem]:
-    path: Path = tmp_path_factory.mktemp("dualres_train") / "sphere.h5"
-    simulate(SimulationConfig(scene="sphere", size=SIZE, seed=0), path)
-    capture = psfmt.read(path)
+def sphere(sphere_48: Path) -> tuple[psfmt.Capture, Problem]:
+    capture = psfmt.read(sphere_48)
     pre = preprocess(capture, PreprocessOptions())
     return capture, build_problem(pre, capture.calibration.view_direction, shadows=True, device="cpu")
 

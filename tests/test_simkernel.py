@@ -14,8 +14,8 @@ import psfmt
 from psfmt import EventArray
 from pstoolkit import simkernel
 from pstoolkit.brdf import GGX, Lambertian
-from pstoolkit.esim import simulate_events
 from pstoolkit.errors import UserError
+from pstoolkit.esim import simulate_events
 from pstoolkit.eventmodel import LOG_EPS, reference_time_us
 from pstoolkit.lights import RingLight
 from pstoolkit.options import defaults

@@ -13,7 +13,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from pstoolkit.eventnormals import Constraints, accumulate, grey_light, smallest_eigenvectors
+from pstoolkit.eventnormals import (
+    Constraints,
+    accumulate,
+    grey_light,
+    smallest_eigenvectors,
+)
 from pstoolkit.lights import LightModel
 
 MIN_PAIRS = 3

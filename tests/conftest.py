@@ -1,0 +1,18 @@
+"""Captures several test modules share, simulated once per test session."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from pstoolkit.simulator import SimulationConfig, simulate
+
+
+@pytest.fixture(scope="session")
+def sphere_48(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The default GGX sphere at 48 px (refractory 2 ms: no cast-shadow mask; its rim has two
+    effective lights)."""
+    path = tmp_path_factory.mktemp("sphere_48") / "sphere.h5"
+    simulate(SimulationConfig(scene="sphere", size=48, seed=0), path)
+    return path
