@@ -320,7 +320,7 @@ class Renderer:
         keys, inverse = np.unique(np.concatenate((key0, key1)), return_inverse=True)
         missing = [int(k) for k in keys if int(k) not in self._margins]
         if missing:
-            for key, row in zip(missing, self._openness_rows(np.array(missing))):
+            for key, row in zip(missing, self.grid_openness(np.array(missing))):
                 self._margins[key] = row
         table = np.stack([self._margins[int(k)] for k in keys])
         for key in keys:
@@ -330,17 +330,14 @@ class Renderer:
         n = len(key0)
         return table, inverse[:n], inverse[n:], after
 
-    def _openness_rows(self, keys: np.ndarray) -> np.ndarray:
+    def grid_openness(self, keys: np.ndarray) -> np.ndarray:
         """(N, P) float32 unclipped V (``_openness`` of the margins) of the masked pixels at the shadow
-        grid times ``keys`` × ``shadow_step_us``, swept anew."""
-        direction, _ = self.light.evaluate(np.asarray(keys) * float(self.shadow_step_us), self._points)  # type: ignore[arg-type]
+        grid times ``keys`` × ``shadow_step_us``, swept anew: the bounded cache of ``_grid_margins``
+        serves renders near each other, while a caller walking time in blocks needs each row once."""
+        keys = np.asarray(keys)
+        direction, _ = self.light.evaluate(keys * float(self.shadow_step_us), self._points)  # type: ignore[arg-type]
         margin = shadow_margin(self.maps.depth, self.maps.mask, self._shadow_directions(direction))
         return _masked_openness(margin.reshape(len(keys), -1), self.index, SHADOW_BIAS_PX, PENUMBRA_PX)
-
-    def grid_openness(self, keys: np.ndarray) -> np.ndarray:
-        """``_openness_rows`` of consecutive grid ``keys``, swept without the cache: a caller walking
-        time in blocks needs each row once (and the cache holds far less than a turn)."""
-        return self._openness_rows(np.asarray(keys))
 
     def visibility(self, t_us: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """(T, P) float32 V in [0, 1]: how much of each masked pixel is out of cast shadow at ``t_us``."""

@@ -80,29 +80,6 @@ class Footprints:
 
 
 @dataclass
-class Ring:
-    """A ring light: azimuth φ(t) = ``phase_rad`` + ``omega_rad_per_us``·(t − ``t0_us``) at elevation e."""
-
-    cos_e: float
-    sin_e: float
-    phase_rad: float
-    omega_rad_per_us: float
-    t0_us: float
-
-
-@dataclass
-class ShadowTable:
-    """Unclipped visibility (``render._openness`` of the shadow margins) of the masked frame pixels at
-    the grid times (``first`` + i)·``step_us``, rows i of ``openness`` (N, P) float32; V at other times
-    is the linear mix of the two rows around it, clipped to [0, 1]. ``enabled`` False: V = 1."""
-
-    openness: np.ndarray
-    step_us: float
-    first: int
-    enabled: bool
-
-
-@dataclass
 class PixelState:
     """Where each event pixel stands at the start of a block (all at the same time): its level ``level``
     (L at that time), firing levels ``hi``/``lo`` (±inf while blind), ``blind_until_us`` (inf unless a
@@ -406,14 +383,18 @@ def footprints(renderer: Renderer, event_scale: float) -> Footprints:
 
 
 def _ring(light: RingLight) -> tuple[float, float, float, float, float]:
+    """The ring light as the kernels take it: (cos e, sin e, phase φ0 in rad, ω in rad/µs, t0 in µs),
+    azimuth φ(t) = φ0 + ω·(t − t0) at elevation e."""
     e = math.radians(light.elevation_deg)
     omega = light.sense * 2.0 * math.pi / light.period_us
     return math.cos(e), math.sin(e), math.radians(light.phase_deg), omega, float(light.t0_us)
 
 
 def _shadow_table(renderer: Renderer, ta: float, tb: float) -> tuple[np.ndarray, tuple[float, float]]:
-    """The openness rows of the shadow grid times around [ta, tb] and the grid (step µs, first key);
-    without cast shadows one row of ones (V = 1 everywhere)."""
+    """Unclipped visibility (``render._openness`` of the shadow margins) of the masked frame pixels at
+    the grid times around [ta, tb], (N, P) float32 rows for keys first, first + 1, …, and the grid
+    (step µs, first key): V at a time is the linear mix of the two rows around it, clipped to [0, 1].
+    Without cast shadows two rows of ones (V = 1 everywhere)."""
     if not renderer.shadows:
         return np.ones((2, renderer.pixels), dtype=np.float32), (1.0, 0.0)
     step = float(renderer.shadow_step_us)  # type: ignore[arg-type]
