@@ -28,7 +28,7 @@ from __future__ import annotations
 import json
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import asdict, dataclass, field
 from functools import partial
 from pathlib import Path
@@ -82,6 +82,21 @@ class CaptureTiming:
     @property
     def period_us(self) -> int:
         return int(round(self.period_ms * 1000.0))
+
+    @property
+    def duration_us(self) -> int:
+        """All periods, µs."""
+        return self.periods * self.period_us
+
+    @property
+    def min_step_us(self) -> float:
+        """Shortest render step of the event simulation (``EVENT_MIN_STEP_TURNS`` of a turn, ≥ 1 µs)."""
+        return max(1.0, self.period_us * EVENT_MIN_STEP_TURNS)
+
+    def exposure_bounds_us(self) -> list[int]:
+        """Where the long exposures of one period start, then the period's end (µs): ``frames`` equal
+        windows tiling the period, rounded to whole µs."""
+        return [int(round(k * self.period_us / self.frames)) for k in range(self.frames + 1)]
 
     def check_with(self, limits: list[tuple[str, bool, str]]) -> None:
         """Raise UserError naming the first option out of range: the shared ones, then ``limits``."""
@@ -175,18 +190,17 @@ def build_renderer(config: SimulationConfig, maps: SceneMaps, brdf: Any) -> Rend
 
 def compiled_blocks(config: SimulationConfig, renderer: Renderer) -> Iterator[simkernel.Block]:
     """``simkernel.simulate_ring`` over all periods of ``config``, with the first period's windows."""
-    period = config.period_us
     return simkernel.simulate_ring(
         renderer,
         event_scale=config.event_scale,
-        t1_us=config.periods * period,
-        window_ends_us=[round(k * period / config.frames) for k in range(1, config.frames + 1)],
+        t1_us=config.duration_us,
+        window_ends_us=config.exposure_bounds_us()[1:],
         contrast_pos=config.contrast,
         contrast_neg=config.contrast,
         sigma=config.contrast_sigma,
         refractory_us=config.refractory_us,
         seed=config.seed,
-        min_dt_us=max(1.0, period * EVENT_MIN_STEP_TURNS),
+        min_dt_us=config.min_step_us,
     )
 
 
@@ -292,7 +306,7 @@ class _FrameSums:
         """The frame samples of every period, inside (0, periods × period)."""
         period = self.config.period_us
         times = np.concatenate([self.times + p * period for p in range(self.config.periods)])
-        return times[(times > 0) & (times < self.config.periods * period)]
+        return times[(times > 0) & (times < self.config.duration_us)]
 
     def _add(self, index: np.ndarray, sums: list[torch.Tensor]) -> None:
         for total, part in zip(self.totals[int(self.window[index[0]])], sums):
@@ -340,7 +354,7 @@ def _write_hybrid(
     brdfs = [renderer.brdf] if config.exposure_gain is not None else [renderer.brdf, diffuse]
     event_size = event_shape(config.size, config.size, config.event_scale)
     period = config.period_us
-    bounds = [int(round(k * period / config.frames)) for k in range(config.frames + 1)]
+    bounds = config.exposure_bounds_us()
     if simkernel.supported(renderer):
         n_events, exposures = _write_compiled(config, renderer, event_size, writer, report, brdfs)
     else:
@@ -367,17 +381,15 @@ def _write_compiled(
     brdfs: list[Any],
 ) -> tuple[int, list[list[np.ndarray]]]:
     """Events over all periods and the first period's exposures per BRDF, from ``simkernel``."""
-    height, width = event_size
-    writer.begin_events(width, height)
-    t1 = config.periods * config.period_us
-    count, window_sums = 0, []
-    for block in compiled_blocks(config, renderer):
-        if len(block.events):
-            writer.append_events(block.events)
-            count += len(block.events)
-        if block.window_sums is not None:
-            window_sums.append(block.window_sums)
-        report(min(1.0, block.t_end_us / t1), "events")
+    window_sums = []
+
+    def chunks() -> Iterator[tuple[psfmt.EventArray, float]]:
+        for block in compiled_blocks(config, renderer):
+            if block.window_sums is not None:
+                window_sums.append(block.window_sums)
+            yield block.events, block.t_end_us
+
+    count = append_event_chunks(writer, event_size, chunks(), config.duration_us, report)
     rgb = renderer.closed_form_constants()[1]
     albedo, f0 = rgb["albedo"].cpu().numpy(), rgb["f0"].cpu().numpy()
     intensity = np.asarray(renderer.light.intensity, dtype=np.float64) / US_PER_S  # type: ignore[attr-defined]
@@ -424,15 +436,12 @@ def _write_events(
     """Events over all periods; their whole-frame renders go through ``sums``, which adds the
     frames' samples among them to the exposures."""
     height, width = event_size
-    writer.begin_events(width, height)
-    t1 = config.periods * config.period_us
-    count = 0
     scale = config.event_scale
     render_pixels = partial(renderer.event_pixels, event_scale=scale) if renderer.event_pixels_supported else None
-    for chunk in simulate_events(
+    chunks = simulate_events(
         partial(sums.render, event_scale=scale),
         0,
-        t1,
+        config.duration_us,
         width=width,
         height=height,
         contrast_pos=config.contrast,
@@ -440,12 +449,30 @@ def _write_events(
         sigma=config.contrast_sigma,
         refractory_us=config.refractory_us,
         seed=config.seed,
-        min_dt_us=max(1.0, config.period_us * EVENT_MIN_STEP_TURNS),
+        min_dt_us=config.min_step_us,
         render_pixels=render_pixels,
         sample_times_us=sums.sample_times_us(),
-    ):
-        writer.append_events(chunk)
-        count += len(chunk)
-        report(min(1.0, float(chunk.t[-1]) / t1), "events")
+    )
+    return append_event_chunks(writer, event_size, ((c, float(c.t[-1])) for c in chunks), config.duration_us, report)
+
+
+def append_event_chunks(
+    writer: psfmt.CaptureWriter,
+    event_size: tuple[int, int],
+    chunks: Iterable[tuple[psfmt.EventArray, float]],
+    t1_us: float,
+    report: Progress,
+) -> int:
+    """Start the writer's events for a sensor of ``event_size`` (height, width) and append each
+    (events, time reached in µs) of ``chunks``, reporting the share of ``t1_us`` reached; returns the
+    number of events."""
+    height, width = event_size
+    writer.begin_events(width, height)
+    count = 0
+    for events, t_us in chunks:
+        if len(events):
+            writer.append_events(events)
+            count += len(events)
+        report(min(1.0, t_us / t1_us), "events")
     report(1.0, "events")
     return count

@@ -33,7 +33,7 @@ from pstoolkit.esim import Render, simulate_events
 from pstoolkit.eventmodel import LOG_EPS, log_irradiance
 from pstoolkit.lights import SampledLight
 from pstoolkit.render import GREY_WEIGHTS, area_weights, event_shape
-from pstoolkit.simulator import EVENT_MIN_STEP_TURNS, CaptureTiming
+from pstoolkit.simulator import CaptureTiming, append_event_chunks
 
 # Share of the progress bar given to reading and normalising the key images; the events take the rest.
 FRAMES_SHARE = 0.25
@@ -172,7 +172,7 @@ def write_semi_real(
         )
     else:
         log_rgb = log_irradiance(keys.images)
-        bounds = np.round(np.arange(config.frames + 1) * period / config.frames).astype(np.int64)
+        bounds = config.exposure_bounds_us()
         exposures = [ldr(window_mean(log_rgb, knots, bounds[k], bounds[k + 1])) for k in range(config.frames)]
         for p in range(config.periods):
             for k, exposure in enumerate(exposures):
@@ -192,24 +192,22 @@ def _write_events(
     au = area_weights(width, config.size, config.event_scale)
     grey = keys.images.astype(np.float64) @ np.array(GREY_WEIGHTS)
     log_keys = log_irradiance(av @ grey @ au.T)
-    writer.begin_events(width, height)
-    t1 = config.periods * config.period_us
-    count = 0
-    for chunk in simulate_events(
+    chunks = simulate_events(
         event_render(log_keys, knots_us, config.period_us),
         0,
-        t1,
+        config.duration_us,
         width=width,
         height=height,
         contrast_pos=config.contrast,
         contrast_neg=config.contrast,
         refractory_us=config.refractory_us,
         seed=config.seed,
-        min_dt_us=max(1.0, config.period_us * EVENT_MIN_STEP_TURNS),
-    ):
-        writer.append_events(chunk)
-        count += len(chunk)
-        progress(FRAMES_SHARE + (1.0 - FRAMES_SHARE) * min(1.0, float(chunk.t[-1]) / t1), "events")
+        min_dt_us=config.min_step_us,
+    )
+    count = append_event_chunks(
+        writer, (height, width), ((c, float(c.t[-1])) for c in chunks), config.duration_us,
+        lambda fraction, message: progress(FRAMES_SHARE + (1.0 - FRAMES_SHARE) * fraction, message),
+    )
     writer.set_calibration(
         psfmt.Calibration(
             event_to_frame=psfmt.scale_affine(config.event_scale),
