@@ -93,11 +93,18 @@ def _check_sample_times(sample_times_us: np.ndarray, t0_us: float, t1_us: float)
     return np.append(times, t1_us)
 
 
-def draw_thresholds(rng: np.random.Generator, contrast: float, sigma: float, n_pixels: int) -> np.ndarray:
-    """Per-pixel contrast thresholds ``N(contrast, sigma)`` clamped to ≥ ``MIN_CONTRAST``."""
+def event_rngs(seed: int) -> tuple[np.random.Generator, np.random.Generator, np.random.Generator]:
+    """The independent random streams of an event simulation with ``seed``: thresholds, leak, shot noise."""
+    thresholds, leak, shot = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
+    return thresholds, leak, shot
+
+
+def draw_thresholds(rng: np.random.Generator, contrast_pos: float, contrast_neg: float, sigma: float, n_pixels: int,
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel contrast thresholds C⁺ and C⁻, each ``N(contrast, sigma)`` clamped to ≥ ``MIN_CONTRAST``."""
     if sigma == 0:
-        return np.full(n_pixels, max(contrast, MIN_CONTRAST))
-    return np.maximum(rng.normal(contrast, sigma, n_pixels), MIN_CONTRAST)
+        return (np.full(n_pixels, max(contrast_pos, MIN_CONTRAST)), np.full(n_pixels, max(contrast_neg, MIN_CONTRAST)))
+    return tuple(np.maximum(rng.normal(c, sigma, n_pixels), MIN_CONTRAST) for c in (contrast_pos, contrast_neg))  # type: ignore[return-value]
 
 
 def _log_frames(render: Render, t_us: np.ndarray, shape: tuple[int, int], eps: float) -> np.ndarray:
@@ -427,9 +434,8 @@ def simulate_events(
     if sample_times_us is not None:
         sample_times_us = _check_sample_times(sample_times_us, float(t0_us), float(t1_us))
     n_pixels = width * height
-    rng_thresholds, rng_leak, rng_shot = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
-    c_pos = draw_thresholds(rng_thresholds, contrast_pos, sigma, n_pixels)
-    c_neg = draw_thresholds(rng_thresholds, contrast_neg, sigma, n_pixels)
+    rng_thresholds, rng_leak, rng_shot = event_rngs(seed)
+    c_pos, c_neg = draw_thresholds(rng_thresholds, contrast_pos, contrast_neg, sigma, n_pixels)
 
     def log_render(t_us: np.ndarray) -> np.ndarray:
         return _log_frames(render, t_us, (height, width), eps)

@@ -9,9 +9,10 @@ same event rule (``pstoolkit.eventmodel``) and ``tests/test_simkernel.py`` compa
 Per event pixel, time advances in its own steps (ESIM's adaptive sampling, made per pixel): a step
 whose change of the pixel's ``L = ln(I + ε)`` exceeds ``max_dlog`` (half the contrast) is shortened
 until it does not or is ``min_dt_us`` long, and the next step grows or shrinks with the change of
-this one, up to ``max_dt_us`` (the light's path between two cast-shadow sweeps, so no sweep is
-stepped over). ``I`` is the area average of the frame pixels under the event pixel, each shaded in
-closed form at the step's time; crossings are placed exactly on the line between samples, with the
+this one, up to ``max_dt_us`` (8° of the turn) where no cast shadow can reach the pixel during the
+block, else up to one interval of the shadow grid, so no sweep is stepped over; L may also leave
+the previous step's line by at most ``MAX_BEND``. ``I`` is the area average of the frame pixels
+under the event pixel, each shaded in closed form at the step's time; crossings are placed exactly on the line between samples, with the
 refractory rule "reset-at-end". Each frame pixel belongs to the event pixel covering most of it, and
 its ∫ V·[n·l]₊ dt and ∫ V·[n·l]₊·ratio dt (``ratio`` the GGX specular factor) accumulate by the
 trapezoid rule on that pixel's samples: the exposures come from the same shading as the events.
@@ -35,7 +36,7 @@ import torch
 from psfmt import EventArray
 from pstoolkit.brdf import GGX
 from pstoolkit.errors import UserError
-from pstoolkit.esim import check_options, draw_thresholds
+from pstoolkit.esim import check_options, draw_thresholds, event_rngs
 from pstoolkit.eventmodel import GREY_WEIGHTS, LOG_EPS
 from pstoolkit.lights import RingLight
 from pstoolkit.render import Renderer, event_shape
@@ -423,7 +424,8 @@ def simulate_ring(
     """Events of the event sensor at ``event_scale`` over [0, ``t1_us``] and the exposure sums of the
     windows ending at ``window_ends_us`` (increasing, inside (0, t1_us]), block by block in time
     order (see the module docstring). ``renderer`` must be ``supported``. ``max_dlog`` defaults to
-    half the smaller contrast, ``max_dt_us`` to the renderer's shadow step (else 1° of the turn),
+    half the smaller contrast, ``max_dt_us`` (the longest step of a pixel no cast shadow reaches in
+    the block; others step at most one shadow-grid interval) to ``MAX_STEP_TURNS`` of the turn,
     ``block_us`` to ``BLOCK_GRID_STEPS`` shadow-grid intervals; ``capacity`` is the first room for
     events per pixel and block (grown as needed). Thresholds are drawn as ``pstoolkit.esim`` draws
     them for ``seed``."""
@@ -446,9 +448,7 @@ def simulate_ring(
     constants = frame_constants(renderer)
     feet = footprints(renderer, event_scale)
     n_events = height * width
-    rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(3)[0])
-    c_pos = draw_thresholds(rng, contrast_pos, sigma, n_events)
-    c_neg = draw_thresholds(rng, contrast_neg, sigma, n_events)
+    c_pos, c_neg = draw_thresholds(event_rngs(seed)[0], contrast_pos, contrast_neg, sigma, n_events)
     ring = _ring(light)
     openness, grid = _shadow_table(renderer, 0.0, 0.0)
     state = PixelState(
