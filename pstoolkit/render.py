@@ -114,6 +114,50 @@ def _sweep(
                     running[j] = value
 
 
+class ShadowCaster:
+    """Cast-shadow margins of one height map (``shadow_margin``), keeping what does not depend on the
+    light: the maps in the four sweep orientations, made the first time a light needs each."""
+
+    def __init__(self, depth: np.ndarray, mask: np.ndarray) -> None:
+        depth = np.asarray(depth, dtype=np.float64)
+        self.mask = np.asarray(mask, dtype=bool)
+        self.occluder = np.where(self.mask, depth, _NO_OCCLUDER).astype(np.float32)
+        self.height = depth.astype(np.float32)
+        self._oriented: dict[tuple[bool, bool], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def _maps(self, transpose: bool, flip: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if (transpose, flip) not in self._oriented:
+            oriented = [a.T if transpose else a for a in (self.occluder, self.height, self.mask)]
+            if flip:
+                oriented = [a[:, ::-1] for a in oriented]
+            self._oriented[transpose, flip] = tuple(np.ascontiguousarray(a.T) for a in oriented)  # type: ignore[assignment]
+        return self._oriented[transpose, flip]
+
+    def margins(self, directions: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """``shadow_margin`` for ``directions`` (T, 3), written into ``out`` ((T, H, W) float32) when
+        given: a caller sweeping block after block reuses one buffer."""
+        l = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+        t = l.shape[0]
+        h, w = self.height.shape
+        out = np.empty((t, h, w), dtype=np.float32) if out is None else out
+        du, dv = l[:, 0], -l[:, 1]  # image v points down
+        rho = np.hypot(du, dv)
+        side = rho > 1e-9
+        out[~side] = _LOW_MARGIN
+        tan_e = np.where(side, l[:, 2] / np.where(side, rho, 1.0), 0.0)
+        along_u = np.abs(du) >= np.abs(dv)
+        for transpose in (False, True):
+            for flip in (False, True):
+                main, other = (dv, du) if transpose else (du, dv)
+                index = np.flatnonzero(side & (along_u != transpose) & ((main < 0) == flip))
+                if index.size == 0:
+                    continue
+                k = other[index] / np.abs(main[index])
+                rise = tan_e[index] * np.sqrt(1.0 + k * k)
+                _sweep(*self._maps(transpose, flip), k, rise, index, transpose, flip, out)
+        return out
+
+
 def shadow_margin(
     depth: np.ndarray,
     mask: np.ndarray,
@@ -126,36 +170,10 @@ def shadow_margin(
     ``depth`` is the height towards the camera in pixels; only pixels inside ``mask`` occlude, and
     pixels outside it get a large negative margin. Work per light is linear in the pixel count (a
     running maximum along the parallel rays, see ``_sweep``, compiled and in parallel over the
-    lights); memory is the output. Lights straight overhead cast no shadows.
+    lights); memory is the output. Lights straight overhead cast no shadows. ``ShadowCaster`` keeps
+    the light-independent part for many calls on one map.
     """
-    depth = np.asarray(depth, dtype=np.float64)
-    mask = np.asarray(mask, dtype=bool)
-    l = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
-    t = l.shape[0]
-    h, w = depth.shape
-    out = np.empty((t, h, w), dtype=np.float32)
-    du, dv = l[:, 0], -l[:, 1]  # image v points down
-    rho = np.hypot(du, dv)
-    side = rho > 1e-9
-    out[~side] = _LOW_MARGIN
-    tan_e = np.where(side, l[:, 2] / np.where(side, rho, 1.0), 0.0)
-    occluder = np.where(mask, depth, _NO_OCCLUDER).astype(np.float32)
-    height = depth.astype(np.float32)
-    along_u = np.abs(du) >= np.abs(dv)
-    for transpose in (False, True):
-        for flip in (False, True):
-            main, other = (dv, du) if transpose else (du, dv)
-            index = np.flatnonzero(side & (along_u != transpose) & ((main < 0) == flip))
-            if index.size == 0:
-                continue
-            oriented = [a.T if transpose else a for a in (occluder, height, mask)]
-            if flip:
-                oriented = [a[:, ::-1] for a in oriented]
-            k = other[index] / np.abs(main[index])
-            rise = tan_e[index] * np.sqrt(1.0 + k * k)
-            occ_t, hgt_t, inside_t = (np.ascontiguousarray(a.T) for a in oriented)
-            _sweep(occ_t, hgt_t, inside_t, k, rise, index, transpose, flip, out)
-    return out
+    return ShadowCaster(depth, mask).margins(directions)
 
 
 def visibility_from_margin(margin: np.ndarray, bias_px: float = SHADOW_BIAS_PX, penumbra_px: float = PENUMBRA_PX) -> np.ndarray:
@@ -170,9 +188,11 @@ def _openness(margin: np.ndarray, bias_px: float = SHADOW_BIAS_PX, penumbra_px: 
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _masked_openness(margin: np.ndarray, index: np.ndarray, bias_px: float, penumbra_px: float) -> np.ndarray:  # pragma: no cover - compiled
-    """``_openness`` of the pixels ``index`` of (G, H·W) margins, (G, len(index)) float32, in one pass."""
-    out = np.empty((margin.shape[0], index.size), dtype=np.float32)
+def _masked_openness(
+    margin: np.ndarray, index: np.ndarray, bias_px: float, penumbra_px: float, out: np.ndarray,
+) -> np.ndarray:  # pragma: no cover - compiled
+    """``_openness`` of the pixels ``index`` of (G, H·W) margins into ``out`` (G, len(index)) float32,
+    in one pass."""
     for g in numba.prange(margin.shape[0]):
         for j in range(index.size):
             out[g, j] = 1.0 - (margin[g, index[j]] - bias_px) / penumbra_px
@@ -279,6 +299,9 @@ class Renderer:
             points = light.pixel_points(maps.height, maps.width, maps.depth * pitch)  # type: ignore[attr-defined]
             self._points = points[self.index]
         self._margins: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._caster: ShadowCaster | None = None
+        # margins of the last grid_openness call, kept so the next one does not allocate anew
+        self._sweep_buffer = np.empty((0, maps.height, maps.width), dtype=np.float32)
         self._footprints: dict[float, tuple[np.ndarray, np.ndarray]] = {}
         self._constants: dict[str, torch.Tensor] | None = None
         self._rgb64: dict[str, torch.Tensor] = {}
@@ -330,14 +353,24 @@ class Renderer:
         n = len(key0)
         return table, inverse[:n], inverse[n:], after
 
-    def grid_openness(self, keys: np.ndarray) -> np.ndarray:
+    def grid_openness(self, keys: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """(N, P) float32 unclipped V (``_openness`` of the margins) of the masked pixels at the shadow
-        grid times ``keys`` × ``shadow_step_us``, swept anew: the bounded cache of ``_grid_margins``
-        serves renders near each other, while a caller walking time in blocks needs each row once."""
+        grid times ``keys`` × ``shadow_step_us``, swept anew (into ``out`` when given): the bounded
+        cache of ``_grid_margins`` serves renders near each other, while a caller walking time in
+        blocks needs each row once."""
         keys = np.asarray(keys)
         direction, _ = self.light.evaluate(keys * float(self.shadow_step_us), self._points)  # type: ignore[arg-type]
-        margin = shadow_margin(self.maps.depth, self.maps.mask, self._shadow_directions(direction))
-        return _masked_openness(margin.reshape(len(keys), -1), self.index, SHADOW_BIAS_PX, PENUMBRA_PX)
+        if self._sweep_buffer.shape[0] < len(keys):
+            self._sweep_buffer = np.empty((len(keys), self.maps.height, self.maps.width), dtype=np.float32)
+        margin = self.shadow_caster.margins(self._shadow_directions(direction), self._sweep_buffer[: len(keys)])
+        out = np.empty((len(keys), self.pixels), dtype=np.float32) if out is None else out
+        return _masked_openness(margin.reshape(len(keys), -1), self.index, SHADOW_BIAS_PX, PENUMBRA_PX, out)
+
+    @property
+    def shadow_caster(self) -> ShadowCaster:
+        if self._caster is None:
+            self._caster = ShadowCaster(self.maps.depth, self.maps.mask)
+        return self._caster
 
     def visibility(self, t_us: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """(T, P) float32 V in [0, 1]: how much of each masked pixel is out of cast shadow at ``t_us``."""
@@ -349,7 +382,7 @@ class Renderer:
             visible *= 1.0 - after[:, None]
             visible += table[row1] * after[:, None]
             return np.clip(visible, 0.0, 1.0, out=visible)
-        margin = shadow_margin(self.maps.depth, self.maps.mask, self._shadow_directions(directions))
+        margin = self.shadow_caster.margins(self._shadow_directions(directions))
         return visibility_from_margin(margin.reshape(len(t_us), -1)[:, self.index])
 
     def _pixel_visibility(self, t_us: np.ndarray, pixel: np.ndarray) -> np.ndarray:

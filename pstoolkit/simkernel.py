@@ -9,18 +9,21 @@ same event rule (``pstoolkit.eventmodel``) and ``tests/test_simkernel.py`` compa
 Per event pixel, time advances in its own steps (ESIM's adaptive sampling, made per pixel): a step
 whose change of the pixel's ``L = ln(I + ε)`` exceeds ``max_dlog`` (half the contrast) is shortened
 until it does not or is ``min_dt_us`` long, and the next step grows or shrinks with the change of
-this one, up to ``max_dt_us`` (8° of the turn) where no cast shadow can reach the pixel during the
-block, else up to one interval of the shadow grid, so no sweep is stepped over; L may also leave
-the previous step's line by at most ``MAX_BEND``. ``I`` is the area average of the frame pixels
-under the event pixel, each shaded in closed form at the step's time; crossings are placed exactly on the line between samples, with the
-refractory rule "reset-at-end". Each frame pixel belongs to the event pixel covering most of it, and
-its ∫ V·[n·l]₊ dt and ∫ V·[n·l]₊·ratio dt (``ratio`` the GGX specular factor) accumulate by the
-trapezoid rule on that pixel's samples: the exposures come from the same shading as the events.
+this one, up to ``max_dt_us`` (8° of the turn), and around the intervals of the shadow grid in
+which a cast shadow falls on the pixel while it is lit, up to one interval, so no sweep is stepped
+over; L may also leave the previous step's line by at most ``MAX_BEND``. ``I`` is the area average of the frame
+pixels under the event pixel, each shaded in closed form at the step's time; crossings are placed
+exactly on the line between samples, with the refractory rule "reset-at-end". Each frame pixel
+belongs to the event pixel covering most of it, and its ∫ V·[n·l]₊ dt and ∫ V·[n·l]₊·ratio dt
+(``ratio`` the GGX specular factor) accumulate by the trapezoid rule on that pixel's samples: the
+exposures come from the same shading as the events.
 
 Work per event pixel is about (number of steps) × (frame pixels under it): a pixel that sees no
-change takes ``max_dt_us`` steps, one that fires takes about two steps per event. Memory: the
-per-pixel state, a cast-shadow table for the current block of time, and the block's events (at most
-``capacity`` per pixel; a block that overflows is run again with more room).
+change takes ``max_dt_us`` steps, one that fires takes about three steps per event. A thread steps
+``LANES`` pixels at once, so their independent shadings overlap in the CPU, and takes the light's
+direction from a table (``TRIG_NODES``). Memory: the per-pixel state, a cast-shadow table for the
+current block of time, and the block's events (room for as many per pixel as the busiest pixel
+needed so far; pixels that overflow it are run again from their state at the block's start).
 """
 
 from __future__ import annotations
@@ -43,8 +46,8 @@ from pstoolkit.render import Renderer, event_shape
 
 # Columns of the per-frame-pixel constants (``FrameConstants.values``).
 NX, NY, NZ, GREY_DIFFUSE, GREY_SPECULAR, NORM2, ALPHA2_1, K, ONE_K, VIEW = range(10)
-# Longest step of a pixel that no cast shadow can reach in the current block, as a share of the light's
-# turn (a pixel that may be shadowed steps at most one shadow-grid interval, so no sweep is stepped over).
+# Longest step, as a share of the light's turn, away from the shadow-grid intervals in which a cast shadow falls on
+# the pixel while it is lit (around those a pixel steps at most one interval, so no sweep is stepped over).
 MAX_STEP_TURNS = 8.0 / 360.0
 # Largest distance of L from the line of a pixel's previous step at the end of the next one: the line
 # between the step's samples is then within about a quarter of it (1e-3) of L, so events keep the
@@ -53,6 +56,8 @@ MAX_BEND = 4e-3
 # Event pixels handed to a thread at a time: pixels differ a lot in work (a dark background pixel
 # against one a shadow edge sweeps), so threads take small chunks as they finish instead of equal shares.
 PIXELS_PER_TASK = 64
+# Pixels a task steps at once (see ``_advance_pixels``).
+LANES = 4
 # Length of a block of time, in shadow-grid intervals: one shadow table and one batch of events.
 BLOCK_GRID_STEPS = 32
 # Keeps the half vector's normalisation finite when l = −v, as in ``pstoolkit.brdf``.
@@ -101,28 +106,51 @@ class PixelState:
     def copy(self) -> PixelState:
         return PixelState(*(np.array(getattr(self, name)) for name in self.__dataclass_fields__))
 
+    def copy_to(self, other: PixelState, pixels: np.ndarray | None = None, frame_pixels: np.ndarray | None = None) -> None:
+        """Write this state into ``other``: all of it, or only event pixels ``pixels`` and the masked
+        frame pixels ``frame_pixels`` (those the event pixels own)."""
+        for name in self.__dataclass_fields__:
+            source, target = getattr(self, name), getattr(other, name)
+            if pixels is None:
+                np.copyto(target, source)
+            else:
+                rows = frame_pixels if name in ("shade", "sums") else pixels
+                target[rows] = source[rows]
+
+
+# cos and sin of the azimuth at TRIG_NODES points of the turn: ``_direction`` takes the node below and
+# turns on by the rest in closed form, which is cheaper than the library's cos and sin and as exact.
+TRIG_NODES = 4096
+_TRIG = np.stack([np.cos(np.arange(TRIG_NODES) * (2.0 * np.pi / TRIG_NODES)),
+                  np.sin(np.arange(TRIG_NODES) * (2.0 * np.pi / TRIG_NODES))], axis=1)
+
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _direction(t_us: float, ring: tuple) -> tuple[float, float]:  # pragma: no cover - compiled
-    cos_e, _, phase, omega, t0 = ring
-    phi = phase + omega * (t_us - t0)
-    return cos_e * math.cos(phi), cos_e * math.sin(phi)
+    """The light's x and y at ``t_us`` (its z is sin e)."""
+    cos_e, _, phase, omega, t0 = ring[:5]
+    u = (phase + omega * (t_us - t0)) * (TRIG_NODES / (2.0 * math.pi))
+    node = math.floor(u)
+    d = (u - node) * (2.0 * math.pi / TRIG_NODES)
+    j = np.int64(node) & (TRIG_NODES - 1)
+    # |d| < 2π/4096: the series' first omitted terms are below 1e-20
+    d2 = d * d
+    cos_d = 1.0 - d2 * (0.5 - d2 * (1.0 / 24.0))
+    sin_d = d * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0)))
+    c, s = _TRIG[j, 0], _TRIG[j, 1]
+    return cos_e * (c * cos_d - s * sin_d), cos_e * (s * cos_d + c * sin_d)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _shade_taps(
     t_us: float, p: int, pixel: np.ndarray, weight: np.ndarray, values: np.ndarray, specular: bool,
-    ring: tuple, openness: np.ndarray, grid: tuple, shadowed: bool, out: np.ndarray,
+    ring: tuple, openness: np.ndarray, grid: tuple, shadowed: bool, out: np.ndarray, lane: int,
 ) -> float:  # pragma: no cover - compiled
-    """Grey irradiance of event pixel ``p`` at ``t_us``; ``out`` (K, 2) gets each frame pixel's
+    """Grey irradiance of event pixel ``p`` at ``t_us``; ``out[lane]`` (K, 2) gets each frame pixel's
     V·[n·l]₊ and V·[n·l]₊·ratio."""
     lx, ly = _direction(t_us, ring)
-    sin_e = ring[1]
+    sin_e, inv_h, hh, lift = ring[1], ring[5], ring[6], ring[7]
     hz = 1.0 + sin_e
-    ss = lx * lx + ly * ly + hz * hz
-    inv_h = 1.0 / math.sqrt(ss + HALF_EPS)
-    hh = ss / (ss + HALF_EPS)
-    lift = HALF_EPS / (ss + HALF_EPS)
     x = t_us / grid[0] - grid[1]
     row = min(max(int(math.floor(x)), 0), openness.shape[0] - 2)
     after = x - row
@@ -134,8 +162,8 @@ def _shade_taps(
         across = values[f, NX] * lx + values[f, NY] * ly
         nl = across + values[f, NZ] * sin_e
         if nl <= 0.0:
-            out[q, 0] = 0.0
-            out[q, 1] = 0.0
+            out[lane, q, 0] = 0.0
+            out[lane, q, 1] = 0.0
             continue
         ratio = 0.0
         if specular:
@@ -145,13 +173,13 @@ def _shade_taps(
         if shadowed:
             v = openness[row, f] * (1.0 - after) + openness[row + 1, f] * after
             nl *= min(max(v, 0.0), 1.0)
-        out[q, 0] = nl
-        out[q, 1] = nl * ratio
+        out[lane, q, 0] = nl
+        out[lane, q, 1] = nl * ratio
         grey += weight[p, q] * nl * (values[f, GREY_DIFFUSE] + ratio * values[f, GREY_SPECULAR])
     return grey
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _fire(
     ta: float, la: float, tb: float, lb: float, p: int, c_pos: float, c_neg: float, refractory_us: float,
     hi: np.ndarray, lo: np.ndarray, blind_until: np.ndarray, out_t: np.ndarray, out_p: np.ndarray, n: int,
@@ -202,70 +230,172 @@ _TINY = np.finfo(np.float64).tiny
 
 
 @numba.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
-def _advance(
-    ta: float, tb: float, pixel: np.ndarray, weight: np.ndarray, owned: np.ndarray, values: np.ndarray,
-    specular: bool, ring: tuple, openness: np.ndarray, grid: tuple,
+def _lit_shadow(
+    values: np.ndarray, sin_e: float, openness: np.ndarray, grid_light: np.ndarray,
+) -> np.ndarray:  # pragma: no cover - compiled
+    """(P,) uint64: bit i set where a cast shadow falls on the frame pixel while it is lit between
+    grid times i and i + 1 of the table (V < 1 at one of them, next to a grid time where n·l > 0: a
+    shadow inside the attached shadow changes nothing, as on the far side of a sphere); intervals
+    past the 64th share the last bit. ``grid_light`` (rows, 3): the light's x and y at each grid
+    time of the table and how far n·l may exceed its values at the grid times around (n·l is a
+    sinusoid in the azimuth)."""
+    rows, pixels = openness.shape
+    out = np.zeros(pixels, np.uint64)
+    run_pixels = PIXELS_PER_TASK * 16
+    # rows outermost within a run of pixels: the table is read along its rows, not across them
+    for run in numba.prange((pixels + run_pixels - 1) // run_pixels):
+        for row in range(rows):
+            for f in range(run * run_pixels, min((run + 1) * run_pixels, pixels)):
+                if openness[row, f] >= 1.0:
+                    continue
+                for near in range(max(row - 1, 0), min(row + 2, rows)):
+                    nl = values[f, NX] * grid_light[near, 0] + values[f, NY] * grid_light[near, 1] + values[f, NZ] * sin_e
+                    if nl > -grid_light[near, 2]:
+                        for interval in range(max(row - 1, 0), min(row + 1, rows - 1)):
+                            out[f] |= np.uint64(1) << np.uint64(min(interval, 63))
+                        break
+    return out
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _shadow_room(
+    t_us: float, shadows: np.uint64, grid: tuple, grid_dt: float, max_dt: float,
+) -> float:  # pragma: no cover - compiled
+    """Longest step from ``t_us`` of a pixel whose frame pixels are shadowed while lit in the grid
+    intervals ``shadows`` (bits, see ``_lit_shadow``): one grid interval inside such an interval or
+    close to one, else up to the next one (no sweep is stepped over), at most ``max_dt``."""
+    if shadows == 0:
+        return max_dt
+    i = min(max(int(math.floor(t_us / grid[0] - grid[1])), 0), 63)
+    rest = shadows >> np.uint64(i)
+    if rest & np.uint64(1):
+        return grid_dt
+    rest >>= np.uint64(1)
+    if rest == 0:
+        return max_dt
+    j = i + 1
+    while not rest & np.uint64(1):
+        rest >>= np.uint64(1)
+        j += 1
+    return min(max((grid[1] + j) * grid[0] - t_us, grid_dt), max_dt)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _advance_pixels(
+    order: np.ndarray, first: int, last: int, ta: float, tb: float, pixel: np.ndarray, weight: np.ndarray,
+    owned: np.ndarray, values: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray, grid: tuple,
+    reach: np.ndarray,
     c_pos: np.ndarray, c_neg: np.ndarray, refractory_us: float, eps: float, max_dlog: float, min_dt: float,
     max_dt: float, grid_dt: float, level: np.ndarray, hi: np.ndarray, lo: np.ndarray, blind_until: np.ndarray,
     step: np.ndarray, slope: np.ndarray, shade: np.ndarray, sums: np.ndarray, out_t: np.ndarray, out_p: np.ndarray,
     count: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
-    """Every event pixel from ``ta`` to ``tb`` (see the module docstring); state arrays are updated in
-    place, events go to ``out_t``/``out_p`` and their numbers to ``count``."""
+    """Event pixels ``order[first:last]`` from ``ta`` to ``tb``, ``LANES`` at a time: each lane
+    steps its own pixel, and the lanes' shadings are independent, so the CPU overlaps them instead of
+    waiting on one pixel's chain of step, shading, log and next step."""
     taps = pixel.shape[1]
-    for p in numba.prange(pixel.shape[0]):
-        n = 0
-        if pixel[p, 0] < 0:
-            count[p] = 0
-            continue
-        now = np.empty((taps, 2))
-        # a pixel that no cast shadow reaches during the block (V = 1 at every grid time) may take long
-        # steps and skips the table
-        shadowed = False
-        for q in range(taps):
-            f = pixel[p, q]
-            if f < 0 or shadowed:
-                break
-            for row in range(openness.shape[0]):
-                if openness[row, f] < 1.0:
-                    shadowed = True
-                    break
-        longest = grid_dt if shadowed else max_dt
-        t, l0, h, s0 = ta, level[p], min(step[p], longest), slope[p]
-        while t < tb:
-            left = tb - t
-            h_try = left if (h >= left or left - h < min_dt) else h
-            while True:
-                t1 = tb if h_try >= left else t + h_try
-                grey = _shade_taps(t1, p, pixel, weight, values, specular, ring, openness, grid, shadowed, now)
-                l1 = math.log(grey + eps)
-                change = abs(l1 - l0)
-                # how far L left the line of the previous step: 4× the error of the line between samples
-                bend = 0.0 if math.isnan(s0) else abs(l1 - l0 - s0 * (t1 - t))
-                if h_try > min_dt and (change > max_dlog or bend > MAX_BEND):
-                    shrink = min(0.9 * max_dlog / max(change, max_dlog), math.sqrt(0.9 * MAX_BEND / max(bend, MAX_BEND)))
-                    h_try = max(min_dt, h_try * max(0.2, shrink))
-                    continue
-                break
-            if l1 >= hi[p] or l1 <= lo[p] or blind_until[p] <= t1:
-                n = _fire(t, l0, t1, l1, p, c_pos[p], c_neg[p], refractory_us, hi, lo, blind_until, out_t, out_p, n)
+    lane = np.full(LANES, -1, np.int64)
+    t = np.empty(LANES)
+    l0 = np.empty(LANES)
+    h = np.empty(LANES)
+    s0 = np.empty(LANES)
+    shadows = np.zeros(LANES, np.uint64)
+    n = np.zeros(LANES, np.int64)
+    t1 = np.empty(LANES)
+    l1 = np.empty(LANES)
+    h_try = np.empty(LANES)
+    now = np.empty((LANES, taps, 2))
+    taken = first
+    busy = True
+    while busy:
+        # lanes without a pixel take the next one with frame pixels (those without fire nothing)
+        for k in range(LANES):
+            if lane[k] >= 0:
+                continue
+            while taken < last and pixel[order[taken], 0] < 0:
+                count[order[taken]] = 0
+                taken += 1
+            if taken == last:
+                continue
+            p = order[taken]
+            taken += 1
+            lane[k] = p
+            # a pixel on which no cast shadow falls while lit during the block skips the table, and
+            # one whose shadows come and go steps short only around them
+            shadows[k] = 0
+            for q in range(taps):
+                if pixel[p, q] >= 0:
+                    shadows[k] |= reach[pixel[p, q]]
+            t[k], l0[k], s0[k], n[k] = ta, level[p], slope[p], 0
+            h[k] = min(step[p], _shadow_room(ta, shadows[k], grid, grid_dt, max_dt))
+            left = tb - ta
+            h_try[k] = left if (h[k] >= left or left - h[k] < min_dt) else h[k]
+        busy = False
+        for k in range(LANES):
+            if lane[k] < 0:
+                continue
+            busy = True
+            t1[k] = tb if h_try[k] >= tb - t[k] else t[k] + h_try[k]
+            grey = _shade_taps(t1[k], lane[k], pixel, weight, values, specular, ring, openness, grid, shadows[k] != 0, now, k)
+            l1[k] = math.log(grey + eps)
+        for k in range(LANES):
+            p = lane[k]
+            if p < 0:
+                continue
+            dt = t1[k] - t[k]
+            change = abs(l1[k] - l0[k])
+            # how far L left the line of the previous step: 4× the error of the line between samples
+            bend = 0.0 if math.isnan(s0[k]) else abs(l1[k] - l0[k] - s0[k] * dt)
+            if h_try[k] > min_dt and (change > max_dlog or bend > MAX_BEND):
+                shrink = min(0.9 * max_dlog / max(change, max_dlog), math.sqrt(0.9 * MAX_BEND / max(bend, MAX_BEND)))
+                h_try[k] = max(min_dt, h_try[k] * max(0.2, shrink))
+                continue
+            if l1[k] >= hi[p] or l1[k] <= lo[p] or blind_until[p] <= t1[k]:
+                n[k] = _fire(t[k], l0[k], t1[k], l1[k], p, c_pos[p], c_neg[p], refractory_us, hi, lo, blind_until,
+                             out_t, out_p, n[k])
             for q in range(taps):
                 f = pixel[p, q]
                 if f < 0:
                     break
                 if owned[p, q]:
-                    sums[f, 0] += 0.5 * (shade[f, 0] + now[q, 0]) * (t1 - t)
-                    sums[f, 1] += 0.5 * (shade[f, 1] + now[q, 1]) * (t1 - t)
-                    shade[f, 0] = now[q, 0]
-                    shade[f, 1] = now[q, 1]
+                    sums[f, 0] += 0.5 * (shade[f, 0] + now[k, q, 0]) * dt
+                    sums[f, 1] += 0.5 * (shade[f, 1] + now[k, q, 1]) * dt
+                    shade[f, 0] = now[k, q, 0]
+                    shade[f, 1] = now[k, q, 1]
             grow = min(2.0, 0.8 * max_dlog / max(change, 1e-12), math.sqrt(0.8 * MAX_BEND / max(bend, 1e-12)))
-            h = min(longest, max(min_dt, h_try * max(0.5, grow)))
-            s0 = (l1 - l0) / (t1 - t)
-            t, l0 = t1, l1
-        level[p] = l0
-        step[p] = h
-        slope[p] = s0
-        count[p] = n
+            h[k] = min(_shadow_room(t1[k], shadows[k], grid, grid_dt, max_dt), max(min_dt, h_try[k] * max(0.5, grow)))
+            s0[k] = (l1[k] - l0[k]) / dt
+            t[k], l0[k] = t1[k], l1[k]
+            if t[k] < tb:
+                left = tb - t[k]
+                h_try[k] = left if (h[k] >= left or left - h[k] < min_dt) else h[k]
+                continue
+            level[p] = l0[k]
+            step[p] = h[k]
+            slope[p] = s0[k]
+            count[p] = n[k]
+            lane[k] = -1
+            busy = True
+
+
+@numba.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _advance(
+    order: np.ndarray, ta: float, tb: float, pixel: np.ndarray, weight: np.ndarray, owned: np.ndarray,
+    values: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray, grid: tuple, reach: np.ndarray,
+    c_pos: np.ndarray, c_neg: np.ndarray, refractory_us: float, eps: float, max_dlog: float, min_dt: float,
+    max_dt: float, grid_dt: float, level: np.ndarray, hi: np.ndarray, lo: np.ndarray, blind_until: np.ndarray,
+    step: np.ndarray, slope: np.ndarray, shade: np.ndarray, sums: np.ndarray, out_t: np.ndarray, out_p: np.ndarray,
+    count: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """The event pixels ``order`` from ``ta`` to ``tb`` (see the module docstring), ``PIXELS_PER_TASK``
+    to a task; state arrays are updated in place, events go to ``out_t``/``out_p`` and their numbers
+    to ``count``."""
+    tasks = (order.shape[0] + PIXELS_PER_TASK - 1) // PIXELS_PER_TASK
+    for task in numba.prange(tasks):
+        first = task * PIXELS_PER_TASK
+        _advance_pixels(order, first, min(first + PIXELS_PER_TASK, order.shape[0]), ta, tb, pixel, weight, owned,
+                        values, specular, ring, openness, grid, reach, c_pos, c_neg, refractory_us, eps, max_dlog, min_dt, max_dt,
+                        grid_dt, level, hi, lo, blind_until, step, slope, shade, sums, out_t, out_p, count)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -276,17 +406,17 @@ def _start(
 ) -> None:  # pragma: no cover - compiled
     """Levels and frame-pixel shading at ``t_us`` (the start of the simulation)."""
     taps = pixel.shape[1]
-    now = np.empty((taps, 2))
+    now = np.empty((1, taps, 2))
     for p in range(pixel.shape[0]):
-        grey = _shade_taps(t_us, p, pixel, weight, values, specular, ring, openness, grid, shadows, now)
+        grey = _shade_taps(t_us, p, pixel, weight, values, specular, ring, openness, grid, shadows, now, 0)
         level[p] = math.log(grey + eps)
         for q in range(taps):
             f = pixel[p, q]
             if f < 0:
                 break
             if owned[p, q]:
-                shade[f, 0] = now[q, 0]
-                shade[f, 1] = now[q, 1]
+                shade[f, 0] = now[0, q, 0]
+                shade[f, 1] = now[0, q, 1]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -383,24 +513,42 @@ def footprints(renderer: Renderer, event_scale: float) -> Footprints:
     return Footprints(np.ascontiguousarray(pixel), np.ascontiguousarray(weight), owned.reshape(pixel.shape))
 
 
-def _ring(light: RingLight) -> tuple[float, float, float, float, float]:
+def _ring(light: RingLight) -> tuple[float, ...]:
     """The ring light as the kernels take it: (cos e, sin e, phase φ0 in rad, ω in rad/µs, t0 in µs),
-    azimuth φ(t) = φ0 + ω·(t − t0) at elevation e."""
+    azimuth φ(t) = φ0 + ω·(t − t0) at elevation e; then, as the closed form of ``Renderer`` needs them
+    for the half vector h = l + v (whose length does not change on the ring), 1/|h|, |h|²/(|h|² + ε)
+    and ε/(|h|² + ε)."""
     e = math.radians(light.elevation_deg)
     omega = light.sense * 2.0 * math.pi / light.period_us
-    return math.cos(e), math.sin(e), math.radians(light.phase_deg), omega, float(light.t0_us)
+    cos_e, sin_e = math.cos(e), math.sin(e)
+    hh = cos_e * cos_e + (1.0 + sin_e) ** 2
+    return (cos_e, sin_e, math.radians(light.phase_deg), omega, float(light.t0_us), 1.0 / math.sqrt(hh + HALF_EPS),
+            hh / (hh + HALF_EPS), HALF_EPS / (hh + HALF_EPS))
 
 
-def _shadow_table(renderer: Renderer, ta: float, tb: float) -> tuple[np.ndarray, tuple[float, float]]:
+def _shadow_table(
+    renderer: Renderer, ta: float, tb: float, out: np.ndarray | None = None,
+) -> tuple[np.ndarray, tuple[float, float]]:
     """Unclipped visibility (``render._openness`` of the shadow margins) of the masked frame pixels at
     the grid times around [ta, tb], (N, P) float32 rows for keys first, first + 1, …, and the grid
     (step µs, first key): V at a time is the linear mix of the two rows around it, clipped to [0, 1].
-    Without cast shadows two rows of ones (V = 1 everywhere)."""
+    Without cast shadows two rows of ones (V = 1 everywhere). Rows go into ``out`` when it has room."""
     if not renderer.shadows:
         return np.ones((2, renderer.pixels), dtype=np.float32), (1.0, 0.0)
     step = float(renderer.shadow_step_us)  # type: ignore[arg-type]
     first = math.floor(ta / step)
-    return renderer.grid_openness(np.arange(first, math.floor(tb / step) + 2)), (step, float(first))
+    keys = np.arange(first, math.floor(tb / step) + 2)
+    room = out[: len(keys)] if out is not None and out.shape[0] >= len(keys) else None
+    return renderer.grid_openness(keys, room), (step, float(first))
+
+
+def _grid_light(ring: tuple, rows: int, grid: tuple[float, float]) -> np.ndarray:
+    """For ``_lit_shadow``: per grid time of a shadow table, the light's x and y and how far
+    n·l may exceed the larger of its values at neighbouring grid times (``cos e·(ω·step)²``)."""
+    cos_e, _, phase, omega, t0 = ring[:5]
+    phi = phase + omega * ((grid[1] + np.arange(rows)) * grid[0] - t0)
+    slack = np.full(rows, cos_e * (omega * grid[0]) ** 2)
+    return np.stack([cos_e * np.cos(phi), cos_e * np.sin(phi), slack], axis=1)
 
 
 def simulate_ring(
@@ -424,8 +572,8 @@ def simulate_ring(
     """Events of the event sensor at ``event_scale`` over [0, ``t1_us``] and the exposure sums of the
     windows ending at ``window_ends_us`` (increasing, inside (0, t1_us]), block by block in time
     order (see the module docstring). ``renderer`` must be ``supported``. ``max_dlog`` defaults to
-    half the smaller contrast, ``max_dt_us`` (the longest step of a pixel no cast shadow reaches in
-    the block; others step at most one shadow-grid interval) to ``MAX_STEP_TURNS`` of the turn,
+    half the smaller contrast, ``max_dt_us`` (the longest step away from the shadow-grid intervals in
+    which a cast shadow falls on the pixel while it is lit; around those it steps at most one) to ``MAX_STEP_TURNS`` of the turn,
     ``block_us`` to ``BLOCK_GRID_STEPS`` shadow-grid intervals; ``capacity`` is the first room for
     events per pixel and block (grown as needed). Thresholds are drawn as ``pstoolkit.esim`` draws
     them for ``seed``."""
@@ -462,32 +610,42 @@ def simulate_ring(
     state.hi[:] = state.level + c_pos
     state.lo[:] = state.level - c_neg
     capacity = max(1, int(capacity))
+    out_t = np.empty((n_events, capacity))
+    out_p = np.empty((n_events, capacity), dtype=np.int8)
+    count = np.zeros(n_events, dtype=np.int64)
+    everyone = np.arange(n_events)
+    saved = state.copy()
+    table = np.empty((BLOCK_GRID_STEPS + 3, renderer.pixels), dtype=np.float32) if renderer.shadows else None
     ta = 0.0
     for end in ends:
         while ta < end:
             tb = min(end, ta + block_us)
             if end - tb < 0.25 * block_us:
                 tb = end
-            openness, grid = _shadow_table(renderer, ta, tb)
-            before = state.copy()
+            openness, grid = _shadow_table(renderer, ta, tb, table)
+            reach = _lit_shadow(constants.values, ring[1], openness, _grid_light(ring, openness.shape[0], grid))
+            state.copy_to(saved)
+            order = everyone
             while True:
-                out_t = np.empty((n_events, capacity))
-                out_p = np.empty((n_events, capacity), dtype=np.int8)
-                count = np.zeros(n_events, dtype=np.int64)
-                with numba.parallel_chunksize(PIXELS_PER_TASK):
-                    _advance(ta, tb, feet.pixel, feet.weight, feet.owned, constants.values, constants.specular, ring,
-                             openness, grid, c_pos, c_neg, float(refractory_us), float(eps),
-                             float(max_dlog), float(min_dt_us), float(max_dt_us), grid_dt_us, state.level, state.hi, state.lo,
-                             state.blind_until_us, state.step_us, state.slope, state.shade, state.sums, out_t, out_p, count)
-                most = int(count.max(initial=0))
-                if most <= capacity:
+                with numba.parallel_chunksize(1):
+                    _advance(order, ta, tb, feet.pixel, feet.weight, feet.owned, constants.values, constants.specular,
+                             ring, openness, grid, reach, c_pos, c_neg, float(refractory_us), float(eps),
+                             float(max_dlog), float(min_dt_us), float(max_dt_us), grid_dt_us, state.level, state.hi,
+                             state.lo, state.blind_until_us, state.step_us, state.slope, state.shade, state.sums,
+                             out_t, out_p, count)
+                order = np.flatnonzero(count > capacity)
+                if order.size == 0:
                     break
-                # a pixel fired more than there was room for: run the block again with room for it
+                # pixels fired more than there was room for: widen the room and run them again
+                most = int(count.max())
                 capacity = most + most // 2
-                state = before.copy()
+                out_t = np.concatenate([out_t, np.empty((n_events, capacity - out_t.shape[1]))], axis=1)
+                out_p = np.concatenate([out_p, np.empty((n_events, capacity - out_p.shape[1]), np.int8)], axis=1)
+                saved.copy_to(state, order, feet.pixel[order][feet.owned[order]])
             x, y, t, p = _gather(out_t, out_p, count, width)
             sums = None
             if tb == end and end in window_ends_us:
-                sums, state.sums = state.sums, np.zeros_like(state.sums)
+                sums = state.sums.copy()
+                state.sums[:] = 0.0
             yield Block(EventArray(x=x, y=y, t=t, p=p), tb, sums)
             ta = tb

@@ -76,6 +76,21 @@ def test_shadow_grid_is_exact_on_the_grid_and_keeps_frames_within_half_a_percent
     assert np.abs(coarse - dense).max() > 2 * np.abs(frame - dense).max()
 
 
+def test_grid_openness_into_a_reused_buffer_equals_a_fresh_sweep() -> None:
+    """``grid_openness`` sweeps each grid time anew; given room it writes there, and reusing the room
+    and the renderer's sweep buffer for other times changes nothing."""
+    maps = Blobs().build(48, 1, **defaults(Blobs.options))
+    keys = [np.arange(0, 12), np.arange(40, 45), np.arange(100, 112)]
+    fresh = [Renderer(maps, light(), GGX(), shadow_step_us=grid_step(1.0)).grid_openness(k) for k in keys]
+    reused = Renderer(maps, light(), GGX(), shadow_step_us=grid_step(1.0))
+    room = np.empty((12, reused.pixels), dtype=np.float32)
+    for k, expected in zip(keys, fresh):
+        got = reused.grid_openness(k, room[: len(k)])
+        assert np.shares_memory(got, room)
+        np.testing.assert_array_equal(got, expected)
+    assert (fresh[0] < 1.0).any() and (fresh[0] >= 1.0).any()
+
+
 @pytest.mark.parametrize("event_scale", [0.5, 0.4])
 def test_single_event_pixels_equal_the_event_frame(event_scale: float) -> None:
     maps = Blobs().build(40, 3, **defaults(Blobs.options))

@@ -114,21 +114,50 @@ def test_a_lambertian_scene_has_no_specular_sum_and_no_shadows_means_none() -> N
 
 
 def test_results_do_not_depend_on_room_threads_or_repetition() -> None:
-    """A block that overflows its room is run again: starting with room for one event gives the same
-    events; so do one thread and a second run."""
+    """Pixels that overflow their room in a block are run again from their state at its start:
+    starting with room for one event gives the same events and exposure sums; so do one thread and
+    a second run."""
     r = renderer(Blobs(), GGX())
-    events, _ = run(r)
-    small, _ = run(r, capacity=1)
+    events, sums = run(r)
+    small = run(r, capacity=1)
     threads = numba.get_num_threads()
     numba.set_num_threads(1)
     try:
-        single, _ = run(r)
+        single = run(r)
     finally:
         numba.set_num_threads(threads)
-    for other in (small, single, run(r)[0]):
+    for other, other_sums in (small, single, run(r)):
         for name in ("x", "y", "t", "p"):
             np.testing.assert_array_equal(getattr(other, name), getattr(events, name))
+        np.testing.assert_array_equal(np.stack(other_sums), np.stack(sums))
     assert np.all(np.diff(events.t) >= 0)
+
+
+@pytest.mark.parametrize("sense", [1, -1])
+def test_the_light_direction_table_matches_the_library_trigonometry(sense: int) -> None:
+    """``_direction`` turns from the nearest of ``TRIG_NODES`` tabulated angles in closed form: it
+    agrees with cos and sin of the azimuth to 1e-13 over many turns, either way round."""
+    light = RingLight(elevation_deg=35.0, period_us=PERIOD_US, phase_deg=17.0, sense=sense)
+    ring = simkernel._ring(light)
+    t_us = np.random.default_rng(3).uniform(-5 * PERIOD_US, 40 * PERIOD_US, 5000)
+    direction = numba.njit(lambda t, r: simkernel._direction(t, r))
+    got = np.array([direction(t, ring) for t in t_us])
+    expected, _ = light.evaluate(t_us)
+    assert np.abs(got - expected[:, :2]).max() < 1e-13
+
+
+def test_only_shadows_on_lit_pixels_shorten_the_steps() -> None:
+    """A sphere shadows itself only where it faces away from the light (the table has V < 1 there),
+    so no pixel counts as reached by a cast shadow; the blobs cast shadows on lit pixels."""
+    for scene, reached in ((Sphere(), False), (Blobs(), True)):
+        r = renderer(scene, GGX())
+        constants = simkernel.frame_constants(r)
+        ring = simkernel._ring(r.light)  # type: ignore[arg-type]
+        openness, grid = simkernel._shadow_table(r, 0.0, PERIOD_US)
+        reach = simkernel._lit_shadow(constants.values, ring[1], openness,
+                                      simkernel._grid_light(ring, openness.shape[0], grid))
+        assert (openness < 1.0).any()
+        assert reach.any() == reached
 
 
 def test_supported_only_for_the_closed_form_on_the_cpu() -> None:
@@ -163,3 +192,15 @@ def test_bad_options_name_the_option(kwargs: dict, message: str) -> None:
                  "contrast_neg": C, **kwargs}
     with pytest.raises(UserError, match=message):
         next(simkernel.simulate_ring(renderer(Sphere(), GGX(), size=16), **arguments))
+
+
+def test_a_shadowed_pixel_steps_short_only_around_its_shadows() -> None:
+    """With a shadow in grid interval 3 (µs 300–400 on a 100 µs grid), steps reach up to it, take one
+    grid interval near and inside it, and are long again after it; no shadow: always long."""
+    room = numba.njit(lambda t, bits: simkernel._shadow_room(t, bits, (100.0, 0.0), 100.0, 1000.0))
+    bits = np.uint64(1 << 3)
+    assert room(50.0, bits) == 250.0
+    assert room(250.0, bits) == 100.0
+    assert room(320.0, bits) == 100.0
+    assert room(450.0, bits) == 1000.0
+    assert room(50.0, np.uint64(0)) == 1000.0
