@@ -300,7 +300,7 @@ class Renderer:
             self._points = points[self.index]
         self._margins: OrderedDict[int, np.ndarray] = OrderedDict()
         self._caster: ShadowCaster | None = None
-        # margins of the last grid_openness call, kept so the next one does not allocate anew
+        # margins of the last grid_openness call given ``out``, kept so the next one does not allocate anew
         self._sweep_buffer = np.empty((0, maps.height, maps.width), dtype=np.float32)
         self._footprints: dict[float, tuple[np.ndarray, np.ndarray]] = {}
         self._constants: dict[str, torch.Tensor] | None = None
@@ -355,14 +355,19 @@ class Renderer:
 
     def grid_openness(self, keys: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """(N, P) float32 unclipped V (``_openness`` of the margins) of the masked pixels at the shadow
-        grid times ``keys`` × ``shadow_step_us``, swept anew (into ``out`` when given): the bounded
-        cache of ``_grid_margins`` serves renders near each other, while a caller walking time in
-        blocks needs each row once."""
+        grid times ``keys`` × ``shadow_step_us``, swept anew: the bounded cache of ``_grid_margins``
+        serves renders near each other, while a caller walking time in blocks needs each row once and
+        passes ``out`` to write them into (the margins then go to a buffer the renderer keeps, so
+        block after block allocates nothing)."""
         keys = np.asarray(keys)
         direction, _ = self.light.evaluate(keys * float(self.shadow_step_us), self._points)  # type: ignore[arg-type]
-        if self._sweep_buffer.shape[0] < len(keys):
-            self._sweep_buffer = np.empty((len(keys), self.maps.height, self.maps.width), dtype=np.float32)
-        margin = self.shadow_caster.margins(self._shadow_directions(direction), self._sweep_buffer[: len(keys)])
+        scratch = None
+        if out is not None:
+            # a caller that reuses its table walks time block by block: reuse the margins' room too
+            if self._sweep_buffer.shape[0] < len(keys):
+                self._sweep_buffer = np.empty((len(keys), self.maps.height, self.maps.width), dtype=np.float32)
+            scratch = self._sweep_buffer[: len(keys)]
+        margin = self.shadow_caster.margins(self._shadow_directions(direction), scratch)
         out = np.empty((len(keys), self.pixels), dtype=np.float32) if out is None else out
         return _masked_openness(margin.reshape(len(keys), -1), self.index, SHADOW_BIAS_PX, PENUMBRA_PX, out)
 

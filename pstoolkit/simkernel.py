@@ -280,6 +280,13 @@ def _shadow_room(
     return min(max((grid[1] + j) * grid[0] - t_us, grid_dt), max_dt)
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _next_try(h: float, left: float, min_dt: float) -> float:  # pragma: no cover - compiled
+    """The step to try next: ``h``, or all that is ``left`` of the block when ``h`` reaches it or
+    would leave less than ``min_dt`` of it."""
+    return left if (h >= left or left - h < min_dt) else h
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _advance_pixels(
     order: np.ndarray, first: int, last: int, ta: float, tb: float, pixel: np.ndarray, weight: np.ndarray,
@@ -328,8 +335,7 @@ def _advance_pixels(
                     shadows[k] |= reach[pixel[p, q]]
             t[k], l0[k], s0[k], n[k] = ta, level[p], slope[p], 0
             h[k] = min(step[p], _shadow_room(ta, shadows[k], grid, grid_dt, max_dt))
-            left = tb - ta
-            h_try[k] = left if (h[k] >= left or left - h[k] < min_dt) else h[k]
+            h_try[k] = _next_try(h[k], tb - ta, min_dt)
         busy = False
         for k in range(LANES):
             if lane[k] < 0:
@@ -367,8 +373,7 @@ def _advance_pixels(
             s0[k] = (l1[k] - l0[k]) / dt
             t[k], l0[k] = t1[k], l1[k]
             if t[k] < tb:
-                left = tb - t[k]
-                h_try[k] = left if (h[k] >= left or left - h[k] < min_dt) else h[k]
+                h_try[k] = _next_try(h[k], tb - t[k], min_dt)
                 continue
             level[p] = l0[k]
             step[p] = h[k]
