@@ -2,7 +2,8 @@
 
 Every write goes to a hidden temporary file in the target's folder and is renamed over the target
 only when complete, so an exception, Ctrl-C or a crash never leaves a half file at the target path
-and never harms a file already there.
+and never harms a file already there. Chunks of frames, events and ground-truth maps are shuffled and
+deflated in worker threads (``psfmt.deflate``) while the caller goes on; the bytes are HDF5's own.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import numpy as np
 
 from psfmt import layout
 from psfmt.atomic import commit, temporary_sibling
+from psfmt.deflate import ChunkCompressor
 from psfmt.errors import FormatError
 from psfmt.events import DEFAULT_CHUNK_EVENTS, EVENT_DTYPES, EventArray, MsIndexBuilder
 from psfmt.model import (
@@ -44,6 +46,13 @@ def _package_version() -> str:
 def compression_options(level: int) -> dict[str, Any]:
     # deflate and shuffle are built into every HDF5 library, so any reader in any language opens the file
     return {"compression": "gzip", "compression_opts": level, "shuffle": True} if level > 0 else {}
+
+
+def row_chunks(shape: tuple[int, ...], itemsize: int, lead: tuple[int, ...] = ()) -> tuple[int, ...]:
+    """Chunk shape of whole rows of ``shape`` (rows first), about ``_FRAME_CHUNK_BYTES`` each, after
+    the ``lead`` chunk sizes of leading axes (a frame stack's 1)."""
+    row_bytes = int(np.prod(shape[1:], dtype=np.int64)) * itemsize
+    return (*lead, max(1, min(shape[0], _FRAME_CHUNK_BYTES // max(1, row_bytes))), *shape[1:])
 
 
 def _put_params(group: h5py.Group, params: dict[str, Any]) -> None:
@@ -79,6 +88,8 @@ class CaptureWriter:
         self._tmp = temporary_sibling(self.path)
         self._file = h5py.File(self._tmp, "w")
         self._compress = compression_options(compression_level)
+        # compresses chunks in worker threads while the caller goes on (psfmt.deflate)
+        self._chunks = ChunkCompressor()
         self._event_chunk = int(event_chunk)
         attrs = self._file.attrs
         attrs["format"] = FORMAT_NAME
@@ -90,6 +101,8 @@ class CaptureWriter:
         self._frames: h5py.Dataset | None = None
         self._frame_meta: dict[str, list[np.ndarray]] = {}
         self._events: h5py.Group | None = None
+        # the column datasets, looked up once: a group lookup costs about a millisecond in a busy file
+        self._event_columns: dict[str, h5py.Dataset] = {}
         self._event_buffer: list[EventArray] = []
         self._buffered = 0
         self._n_events = 0
@@ -120,13 +133,12 @@ class CaptureWriter:
         if COLOR_ORDERS.get(order) != channels:
             raise FormatError(self.path, f"colour order {order!r} does not fit {channels} channels")
         meta = Frames(np.empty((0, height, width, channels), dtype), bit_depth=bit_depth, saturation=saturation)
-        rows = max(1, min(height, _FRAME_CHUNK_BYTES // max(1, width * channels * dtype.itemsize)))
         self._frames = self._file.create_dataset(
             f"{layout.FRAMES}/data",
             shape=(0, height, width, channels),
             maxshape=(None, height, width, channels),
             dtype=dtype,
-            chunks=(1, rows, width, channels),
+            chunks=row_chunks((height, width, channels), dtype.itemsize, lead=(1,)),
             **self._compress,
         )
         attrs = self._frames.parent.attrs
@@ -177,7 +189,7 @@ class CaptureWriter:
             self._frame_meta.setdefault(key, []).append(arr.reshape(shape))
         n0 = self._frames.shape[0]
         self._frames.resize(n0 + k, axis=0)
-        self._frames[n0 : n0 + k] = data
+        self._chunks.write(self._frames, data, n0)
 
     # events ----------------------------------------------------------------------------------------
     def begin_events(self, width: int, height: int) -> None:
@@ -188,7 +200,7 @@ class CaptureWriter:
         group.attrs["width"] = int(width)
         group.attrs["height"] = int(height)
         for c, dtype in EVENT_DTYPES.items():
-            group.create_dataset(
+            self._event_columns[c] = group.create_dataset(
                 c, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(self._event_chunk,), **self._compress
             )
         self._events = group
@@ -218,9 +230,9 @@ class CaptureWriter:
         cut = len(block) if final else (len(block) // self._event_chunk) * self._event_chunk
         n0 = self._n_events
         for c in "xytp":
-            ds = self._events[c]
+            ds = self._event_columns[c]
             ds.resize(n0 + cut, axis=0)
-            ds[n0:] = getattr(block, c)[:cut]
+            self._chunks.write(ds, getattr(block, c)[:cut], n0)
         self._n_events += cut
         rest = block[cut:]
         self._event_buffer = [rest] if len(rest) else []
@@ -261,12 +273,19 @@ class CaptureWriter:
         for key in layout.GT_MAPS:
             value = getattr(gt, key)
             if value is not None:
-                dtype = np.uint8 if key == "mask" else np.float32
-                group.create_dataset(key, data=np.asarray(value, dtype), **self._compress)
+                self._put_map(group, key, np.asarray(value, np.uint8 if key == "mask" else np.float32))
         if gt.materials:
             mats = group.create_group(layout.MATERIALS)
             for key, value in gt.materials.items():
-                mats.create_dataset(key, data=np.asarray(value, np.float32), **self._compress)
+                self._put_map(mats, key, np.asarray(value, np.float32))
+
+    def _put_map(self, group: h5py.Group, key: str, value: np.ndarray) -> None:
+        if not (self._compress and value.ndim and value.size):
+            group.create_dataset(key, data=value)
+            return
+        ds = group.create_dataset(key, shape=value.shape, dtype=value.dtype,
+                                  chunks=row_chunks(value.shape, value.dtype.itemsize), **self._compress)
+        self._chunks.write(ds, value)
 
     def add_result(self, result: Result) -> None:
         put_result(self._file, result, self._compress)
@@ -284,6 +303,8 @@ class CaptureWriter:
                 self._finish_events()
             if layout.CALIBRATION not in self._file:
                 self.set_calibration(Calibration())
+            self._chunks.flush()
+            self._chunks.close()
             self._file.close()
             commit(self._tmp, self.path)
         except BaseException:
@@ -296,6 +317,7 @@ class CaptureWriter:
         """Drop everything written so far; the target path is untouched."""
         self._closed = True
         try:
+            self._chunks.close()
             self._file.close()
         finally:
             self._tmp.unlink(missing_ok=True)

@@ -15,15 +15,17 @@ over; L may also leave the previous step's line by at most ``MAX_BEND``. ``I`` i
 pixels under the event pixel, each shaded in closed form at the step's time; crossings are placed
 exactly on the line between samples, with the refractory rule "reset-at-end". Each frame pixel
 belongs to the event pixel covering most of it, and its ∫ V·[n·l]₊ dt and ∫ V·[n·l]₊·ratio dt
-(``ratio`` the GGX specular factor) accumulate by the trapezoid rule on that pixel's samples: the
-exposures come from the same shading as the events.
+(``ratio`` the GGX specular factor) accumulate by the trapezoid rule on that pixel's samples, in
+its slot of the owner's footprint: the exposures come from the same shading as the events.
 
 Work per event pixel is about (number of steps) × (frame pixels under it): a pixel that sees no
 change takes ``max_dt_us`` steps, one that fires takes about three steps per event. A thread steps
-``LANES`` pixels at once, so their independent shadings overlap in the CPU, and takes the light's
-direction from a table (``TRIG_NODES``). Memory: the per-pixel state, a cast-shadow table for the
-current block of time, and the block's events (room for as many per pixel as the busiest pixel
-needed so far; pixels that overflow it are run again from their state at the block's start).
+``LANES`` pixels at once, so their independent shadings overlap in the CPU, takes the light's
+direction from a table (``TRIG_NODES``), and finds each pixel's frame-pixel constants and sums in one
+place (``slot_constants``, (E, K, 2) sums). Memory: the per-pixel state, a cast-shadow table for the
+current block of time, and the block's events (room for ``FIRST_ROOM`` per pixel at first, within
+``ROOM_BYTES``, then for as many as the busiest pixel needed so far; pixels that overflow it are run
+again from their state at the block's start).
 """
 
 from __future__ import annotations
@@ -60,6 +62,11 @@ PIXELS_PER_TASK = 64
 LANES = 4
 # Length of a block of time, in shadow-grid intervals: one shadow table and one batch of events.
 BLOCK_GRID_STEPS = 32
+# First room for events per pixel and block, and the most memory (bytes) it may take at first: a pixel
+# that fires more is run again, which cost 5 % more renders with room for 8 (a 256×256 sphere), none
+# with 64.
+FIRST_ROOM = 64
+ROOM_BYTES = 32 << 20
 # Keeps the half vector's normalisation finite when l = −v, as in ``pstoolkit.brdf``.
 HALF_EPS = 1e-12
 
@@ -90,9 +97,9 @@ class PixelState:
     """Where each event pixel stands at the start of a block (all at the same time): its level ``level``
     (L at that time), firing levels ``hi``/``lo`` (±inf while blind), ``blind_until_us`` (inf unless a
     reset is pending), next step ``step_us``, slope of L over the last step ``slope`` (per µs,
-    NaN before the first); and per masked frame pixel its last V·[n·l]₊ and
-    V·[n·l]₊·ratio (``shade``, (P, 2)) and the exposure sums of the current window (``sums``, (P, 2),
-    µs)."""
+    NaN before the first); and per slot of its footprint (the frame pixels under it, see
+    ``slot_constants``) the last V·[n·l]₊ and V·[n·l]₊·ratio (``shade``, (E, K, 2)) and the exposure
+    sums of the current window (``sums``, (E, K, 2), µs)."""
 
     level: np.ndarray
     hi: np.ndarray
@@ -106,16 +113,14 @@ class PixelState:
     def copy(self) -> PixelState:
         return PixelState(*(np.array(getattr(self, name)) for name in self.__dataclass_fields__))
 
-    def copy_to(self, other: PixelState, pixels: np.ndarray | None = None, frame_pixels: np.ndarray | None = None) -> None:
-        """Write this state into ``other``: all of it, or only event pixels ``pixels`` and the masked
-        frame pixels ``frame_pixels`` (those the event pixels own)."""
+    def copy_to(self, other: PixelState, pixels: np.ndarray | None = None) -> None:
+        """Write this state into ``other``: all of it, or only that of event pixels ``pixels``."""
         for name in self.__dataclass_fields__:
             source, target = getattr(self, name), getattr(other, name)
             if pixels is None:
                 np.copyto(target, source)
             else:
-                rows = frame_pixels if name in ("shade", "sums") else pixels
-                target[rows] = source[rows]
+                target[pixels] = source[pixels]
 
 
 # cos and sin of the azimuth at TRIG_NODES points of the turn: ``_direction`` takes the node below and
@@ -143,39 +148,40 @@ def _direction(t_us: float, ring: tuple) -> tuple[float, float]:  # pragma: no c
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _shade_taps(
-    t_us: float, p: int, pixel: np.ndarray, weight: np.ndarray, values: np.ndarray, specular: bool,
-    ring: tuple, openness: np.ndarray, grid: tuple, shadowed: bool, out: np.ndarray, lane: int,
+    t_us: float, p: int, slots: np.ndarray, pixel: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray,
+    grid: tuple, shadowed: bool, out: np.ndarray, lane: int,
 ) -> float:  # pragma: no cover - compiled
-    """Grey irradiance of event pixel ``p`` at ``t_us``; ``out[lane]`` (K, 2) gets each frame pixel's
-    V·[n·l]₊ and V·[n·l]₊·ratio."""
+    """Grey irradiance of event pixel ``p`` at ``t_us``; ``out[lane]`` (K, 2) gets each slot's
+    V·[n·l]₊ and V·[n·l]₊·ratio (``slots`` as ``slot_constants``; ``pixel`` the slots' frame
+    pixels, the columns of ``openness``)."""
     lx, ly = _direction(t_us, ring)
     sin_e, inv_h, hh, lift = ring[1], ring[5], ring[6], ring[7]
     hz = 1.0 + sin_e
     x = t_us / grid[0] - grid[1]
     row = min(max(int(math.floor(x)), 0), openness.shape[0] - 2)
     after = x - row
+    taps = slots.shape[2]
+    c = slots[p]
     grey = 0.0
-    for q in range(pixel.shape[1]):
-        f = pixel[p, q]
-        if f < 0:
-            break
-        across = values[f, NX] * lx + values[f, NY] * ly
-        nl = across + values[f, NZ] * sin_e
+    for q in range(taps):
+        across = c[NX, q] * lx + c[NY, q] * ly
+        nl = across + c[NZ, q] * sin_e
         if nl <= 0.0:
             out[lane, q, 0] = 0.0
             out[lane, q, 1] = 0.0
             continue
         ratio = 0.0
         if specular:
-            nh = (across + values[f, NZ] * hz) * inv_h
-            d = nh * nh * values[f, ALPHA2_1] + lift + hh * values[f, NORM2]
-            ratio = values[f, VIEW] / (d * d * (values[f, K] + nl * values[f, ONE_K]))
+            nh = (across + c[NZ, q] * hz) * inv_h
+            d = nh * nh * c[ALPHA2_1, q] + lift + hh * c[NORM2, q]
+            ratio = c[VIEW, q] / (d * d * (c[K, q] + nl * c[ONE_K, q]))
         if shadowed:
+            f = pixel[p, q]
             v = openness[row, f] * (1.0 - after) + openness[row + 1, f] * after
             nl *= min(max(v, 0.0), 1.0)
         out[lane, q, 0] = nl
         out[lane, q, 1] = nl * ratio
-        grey += weight[p, q] * nl * (values[f, GREY_DIFFUSE] + ratio * values[f, GREY_SPECULAR])
+        grey += nl * (c[GREY_DIFFUSE, q] + ratio * c[GREY_SPECULAR, q])
     return grey
 
 
@@ -202,14 +208,12 @@ def _fire(
     if refractory_us > 0:
         gap = gap + slope * refractory_us
     count = int(math.floor((b - first) / gap)) + 1
-    span = max(b - a, _TINY)
-    capacity = out_t.shape[1]
-    for i in range(count):
-        if n < capacity:
-            frac = min(max((first + i * gap - a) / span, 0.0), 1.0)
-            out_t[p, n] = ta + frac * (tb - ta)
-            out_p[p, n] = sign
-        n += 1
+    inv_span = 1.0 / max(b - a, _TINY)
+    for i in range(min(count, out_t.shape[1] - n)):
+        frac = min(max((first + i * gap - a) * inv_span, 0.0), 1.0)
+        out_t[p, n + i] = ta + frac * (tb - ta)
+        out_p[p, n + i] = sign
+    n += count
     last = first + (count - 1) * gap
     if refractory_us == 0:
         reference = sign * last
@@ -289,9 +293,8 @@ def _next_try(h: float, left: float, min_dt: float) -> float:  # pragma: no cove
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _advance_pixels(
-    order: np.ndarray, first: int, last: int, ta: float, tb: float, pixel: np.ndarray, weight: np.ndarray,
-    owned: np.ndarray, values: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray, grid: tuple,
-    reach: np.ndarray,
+    order: np.ndarray, first: int, last: int, ta: float, tb: float, slots: np.ndarray, pixel: np.ndarray,
+    specular: bool, ring: tuple, openness: np.ndarray, grid: tuple, reach: np.ndarray,
     c_pos: np.ndarray, c_neg: np.ndarray, refractory_us: float, eps: float, max_dlog: float, min_dt: float,
     max_dt: float, grid_dt: float, level: np.ndarray, hi: np.ndarray, lo: np.ndarray, blind_until: np.ndarray,
     step: np.ndarray, slope: np.ndarray, shade: np.ndarray, sums: np.ndarray, out_t: np.ndarray, out_p: np.ndarray,
@@ -300,7 +303,7 @@ def _advance_pixels(
     """Event pixels ``order[first:last]`` from ``ta`` to ``tb``, ``LANES`` at a time: each lane
     steps its own pixel, and the lanes' shadings are independent, so the CPU overlaps them instead of
     waiting on one pixel's chain of step, shading, log and next step."""
-    taps = pixel.shape[1]
+    taps = slots.shape[2]
     lane = np.full(LANES, -1, np.int64)
     t = np.empty(LANES)
     l0 = np.empty(LANES)
@@ -342,7 +345,7 @@ def _advance_pixels(
                 continue
             busy = True
             t1[k] = tb if h_try[k] >= tb - t[k] else t[k] + h_try[k]
-            grey = _shade_taps(t1[k], lane[k], pixel, weight, values, specular, ring, openness, grid, shadows[k] != 0, now, k)
+            grey = _shade_taps(t1[k], lane[k], slots, pixel, specular, ring, openness, grid, shadows[k] != 0, now, k)
             l1[k] = math.log(grey + eps)
         for k in range(LANES):
             p = lane[k]
@@ -360,14 +363,10 @@ def _advance_pixels(
                 n[k] = _fire(t[k], l0[k], t1[k], l1[k], p, c_pos[p], c_neg[p], refractory_us, hi, lo, blind_until,
                              out_t, out_p, n[k])
             for q in range(taps):
-                f = pixel[p, q]
-                if f < 0:
-                    break
-                if owned[p, q]:
-                    sums[f, 0] += 0.5 * (shade[f, 0] + now[k, q, 0]) * dt
-                    sums[f, 1] += 0.5 * (shade[f, 1] + now[k, q, 1]) * dt
-                    shade[f, 0] = now[k, q, 0]
-                    shade[f, 1] = now[k, q, 1]
+                sums[p, q, 0] += 0.5 * (shade[p, q, 0] + now[k, q, 0]) * dt
+                sums[p, q, 1] += 0.5 * (shade[p, q, 1] + now[k, q, 1]) * dt
+                shade[p, q, 0] = now[k, q, 0]
+                shade[p, q, 1] = now[k, q, 1]
             grow = min(2.0, 0.8 * max_dlog / max(change, 1e-12), math.sqrt(0.8 * MAX_BEND / max(bend, 1e-12)))
             h[k] = min(_shadow_room(t1[k], shadows[k], grid, grid_dt, max_dt), max(min_dt, h_try[k] * max(0.5, grow)))
             s0[k] = (l1[k] - l0[k]) / dt
@@ -385,8 +384,8 @@ def _advance_pixels(
 
 @numba.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _advance(
-    order: np.ndarray, ta: float, tb: float, pixel: np.ndarray, weight: np.ndarray, owned: np.ndarray,
-    values: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray, grid: tuple, reach: np.ndarray,
+    order: np.ndarray, ta: float, tb: float, slots: np.ndarray, pixel: np.ndarray, specular: bool, ring: tuple,
+    openness: np.ndarray, grid: tuple, reach: np.ndarray,
     c_pos: np.ndarray, c_neg: np.ndarray, refractory_us: float, eps: float, max_dlog: float, min_dt: float,
     max_dt: float, grid_dt: float, level: np.ndarray, hi: np.ndarray, lo: np.ndarray, blind_until: np.ndarray,
     step: np.ndarray, slope: np.ndarray, shade: np.ndarray, sums: np.ndarray, out_t: np.ndarray, out_p: np.ndarray,
@@ -398,30 +397,21 @@ def _advance(
     tasks = (order.shape[0] + PIXELS_PER_TASK - 1) // PIXELS_PER_TASK
     for task in numba.prange(tasks):
         first = task * PIXELS_PER_TASK
-        _advance_pixels(order, first, min(first + PIXELS_PER_TASK, order.shape[0]), ta, tb, pixel, weight, owned,
-                        values, specular, ring, openness, grid, reach, c_pos, c_neg, refractory_us, eps, max_dlog, min_dt, max_dt,
+        _advance_pixels(order, first, min(first + PIXELS_PER_TASK, order.shape[0]), ta, tb, slots, pixel,
+                        specular, ring, openness, grid, reach, c_pos, c_neg, refractory_us, eps, max_dlog, min_dt, max_dt,
                         grid_dt, level, hi, lo, blind_until, step, slope, shade, sums, out_t, out_p, count)
 
 
 @numba.njit(cache=True, nogil=True)
 def _start(
-    t_us: float, pixel: np.ndarray, weight: np.ndarray, owned: np.ndarray, values: np.ndarray, specular: bool,
-    ring: tuple, openness: np.ndarray, grid: tuple, shadows: bool, eps: float, level: np.ndarray,
-    shade: np.ndarray,
+    t_us: float, slots: np.ndarray, pixel: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray,
+    grid: tuple, shadows: bool, eps: float, level: np.ndarray, shade: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
-    """Levels and frame-pixel shading at ``t_us`` (the start of the simulation)."""
-    taps = pixel.shape[1]
-    now = np.empty((1, taps, 2))
-    for p in range(pixel.shape[0]):
-        grey = _shade_taps(t_us, p, pixel, weight, values, specular, ring, openness, grid, shadows, now, 0)
-        level[p] = math.log(grey + eps)
-        for q in range(taps):
-            f = pixel[p, q]
-            if f < 0:
-                break
-            if owned[p, q]:
-                shade[f, 0] = now[0, q, 0]
-                shade[f, 1] = now[0, q, 1]
+    """Levels and slot shading at ``t_us`` (the start of the simulation)."""
+    now = np.empty((1, slots.shape[2], 2))
+    for p in range(slots.shape[0]):
+        level[p] = math.log(_shade_taps(t_us, p, slots, pixel, specular, ring, openness, grid, shadows, now, 0) + eps)
+        shade[p] = now[0]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -518,6 +508,28 @@ def footprints(renderer: Renderer, event_scale: float) -> Footprints:
     return Footprints(np.ascontiguousarray(pixel), np.ascontiguousarray(weight), owned.reshape(pixel.shape))
 
 
+def slot_constants(constants: FrameConstants, feet: Footprints) -> np.ndarray:
+    """(E, 10, K) float64: per event pixel, the closed form's constants (columns named above) of the
+    frame pixels in its K footprint slots, column c of slot q at [e, c, q], the greys times the slot's
+    area weight. An unused slot gets zeros, so it adds nothing, but for |n|² and k of one, which keep
+    its shading finite. Each event pixel's constants lie together, and the kernel needs no lookup
+    of its frame pixels."""
+    used = feet.pixel >= 0
+    slots = np.where(used[:, None, :], constants.values[np.maximum(feet.pixel, 0)].transpose(0, 2, 1), 0.0)
+    slots[:, GREY_DIFFUSE] *= feet.weight
+    slots[:, GREY_SPECULAR] *= feet.weight
+    slots[:, NORM2] = np.where(used, slots[:, NORM2], 1.0)
+    slots[:, K] = np.where(used, slots[:, K], 1.0)
+    return np.ascontiguousarray(slots)
+
+
+def owner_slots(feet: Footprints) -> tuple[np.ndarray, np.ndarray]:
+    """Each masked frame pixel's owning slot: (slots into the flattened (E, K) footprints, their frame
+    pixels)."""
+    slots = np.flatnonzero(feet.owned.ravel())
+    return slots, feet.pixel.ravel()[slots]
+
+
 def _ring(light: RingLight) -> tuple[float, ...]:
     """The ring light as the kernels take it: (cos e, sin e, phase φ0 in rad, ω in rad/µs, t0 in µs),
     azimuth φ(t) = φ0 + ω·(t − t0) at elevation e; then, as the closed form of ``Renderer`` needs them
@@ -572,7 +584,7 @@ def simulate_ring(
     max_dlog: float | None = None,
     eps: float = LOG_EPS,
     block_us: float | None = None,
-    capacity: int = 8,
+    capacity: int | None = None,
 ) -> Iterator[Block]:
     """Events of the event sensor at ``event_scale`` over [0, ``t1_us``] and the exposure sums of the
     windows ending at ``window_ends_us`` (increasing, inside (0, t1_us]), block by block in time
@@ -580,7 +592,7 @@ def simulate_ring(
     half the smaller contrast, ``max_dt_us`` (the longest step away from the shadow-grid intervals in
     which a cast shadow falls on the pixel while it is lit; around those it steps at most one) to ``MAX_STEP_TURNS`` of the turn,
     ``block_us`` to ``BLOCK_GRID_STEPS`` shadow-grid intervals; ``capacity`` is the first room for
-    events per pixel and block (grown as needed). Thresholds are drawn as ``pstoolkit.esim`` draws
+    events per pixel and block (grown as needed; by default ``FIRST_ROOM`` within ``ROOM_BYTES``). Thresholds are drawn as ``pstoolkit.esim`` draws
     them for ``seed``."""
     if not supported(renderer):
         raise UserError("simulate_ring needs a ring light, the ggx or lambertian BRDF, the CPU and a shadow grid")
@@ -600,6 +612,8 @@ def simulate_ring(
     block_us = BLOCK_GRID_STEPS * grid_dt_us if block_us is None else float(block_us)
     constants = frame_constants(renderer)
     feet = footprints(renderer, event_scale)
+    slots = slot_constants(constants, feet)
+    owner, owned_pixel = owner_slots(feet)
     n_events = height * width
     c_pos, c_neg = draw_thresholds(event_rngs(seed)[0], contrast_pos, contrast_neg, sigma, n_events)
     ring = _ring(light)
@@ -607,13 +621,13 @@ def simulate_ring(
     state = PixelState(
         level=np.empty(n_events), hi=np.empty(n_events), lo=np.empty(n_events),
         blind_until_us=np.full(n_events, np.inf), step_us=np.full(n_events, max_dt_us / 4.0),
-        slope=np.full(n_events, np.nan),
-        shade=np.zeros((renderer.pixels, 2)), sums=np.zeros((renderer.pixels, 2)),
+        slope=np.full(n_events, np.nan), shade=np.zeros((*feet.pixel.shape, 2)), sums=np.zeros((*feet.pixel.shape, 2)),
     )
-    _start(0.0, feet.pixel, feet.weight, feet.owned, constants.values, constants.specular, ring, openness, grid,
-           renderer.shadows, eps, state.level, state.shade)
+    _start(0.0, slots, feet.pixel, constants.specular, ring, openness, grid, renderer.shadows, eps, state.level, state.shade)
     state.hi[:] = state.level + c_pos
     state.lo[:] = state.level - c_neg
+    if capacity is None:
+        capacity = min(FIRST_ROOM, ROOM_BYTES // (9 * n_events))
     capacity = max(1, int(capacity))
     out_t = np.empty((n_events, capacity))
     out_p = np.empty((n_events, capacity), dtype=np.int8)
@@ -633,11 +647,10 @@ def simulate_ring(
             order = everyone
             while True:
                 with numba.parallel_chunksize(1):
-                    _advance(order, ta, tb, feet.pixel, feet.weight, feet.owned, constants.values, constants.specular,
-                             ring, openness, grid, reach, c_pos, c_neg, float(refractory_us), float(eps),
-                             float(max_dlog), float(min_dt_us), float(max_dt_us), grid_dt_us, state.level, state.hi,
-                             state.lo, state.blind_until_us, state.step_us, state.slope, state.shade, state.sums,
-                             out_t, out_p, count)
+                    _advance(order, ta, tb, slots, feet.pixel, constants.specular, ring, openness, grid, reach, c_pos,
+                             c_neg, float(refractory_us), float(eps), float(max_dlog), float(min_dt_us),
+                             float(max_dt_us), grid_dt_us, state.level, state.hi, state.lo, state.blind_until_us,
+                             state.step_us, state.slope, state.shade, state.sums, out_t, out_p, count)
                 order = np.flatnonzero(count > capacity)
                 if order.size == 0:
                     break
@@ -646,11 +659,12 @@ def simulate_ring(
                 capacity = most + most // 2
                 out_t = np.concatenate([out_t, np.empty((n_events, capacity - out_t.shape[1]))], axis=1)
                 out_p = np.concatenate([out_p, np.empty((n_events, capacity - out_p.shape[1]), np.int8)], axis=1)
-                saved.copy_to(state, order, feet.pixel[order][feet.owned[order]])
+                saved.copy_to(state, order)
             x, y, t, p = _gather(out_t, out_p, count, width)
             sums = None
             if tb == end and end in window_ends_us:
-                sums = state.sums.copy()
+                sums = np.zeros((renderer.pixels, 2))
+                sums[owned_pixel] = state.sums.reshape(-1, 2)[owner]
                 state.sums[:] = 0.0
             yield Block(EventArray(x=x, y=y, t=t, p=p), tb, sums)
             ta = tb

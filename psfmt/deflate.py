@@ -1,0 +1,105 @@
+"""Shuffle and deflate of HDF5 chunks in worker threads, written whole with direct chunk writes.
+
+HDF5 runs a dataset's filters inside each write call, chunk after chunk on the calling thread. The
+filters the format allows for compression (shuffle, then deflate) are plain byte transforms, so
+``ChunkCompressor`` applies them itself — numpy for the byte shuffle, ``zlib`` (which releases the
+GIL) for deflate — in a pool of threads, and hands each finished chunk to ``write_direct_chunk``. The
+stored bytes are those HDF5's own filters produce (``tests/test_deflate.py`` compares them), so every
+reader opens the file as before; meanwhile the writer's caller goes on with its work.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import zlib
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
+
+import h5py
+import numpy as np
+
+# Chunks compressing or waiting to be written before a write waits for the oldest: bounds the memory
+# held by chunks in flight. Not tied to the thread count, so a file's bytes do not depend on the machine.
+PENDING_CHUNKS = 32
+
+
+def deflate_chunk(block: np.ndarray, chunk: tuple[int, ...], level: int) -> bytes:
+    """One chunk as HDF5's shuffle and deflate filters store it: ``block`` (at most ``chunk`` in each
+    axis; an edge chunk is padded with zeros to the full chunk, as HDF5 keeps edge chunks whole),
+    its bytes grouped by significance (shuffle), then zlib-compressed at ``level``."""
+    if block.shape != chunk:
+        full = np.zeros(chunk, dtype=block.dtype)
+        full[tuple(slice(0, n) for n in block.shape)] = block
+        block = full
+    raw = np.ascontiguousarray(block)
+    size = raw.dtype.itemsize
+    if size > 1:
+        raw = np.ascontiguousarray(raw.reshape(-1).view(np.uint8).reshape(-1, size).T)
+    return zlib.compress(raw.tobytes(), level)
+
+
+def _deflate_level(dataset: h5py.Dataset) -> int | None:
+    """The deflate level of a dataset filtered by exactly shuffle then deflate (None otherwise)."""
+    plist = dataset.id.get_create_plist()
+    filters = [plist.get_filter(i) for i in range(plist.get_nfilters())]
+    if [f[0] for f in filters] != [h5py.h5z.FILTER_SHUFFLE, h5py.h5z.FILTER_DEFLATE]:
+        return None
+    return int(filters[1][2][0])
+
+
+class ChunkCompressor:
+    """Writes array blocks into chunked, shuffle + deflate datasets, compressing their chunks in
+    ``threads`` worker threads (default: the CPUs, at most 8). ``write`` returns once the chunks are
+    queued; ``flush`` writes all that are queued. Datasets with other filters are written directly."""
+
+    def __init__(self, threads: int | None = None) -> None:
+        self.threads = max(1, min(8, os.cpu_count() or 1) if threads is None else int(threads))
+        self._pool: ThreadPoolExecutor | None = None
+        self._pending: deque[tuple[h5py.Dataset, tuple[int, ...], Future[bytes]]] = deque()
+
+    def write(self, dataset: h5py.Dataset, data: np.ndarray, start: int = 0) -> None:
+        """Write ``data`` into ``dataset[start : start + len(data)]``, which must exist (resize first),
+        ``start`` on a chunk boundary of the first axis and the other axes whole; a last chunk that
+        ``data`` fills only in part must be the dataset's last."""
+        data = np.asarray(data, dtype=dataset.dtype)
+        if data.ndim == 0:
+            dataset[()] = data
+            return
+        level = _deflate_level(dataset) if dataset.chunks is not None else None
+        if level is None:
+            dataset[start : start + len(data)] = data
+            return
+        chunk = dataset.chunks
+        if start % chunk[0] or data.shape[1:] != dataset.shape[1:]:
+            raise ValueError(f"direct chunk write at row {start} of {dataset.name} is not aligned to its chunks {chunk}")
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="psfmt-deflate")
+        grid = [range(0, n, c) for n, c in zip(data.shape, chunk)]
+        for corner in itertools.product(*grid):
+            # a copy: the caller may reuse its array once write returns
+            block = np.array(data[tuple(slice(a, a + c) for a, c in zip(corner, chunk))])
+            offset = (start + corner[0], *corner[1:])
+            self._pending.append((dataset, offset, self._pool.submit(deflate_chunk, block, chunk, level)))
+            # chunks are written at points that depend on counts only, never on timing, so the same data
+            # lays out the same file bytes
+            while len(self._pending) > PENDING_CHUNKS:
+                self._write_oldest()
+
+    def _write_oldest(self) -> None:
+        dataset, offset, future = self._pending.popleft()
+        dataset.id.write_direct_chunk(offset, future.result())
+
+    def flush(self) -> None:
+        """Write every queued chunk (waiting for its compression)."""
+        while self._pending:
+            self._write_oldest()
+
+    def close(self) -> None:
+        """Drop what is queued and stop the threads (after ``flush`` nothing is left to drop)."""
+        for _, _, future in self._pending:
+            future.cancel()
+        self._pending.clear()
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
