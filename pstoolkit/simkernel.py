@@ -63,8 +63,8 @@ LANES = 4
 # Length of a block of time, in shadow-grid intervals: one shadow table and one batch of events.
 BLOCK_GRID_STEPS = 32
 # First room for events per pixel and block, and the most memory (bytes) it may take at first: a pixel
-# that fires more is run again, which cost 5 % more renders with room for 8 (a 256×256 sphere), none
-# with 64.
+# that fires more is run again, which cost 5–6 % more renders with room for 8 (256×256 sphere and
+# blobs at refractory 0), almost none with 64.
 FIRST_ROOM = 64
 ROOM_BYTES = 32 << 20
 # Keeps the half vector's normalisation finite when l = −v, as in ``pstoolkit.brdf``.
