@@ -590,10 +590,11 @@ def simulate_ring(
     windows ending at ``window_ends_us`` (increasing, inside (0, t1_us]), block by block in time
     order (see the module docstring). ``renderer`` must be ``supported``. ``max_dlog`` defaults to
     half the smaller contrast, ``max_dt_us`` (the longest step away from the shadow-grid intervals in
-    which a cast shadow falls on the pixel while it is lit; around those it steps at most one) to ``MAX_STEP_TURNS`` of the turn,
-    ``block_us`` to ``BLOCK_GRID_STEPS`` shadow-grid intervals; ``capacity`` is the first room for
-    events per pixel and block (grown as needed; by default ``FIRST_ROOM`` within ``ROOM_BYTES``). Thresholds are drawn as ``pstoolkit.esim`` draws
-    them for ``seed``."""
+    which a cast shadow falls on the pixel while it is lit; around those it steps at most one) to
+    ``MAX_STEP_TURNS`` of the turn, ``block_us`` to ``BLOCK_GRID_STEPS`` shadow-grid intervals;
+    ``capacity`` is the first room for events per pixel and block (grown as needed; by default
+    ``FIRST_ROOM`` within ``ROOM_BYTES``). Thresholds are drawn as ``pstoolkit.esim`` draws them for
+    ``seed``."""
     if not supported(renderer):
         raise UserError("simulate_ring needs a ring light, the ggx or lambertian BRDF, the CPU and a shadow grid")
     light = renderer.light

@@ -93,6 +93,17 @@ class CaptureTiming:
         """Shortest render step of the event simulation (``EVENT_MIN_STEP_TURNS`` of a turn, ≥ 1 µs)."""
         return max(1.0, self.period_us * EVENT_MIN_STEP_TURNS)
 
+    def event_rule(self) -> dict[str, Any]:
+        """The event options both event engines (``simkernel.simulate_ring``, ``esim.simulate_events``)
+        take from the capture: symmetric contrast, refractory period, seed and shortest step."""
+        return {
+            "contrast_pos": self.contrast,
+            "contrast_neg": self.contrast,
+            "refractory_us": self.refractory_us,
+            "seed": self.seed,
+            "min_dt_us": self.min_step_us,
+        }
+
     def exposure_bounds_us(self) -> list[int]:
         """Where the long exposures of one period start, then the period's end (µs): ``frames`` equal
         windows tiling the period, rounded to whole µs."""
@@ -128,6 +139,10 @@ class SimulationConfig(CaptureTiming):
     brdf: str = "ggx"
     bit_depth: int = 8
     exposure_gain: float | None = None
+
+    def event_rule(self) -> dict[str, Any]:
+        """``CaptureTiming.event_rule`` with the per-pixel contrast mismatch."""
+        return {**super().event_rule(), "sigma": self.contrast_sigma}
     shadows: bool = True
     device: str = "cpu"
 
@@ -195,12 +210,7 @@ def compiled_blocks(config: SimulationConfig, renderer: Renderer) -> Iterator[si
         event_scale=config.event_scale,
         t1_us=config.duration_us,
         window_ends_us=config.exposure_bounds_us()[1:],
-        contrast_pos=config.contrast,
-        contrast_neg=config.contrast,
-        sigma=config.contrast_sigma,
-        refractory_us=config.refractory_us,
-        seed=config.seed,
-        min_dt_us=config.min_step_us,
+        **config.event_rule(),
     )
 
 
@@ -444,12 +454,7 @@ def _write_events(
         config.duration_us,
         width=width,
         height=height,
-        contrast_pos=config.contrast,
-        contrast_neg=config.contrast,
-        sigma=config.contrast_sigma,
-        refractory_us=config.refractory_us,
-        seed=config.seed,
-        min_dt_us=config.min_step_us,
+        **config.event_rule(),
         render_pixels=render_pixels,
         sample_times_us=sums.sample_times_us(),
     )

@@ -198,11 +198,7 @@ def _write_events(
         config.duration_us,
         width=width,
         height=height,
-        contrast_pos=config.contrast,
-        contrast_neg=config.contrast,
-        refractory_us=config.refractory_us,
-        seed=config.seed,
-        min_dt_us=config.min_step_us,
+        **config.event_rule(),
     )
     count = append_event_chunks(
         writer, (height, width), ((c, float(c.t[-1])) for c in chunks), config.duration_us,
