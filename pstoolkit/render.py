@@ -50,14 +50,15 @@ _NO_OCCLUDER = -1e9
 _LOW_MARGIN = -1e3
 
 
-@numba.njit(cache=True, parallel=True, nogil=True)
+@numba.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _sweep(
     occluder_t: np.ndarray, height_t: np.ndarray, inside_t: np.ndarray, k: np.ndarray, rise: np.ndarray,
-    lights: np.ndarray, transpose: bool, flip: bool, out: np.ndarray,
+    lights: np.ndarray, transpose: bool, flip: bool, openness: tuple[float, float] | None, out: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
     """Shadow margins for lights towards increasing column index of the oriented maps: how far
     (pixels of height) the highest occluder rises above each pixel's ray towards the light (negative:
-    lit), written to ``out[lights[g]]`` (T, H, W) of the original maps. ``occluder_t``, ``height_t``
+    lit), written to ``out[lights[g]]`` (T, H, W) of the original maps, or — given ``openness``
+    (bias, penumbra in pixels) — their unclipped V (``_openness``). ``occluder_t``, ``height_t``
     and ``inside_t`` (the mask) are the oriented maps transposed to (C, R), so a column is contiguous;
     the oriented maps are the originals transposed (``transpose``), then with their columns reversed
     (``flip``). Pixels outside the mask get ``_LOW_MARGIN``.
@@ -72,16 +73,19 @@ def _sweep(
     flicker when a line sweeps past it; beside a wall parallel to the light it reads as shadowed
     up to one pixel early. The columns are walked from the light's side, so the running maximum of
     the columns after the current one is at hand for its pixels before the column joins it.
-    Compiled, in parallel over the lights: one pass over the pixels per light.
+    Compiled, in parallel over the lights: one pass over the pixels per light, its inner loops over
+    contiguous rows and lines (SIMD).
     """
     cols, rows = occluder_t.shape
     span = int(np.ceil(np.max(np.abs(k)) * (cols - 1))) if k.size else 0
     lines = rows + span + 2
     no_occluder = np.float32(_NO_OCCLUDER)
     low = np.float32(_LOW_MARGIN)
+    one = np.float32(1.0)
     for g in numba.prange(k.size):
         target = out[lights[g]]
         running = np.full(lines, no_occluder, dtype=np.float32)
+        column_out = np.empty(rows, dtype=np.float32)
         first_base = np.floor(min(0.0, -k[g] * (cols - 1))) - 1.0
         for c in range(cols - 1, -1, -1):
             # line j crosses column c at row base + j
@@ -90,28 +94,38 @@ def _sweep(
             # pixel row r lies at (fractional) line r − base
             q0 = int(np.floor(-base))
             w = np.float32(-base - q0)
-            column = cols - 1 - c if flip else c
+            lower_line, upper_line = running[q0: q0 + rows], running[q0 + 1: q0 + 1 + rows]
+            own_height, inside = height_t[c], inside_t[c]
             for r in range(rows):
-                margin = low
-                if inside_t[c, r]:
-                    own = height_t[c, r] - ramp
-                    lower = max(running[q0 + r] - own, low)
-                    upper = max(running[q0 + r + 1] - own, low)
-                    margin = lower * (np.float32(1.0) - w) + upper * w
-                if transpose:
-                    target[column, r] = margin
-                else:
-                    target[r, column] = margin
+                own = own_height[r] - ramp
+                margin = max(lower_line[r] - own, low) * (one - w) + max(upper_line[r] - own, low) * w
+                column_out[r] = margin if inside[r] else low
+            if openness is not None:
+                for r in range(rows):
+                    column_out[r] = 1.0 - (column_out[r] - openness[0]) / openness[1]
+            column = cols - 1 - c if flip else c
+            if transpose:
+                target[column, :] = column_out
+            else:
+                target[:, column] = column_out
             i0 = int(np.floor(base))
             f = np.float32(base - i0)
-            for j in range(lines):
-                row = i0 + j
-                a = occluder_t[c, row] if 0 <= row < rows else no_occluder
-                b = occluder_t[c, row + 1] if 0 <= row + 1 < rows else no_occluder
-                # (1 − f)·a + f·b, not a + f·(b − a): the latter loses a real height against the sentinel
-                value = a * (np.float32(1.0) - f) + b * f - ramp
-                if value > running[j]:
-                    running[j] = value
+            occluder = occluder_t[c]
+            # lines whose two rows lie in the map, then the two with one row outside (it counts as the
+            # sentinel); a line with none stays at the sentinel, which its margins clip to ``low`` anyway
+            inner_lo, inner_hi = max(0, -i0), min(lines, rows - 1 - i0)
+            if inner_lo < inner_hi:
+                a, b = occluder[i0 + inner_lo: i0 + inner_hi], occluder[i0 + inner_lo + 1: i0 + inner_hi + 1]
+                line = running[inner_lo:inner_hi]
+                for j in range(inner_hi - inner_lo):
+                    # (1 − f)·a + f·b, not a + f·(b − a): the latter loses a real height against the sentinel
+                    line[j] = max(line[j], a[j] * (one - f) + b[j] * f - ramp)
+            for j in (inner_lo - 1, inner_hi):
+                if 0 <= j < lines:
+                    row = i0 + j
+                    a_edge = occluder[row] if 0 <= row < rows else no_occluder
+                    b_edge = occluder[row + 1] if 0 <= row + 1 < rows else no_occluder
+                    running[j] = max(running[j], a_edge * (one - f) + b_edge * f - ramp)
 
 
 class ShadowCaster:
@@ -133,17 +147,19 @@ class ShadowCaster:
             self._oriented[transpose, flip] = tuple(np.ascontiguousarray(a.T) for a in oriented)  # type: ignore[assignment]
         return self._oriented[transpose, flip]
 
-    def margins(self, directions: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    def margins(self, directions: np.ndarray, out: np.ndarray | None = None, *, openness: bool = False) -> np.ndarray:
         """``shadow_margin`` for ``directions`` (T, 3), written into ``out`` ((T, H, W) float32) when
-        given: a caller sweeping block after block reuses one buffer."""
+        given: a caller sweeping block after block reuses one buffer. With ``openness`` the unclipped V
+        of them (``_openness``), made as they are written."""
         l = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
         t = l.shape[0]
         h, w = self.height.shape
         out = np.empty((t, h, w), dtype=np.float32) if out is None else out
+        affine = (SHADOW_BIAS_PX, PENUMBRA_PX) if openness else None
         du, dv = l[:, 0], -l[:, 1]  # image v points down
         rho = np.hypot(du, dv)
         side = rho > 1e-9
-        out[~side] = _LOW_MARGIN
+        out[~side] = _openness(np.float32(_LOW_MARGIN)) if openness else _LOW_MARGIN
         tan_e = np.where(side, l[:, 2] / np.where(side, rho, 1.0), 0.0)
         along_u = np.abs(du) >= np.abs(dv)
         for transpose in (False, True):
@@ -154,7 +170,7 @@ class ShadowCaster:
                     continue
                 k = other[index] / np.abs(main[index])
                 rise = tan_e[index] * np.sqrt(1.0 + k * k)
-                _sweep(*self._maps(transpose, flip), k, rise, index, transpose, flip, out)
+                _sweep(*self._maps(transpose, flip), k, rise, index, transpose, flip, affine, out)
         return out
 
 
@@ -185,18 +201,6 @@ def visibility_from_margin(margin: np.ndarray, bias_px: float = SHADOW_BIAS_PX, 
 def _openness(margin: np.ndarray, bias_px: float = SHADOW_BIAS_PX, penumbra_px: float = PENUMBRA_PX) -> np.ndarray:
     """V before clipping to [0, 1]: affine in the margin, so it interpolates like the margin."""
     return 1.0 - (margin - bias_px) / penumbra_px
-
-
-@numba.njit(cache=True, parallel=True, nogil=True)
-def _masked_openness(
-    margin: np.ndarray, index: np.ndarray, bias_px: float, penumbra_px: float, out: np.ndarray,
-) -> np.ndarray:  # pragma: no cover - compiled
-    """``_openness`` of the pixels ``index`` of (G, H·W) margins into ``out`` (G, len(index)) float32,
-    in one pass."""
-    for g in numba.prange(margin.shape[0]):
-        for j in range(index.size):
-            out[g, j] = 1.0 - (margin[g, index[j]] - bias_px) / penumbra_px
-    return out
 
 
 def cast_shadow_mask(depth: np.ndarray, mask: np.ndarray, directions: np.ndarray) -> np.ndarray:
@@ -300,7 +304,7 @@ class Renderer:
             self._points = points[self.index]
         self._margins: OrderedDict[int, np.ndarray] = OrderedDict()
         self._caster: ShadowCaster | None = None
-        # margins of the last grid_openness call given ``out``, kept so the next one does not allocate anew
+        # sweeps of ``frame_openness``, kept so the next call does not allocate anew
         self._sweep_buffer = np.empty((0, maps.height, maps.width), dtype=np.float32)
         self._footprints: dict[float, tuple[np.ndarray, np.ndarray]] = {}
         self._constants: dict[str, torch.Tensor] | None = None
@@ -357,19 +361,25 @@ class Renderer:
         """(N, P) float32 unclipped V (``_openness`` of the margins) of the masked pixels at the shadow
         grid times ``keys`` × ``shadow_step_us``, swept anew: the bounded cache of ``_grid_margins``
         serves renders near each other, while a caller walking time in blocks needs each row once and
-        passes ``out`` to write them into (the margins then go to a buffer the renderer keeps, so
-        block after block allocates nothing)."""
+        passes ``out`` to write them into (the sweep then goes to a buffer the renderer keeps, so block
+        after block allocates nothing; ``frame_openness`` skips the copy)."""
         keys = np.asarray(keys)
-        direction, _ = self.light.evaluate(keys * float(self.shadow_step_us), self._points)  # type: ignore[arg-type]
-        scratch = None
-        if out is not None:
-            # a caller that reuses its table walks time block by block: reuse the margins' room too
-            if self._sweep_buffer.shape[0] < len(keys):
-                self._sweep_buffer = np.empty((len(keys), self.maps.height, self.maps.width), dtype=np.float32)
-            scratch = self._sweep_buffer[: len(keys)]
-        margin = self.shadow_caster.margins(self._shadow_directions(direction), scratch)
+        frame = self.frame_openness(keys) if out is not None else self._sweep_openness(keys, None)
         out = np.empty((len(keys), self.pixels), dtype=np.float32) if out is None else out
-        return _masked_openness(margin.reshape(len(keys), -1), self.index, SHADOW_BIAS_PX, PENUMBRA_PX, out)
+        return np.take(frame, self.index, axis=1, out=out)
+
+    def frame_openness(self, keys: np.ndarray) -> np.ndarray:
+        """``grid_openness`` of every frame pixel, (N, H·W) (those outside the mask open, V > 1):
+        a view of the buffer the renderer keeps for its sweeps, valid until its next call."""
+        keys = np.asarray(keys)
+        if self._sweep_buffer.shape[0] < len(keys):
+            self._sweep_buffer = np.empty((len(keys), self.maps.height, self.maps.width), dtype=np.float32)
+        return self._sweep_openness(keys, self._sweep_buffer[: len(keys)])
+
+    def _sweep_openness(self, keys: np.ndarray, out: np.ndarray | None) -> np.ndarray:
+        direction, _ = self.light.evaluate(keys * float(self.shadow_step_us), self._points)  # type: ignore[arg-type]
+        margin = self.shadow_caster.margins(self._shadow_directions(direction), out, openness=True)
+        return margin.reshape(len(keys), -1)
 
     @property
     def shadow_caster(self) -> ShadowCaster:

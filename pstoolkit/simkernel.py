@@ -153,7 +153,7 @@ def _shade_taps(
 ) -> float:  # pragma: no cover - compiled
     """Grey irradiance of event pixel ``p`` at ``t_us``; ``out[lane]`` (K, 2) gets each slot's
     V·[n·l]₊ and V·[n·l]₊·ratio (``slots`` as ``slot_constants``; ``pixel`` the slots' frame
-    pixels, the columns of ``openness``)."""
+    pixels as flat H·W positions, the columns of ``openness``)."""
     lx, ly = _direction(t_us, ring)
     sin_e, inv_h, hh, lift = ring[1], ring[5], ring[6], ring[7]
     hz = 1.0 + sin_e
@@ -235,28 +235,30 @@ _TINY = np.finfo(np.float64).tiny
 
 @numba.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _lit_shadow(
-    values: np.ndarray, sin_e: float, openness: np.ndarray, grid_light: np.ndarray,
+    values: np.ndarray, index: np.ndarray, sin_e: float, openness: np.ndarray, grid_light: np.ndarray,
 ) -> np.ndarray:  # pragma: no cover - compiled
-    """(P,) uint64: bit i set where a cast shadow falls on the frame pixel while it is lit between
+    """(H·W,) uint64: bit i set where a cast shadow falls on the frame pixel while it is lit between
     grid times i and i + 1 of the table (V < 1 at one of them, next to a grid time where n·l > 0: a
     shadow inside the attached shadow changes nothing, as on the far side of a sphere); intervals
     past the 64th share the last bit. ``grid_light`` (rows, 3): the light's x and y at each grid
     time of the table and how far n·l may exceed its values at the grid times around (n·l is a
-    sinusoid in the azimuth)."""
-    rows, pixels = openness.shape
-    out = np.zeros(pixels, np.uint64)
+    sinusoid in the azimuth). ``values`` are the masked pixels' ``FrameConstants``, ``index`` their
+    flat positions, the columns of ``openness``."""
+    rows = openness.shape[0]
+    pixels = index.size
+    out = np.zeros(openness.shape[1], np.uint64)
     run_pixels = PIXELS_PER_TASK * 16
     # rows outermost within a run of pixels: the table is read along its rows, not across them
     for run in numba.prange((pixels + run_pixels - 1) // run_pixels):
         for row in range(rows):
             for f in range(run * run_pixels, min((run + 1) * run_pixels, pixels)):
-                if openness[row, f] >= 1.0:
+                if openness[row, index[f]] >= 1.0:
                     continue
                 for near in range(max(row - 1, 0), min(row + 2, rows)):
                     nl = values[f, NX] * grid_light[near, 0] + values[f, NY] * grid_light[near, 1] + values[f, NZ] * sin_e
                     if nl > -grid_light[near, 2]:
                         for interval in range(max(row - 1, 0), min(row + 1, rows - 1)):
-                            out[f] |= np.uint64(1) << np.uint64(min(interval, 63))
+                            out[index[f]] |= np.uint64(1) << np.uint64(min(interval, 63))
                         break
     return out
 
@@ -543,20 +545,17 @@ def _ring(light: RingLight) -> tuple[float, ...]:
             hh / (hh + HALF_EPS), HALF_EPS / (hh + HALF_EPS))
 
 
-def _shadow_table(
-    renderer: Renderer, ta: float, tb: float, out: np.ndarray | None = None,
-) -> tuple[np.ndarray, tuple[float, float]]:
-    """Unclipped visibility (``render._openness`` of the shadow margins) of the masked frame pixels at
-    the grid times around [ta, tb], (N, P) float32 rows for keys first, first + 1, …, and the grid
-    (step µs, first key): V at a time is the linear mix of the two rows around it, clipped to [0, 1].
-    Without cast shadows two rows of ones (V = 1 everywhere). Rows go into ``out`` when it has room."""
+def _shadow_table(renderer: Renderer, ta: float, tb: float) -> tuple[np.ndarray, tuple[float, float]]:
+    """Unclipped visibility (``render._openness`` of the shadow margins) of the frame pixels at the
+    grid times around [ta, tb], (N, H·W) float32 rows for keys first, first + 1, … (the renderer's
+    sweep buffer, valid until its next sweep), and the grid (step µs, first key): V at a time is the
+    linear mix of the two rows around it, clipped to [0, 1]. Without cast shadows two rows of ones
+    (V = 1 everywhere)."""
     if not renderer.shadows:
-        return np.ones((2, renderer.pixels), dtype=np.float32), (1.0, 0.0)
+        return np.ones((2, renderer.maps.height * renderer.maps.width), dtype=np.float32), (1.0, 0.0)
     step = float(renderer.shadow_step_us)  # type: ignore[arg-type]
     first = math.floor(ta / step)
-    keys = np.arange(first, math.floor(tb / step) + 2)
-    room = out[: len(keys)] if out is not None and out.shape[0] >= len(keys) else None
-    return renderer.grid_openness(keys, room), (step, float(first))
+    return renderer.frame_openness(np.arange(first, math.floor(tb / step) + 2)), (step, float(first))
 
 
 def _grid_light(ring: tuple, rows: int, grid: tuple[float, float]) -> np.ndarray:
@@ -615,6 +614,8 @@ def simulate_ring(
     feet = footprints(renderer, event_scale)
     slots = slot_constants(constants, feet)
     owner, owned_pixel = owner_slots(feet)
+    # the slots' frame pixels as flat positions, the columns of the shadow table
+    frame = np.where(feet.pixel >= 0, renderer.index[np.maximum(feet.pixel, 0)], -1)
     n_events = height * width
     c_pos, c_neg = draw_thresholds(event_rngs(seed)[0], contrast_pos, contrast_neg, sigma, n_events)
     ring = _ring(light)
@@ -624,7 +625,7 @@ def simulate_ring(
         blind_until_us=np.full(n_events, np.inf), step_us=np.full(n_events, max_dt_us / 4.0),
         slope=np.full(n_events, np.nan), shade=np.zeros((*feet.pixel.shape, 2)), sums=np.zeros((*feet.pixel.shape, 2)),
     )
-    _start(0.0, slots, feet.pixel, constants.specular, ring, openness, grid, renderer.shadows, eps, state.level, state.shade)
+    _start(0.0, slots, frame, constants.specular, ring, openness, grid, renderer.shadows, eps, state.level, state.shade)
     state.hi[:] = state.level + c_pos
     state.lo[:] = state.level - c_neg
     if capacity is None:
@@ -635,20 +636,20 @@ def simulate_ring(
     count = np.zeros(n_events, dtype=np.int64)
     everyone = np.arange(n_events)
     saved = state.copy()
-    table = np.empty((BLOCK_GRID_STEPS + 3, renderer.pixels), dtype=np.float32) if renderer.shadows else None
     ta = 0.0
     for end in ends:
         while ta < end:
             tb = min(end, ta + block_us)
             if end - tb < 0.25 * block_us:
                 tb = end
-            openness, grid = _shadow_table(renderer, ta, tb, table)
-            reach = _lit_shadow(constants.values, ring[1], openness, _grid_light(ring, openness.shape[0], grid))
+            openness, grid = _shadow_table(renderer, ta, tb)
+            reach = _lit_shadow(constants.values, renderer.index, ring[1], openness,
+                                _grid_light(ring, openness.shape[0], grid))
             state.copy_to(saved)
             order = everyone
             while True:
                 with numba.parallel_chunksize(1):
-                    _advance(order, ta, tb, slots, feet.pixel, constants.specular, ring, openness, grid, reach, c_pos,
+                    _advance(order, ta, tb, slots, frame, constants.specular, ring, openness, grid, reach, c_pos,
                              c_neg, float(refractory_us), float(eps), float(max_dlog), float(min_dt_us),
                              float(max_dt_us), grid_dt_us, state.level, state.hi, state.lo, state.blind_until_us,
                              state.step_us, state.slope, state.shade, state.sums, out_t, out_p, count)

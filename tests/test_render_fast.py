@@ -91,6 +91,18 @@ def test_grid_openness_into_a_reused_buffer_equals_a_fresh_sweep() -> None:
     assert (fresh[0] < 1.0).any() and (fresh[0] >= 1.0).any()
 
 
+def test_frame_openness_holds_every_frame_pixel() -> None:
+    """``frame_openness`` is ``grid_openness`` at the masked pixels' flat positions; pixels outside
+    the mask (a sphere's corners) are open."""
+    renderer = Renderer(Sphere().build(40, 0, **defaults(Sphere.options)), light(), GGX(), shadow_step_us=grid_step(1.0))
+    keys = np.arange(30, 40)
+    frame = renderer.frame_openness(keys)
+    assert frame.shape == (10, 40 * 40) and renderer.pixels < 40 * 40
+    np.testing.assert_array_equal(frame[:, renderer.index], renderer.grid_openness(keys))
+    assert (np.delete(frame, renderer.index, axis=1) > 1.0).all()
+    assert (frame[:, renderer.index] < 1.0).any()
+
+
 @pytest.mark.parametrize("event_scale", [0.5, 0.4])
 def test_single_event_pixels_equal_the_event_frame(event_scale: float) -> None:
     maps = Blobs().build(40, 3, **defaults(Blobs.options))

@@ -154,7 +154,7 @@ def test_only_shadows_on_lit_pixels_shorten_the_steps() -> None:
         constants = simkernel.frame_constants(r)
         ring = simkernel._ring(r.light)  # type: ignore[arg-type]
         openness, grid = simkernel._shadow_table(r, 0.0, PERIOD_US)
-        reach = simkernel._lit_shadow(constants.values, ring[1], openness,
+        reach = simkernel._lit_shadow(constants.values, r.index, ring[1], openness,
                                       simkernel._grid_light(ring, openness.shape[0], grid))
         assert (openness < 1.0).any()
         assert reach.any() == reached
