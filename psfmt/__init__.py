@@ -1,6 +1,7 @@
 """psfmt — the hybrid-capture format: data model, HDF5 reader and writer, validator.
 
-Depends on numpy and h5py only. The normative description is ``spec/hybrid-capture.md``.
+Depends on numpy and h5py only (numba and isal speed it up where installed). The normative
+description is ``spec/hybrid-capture.md``.
 
     capture = psfmt.read("scene.h5")           # lazy: frames by index, events by window
     window = capture.events.window(0, 1000)    # the first millisecond, read through the index
