@@ -249,7 +249,7 @@ def _fire(
     """Events of a pixel with ``n`` events so far, its firing state at ``hi[p]``, ``lo[p]`` and
     ``blind_until[p]``, on the line from (``ta``, ``la``) to (``tb``, ``lb``) by the rule of
     ``pstoolkit.eventmodel`` (as ``esim._Pixels`` applies it to whole sensors); returns its event
-    count, storing the events that fit in its rows ``out_t``/``out_p``."""
+    count, storing the events that fit in its rows ``out_t`` (whole µs)/``out_p``."""
     if blind_until[p] <= tb:
         level = la + (lb - la) * (blind_until[p] - ta) / (tb - ta)
         hi[p] = level + c_pos
@@ -268,7 +268,8 @@ def _fire(
     inv_span = 1.0 / max(b - a, _TINY)
     for i in range(min(count, out_t.shape[0] - n)):
         frac = min(max((first + i * gap - a) * inv_span, 0.0), 1.0)
-        out_t[n + i] = ta + frac * (tb - ta)
+        # whole µs, rounded half up
+        out_t[n + i] = np.int64(math.floor(ta + frac * (tb - ta) + 0.5))
         out_p[n + i] = sign
     n += count
     last = first + (count - 1) * gap
@@ -534,39 +535,33 @@ def _start(
                     shade[first + k, q, j] = now[j, q, k]
 
 
-@numba.njit(cache=True, nogil=True)
-def _gather(out_t: np.ndarray, out_p: np.ndarray, count: np.ndarray, width: int,
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _gather(out_t: np.ndarray, out_p: np.ndarray, count: np.ndarray, width: int, t_first: int, t_last: int,
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """The events of a block sorted by (µs, pixel): times rounded half up, then a counting sort on
-    the µs (pixels visited in order, each pixel's events in time order, so ties keep pixel order
-    and, within a pixel, emission order)."""
+    """The events of a block, at whole µs in [``t_first``, ``t_last``], sorted by (µs, pixel): a
+    counting sort on the µs (pixels visited in order, each pixel's events in time order, so ties
+    keep pixel order and, within a pixel, emission order)."""
     total = 0
-    t_min, t_max = np.iinfo(np.int64).max, np.iinfo(np.int64).min
     for p in range(count.shape[0]):
-        for i in range(count[p]):
-            t = np.int64(math.floor(out_t[p, i] + 0.5))
-            t_min = min(t_min, t)
-            t_max = max(t_max, t)
         total += count[p]
     x = np.empty(total, np.uint16)
     y = np.empty(total, np.uint16)
     t_out = np.empty(total, np.int64)
     p_out = np.empty(total, np.int8)
-    if total == 0:
-        return x, y, t_out, p_out
-    slots = np.zeros(t_max - t_min + 2, np.int64)
+    slots = np.zeros(t_last - t_first + 2, np.int64)
     for p in range(count.shape[0]):
         for i in range(count[p]):
-            slots[np.int64(math.floor(out_t[p, i] + 0.5)) - t_min + 1] += 1
+            slots[out_t[p, i] - t_first + 1] += 1
     for k in range(1, slots.shape[0]):
         slots[k] += slots[k - 1]
     for p in range(count.shape[0]):
+        column, row = p % width, p // width
         for i in range(count[p]):
-            t = np.int64(math.floor(out_t[p, i] + 0.5))
-            j = slots[t - t_min]
-            slots[t - t_min] += 1
-            x[j] = p % width
-            y[j] = p // width
+            t = out_t[p, i]
+            j = slots[t - t_first]
+            slots[t - t_first] += 1
+            x[j] = column
+            y[j] = row
             t_out[j] = t
             p_out[j] = out_p[p, i]
     return x, y, t_out, p_out
@@ -749,7 +744,7 @@ def simulate_ring(
     if capacity is None:
         capacity = min(FIRST_ROOM, ROOM_BYTES // (9 * n_events))
     capacity = max(1, int(capacity))
-    out_t = np.empty((n_events, capacity))
+    out_t = np.empty((n_events, capacity), dtype=np.int64)
     out_p = np.empty((n_events, capacity), dtype=np.int8)
     count = np.zeros(n_events, dtype=np.int64)
     everyone = np.arange(n_events)
@@ -777,10 +772,10 @@ def simulate_ring(
                 # pixels fired more than there was room for: widen the room and run them again
                 most = int(count.max())
                 capacity = most + most // 2
-                out_t = np.concatenate([out_t, np.empty((n_events, capacity - out_t.shape[1]))], axis=1)
+                out_t = np.concatenate([out_t, np.empty((n_events, capacity - out_t.shape[1]), np.int64)], axis=1)
                 out_p = np.concatenate([out_p, np.empty((n_events, capacity - out_p.shape[1]), np.int8)], axis=1)
                 saved.copy_to(state, order)
-            x, y, t, p = _gather(out_t, out_p, count, width)
+            x, y, t, p = _gather(out_t, out_p, count, width, math.floor(ta + 0.5), math.floor(tb + 0.5))
             sums = None
             if tb == end and end in window_ends_us:
                 sums = np.zeros((renderer.pixels, 2))
