@@ -69,6 +69,8 @@ class ChunkCompressor:
         self.threads = max(1, min(8, os.cpu_count() or 1) if threads is None else int(threads))
         self._pool: ThreadPoolExecutor | None = None
         self._pending: deque[tuple[h5py.Dataset, tuple[int, ...], Future[bytes]]] = deque()
+        # each dataset's deflate level (None: other filters), read once: a lookup in a busy file is slow
+        self._levels: dict[h5py.h5d.DatasetID, int | None] = {}
 
     def write(self, dataset: h5py.Dataset, data: np.ndarray, start: int = 0) -> None:
         """Write ``data`` into ``dataset[start : start + len(data)]``, which must exist (resize first),
@@ -78,7 +80,9 @@ class ChunkCompressor:
         if data.ndim == 0:
             dataset[()] = data
             return
-        level = _deflate_level(dataset) if dataset.chunks is not None else None
+        if dataset.id not in self._levels:
+            self._levels[dataset.id] = _deflate_level(dataset) if dataset.chunks is not None else None
+        level = self._levels[dataset.id]
         if level is None:
             dataset[start : start + len(data)] = data
             return
