@@ -23,8 +23,8 @@ change takes ``max_dt_us`` steps, one that fires takes about three steps per eve
 ``LANES`` pixels at once, each lane's state at its index of arrays across the lanes, so shading, log
 and step control run as SIMD loops (``_shade_lanes``, ``_log_lanes``: a series for ln, and the
 light's azimuth turned on from the lane's last sample by a series for cos and sin, ``_turn``); a
-lane takes its pixel's constants and sums from one place (``slot_constants``, (E, K, 2) sums) and
-gives them back when the pixel is done. Memory: the per-pixel state, a cast-shadow table for the
+lane takes its pixel's frame-pixel constants (``_load_lane``) and sums ((E, K, 2), one per slot of
+its footprint) and gives the sums back when the pixel is done. Memory: the per-pixel state, a cast-shadow table for the
 current block of time, and the block's events (room for ``FIRST_ROOM`` per pixel at first, within
 ``ROOM_BYTES``, then for as many as the busiest pixel needed so far; pixels that overflow it are run
 again from their state at the block's start).
@@ -104,7 +104,7 @@ class PixelState:
     (L at that time), firing levels ``hi``/``lo`` (±inf while blind), ``blind_until_us`` (inf unless a
     reset is pending), next step ``step_us``, slope of L over the last step ``slope`` (per µs,
     NaN before the first); and per slot of its footprint (the frame pixels under it, see
-    ``slot_constants``) the last V·[n·l]₊ and V·[n·l]₊·ratio (``shade``, (E, K, 2)) and the exposure
+    ``Footprints``) the last V·[n·l]₊ and V·[n·l]₊·ratio (``shade``, (E, K, 2)) and the exposure
     sums of the current window (``sums``, (E, K, 2), µs)."""
 
     level: np.ndarray
@@ -186,9 +186,9 @@ def _shade_lanes(
 ) -> None:  # pragma: no cover - compiled
     """Grey irradiance + ``eps`` of each lane's event pixel at its time ``t1`` into ``grey`` (W,),
     the light at azimuth (``cos_az``, ``sin_az``); ``now`` (2, K, W) gets each slot's V·[n·l]₊ and
-    V·[n·l]₊·ratio (``consts`` (10, K, W) the lanes' ``slot_constants``, ``frame`` (K, W) their
-    slots' flat frame positions, the columns of ``openness``; V read only for ``shadowed`` lanes).
-    The loops run across the lanes, so they compile to SIMD."""
+    V·[n·l]₊·ratio (``consts`` (10, K, W) and ``frame`` (K, W): the lanes' slots' constants and
+    flat frame positions, the columns of ``openness``, see ``_load_lane``; V read only for
+    ``shadowed`` lanes). The loops run across the lanes, so they compile to SIMD."""
     cos_e, sin_e, inv_h, hh, lift = ring[0], ring[1], ring[5], ring[6], ring[7]
     hz = 1.0 + sin_e
     lanes, taps = t1.size, consts.shape[1]
@@ -233,12 +233,27 @@ def _idle_lanes(columns: int, taps: int) -> tuple[np.ndarray, np.ndarray]:  # pr
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _load_lane(consts: np.ndarray, frame: np.ndarray, k: int, p: int, slots: np.ndarray, pixel: np.ndarray) -> None:  # pragma: no cover - compiled
-    """Lane ``k`` takes event pixel ``p``'s ``slot_constants`` and its slots' frame positions."""
-    for q in range(slots.shape[2]):
-        frame[q, k] = max(pixel[p, q], 0)
-        for col in range(slots.shape[1]):
-            consts[col, q, k] = slots[p, col, q]
+def _load_lane(
+    consts: np.ndarray, frame: np.ndarray, k: int, p: int, values: np.ndarray, weight: np.ndarray, pixel: np.ndarray,
+    index: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """Lane ``k`` takes event pixel ``p``: per slot of its footprint (``Footprints``), the frame
+    pixel's ``FrameConstants.values`` with the greys times the slot's area weight, and its flat
+    position (``index``); an unused slot is an idle lane's (adds nothing)."""
+    for q in range(pixel.shape[1]):
+        f = pixel[p, q]
+        if f < 0:
+            for col in range(values.shape[1]):
+                consts[col, q, k] = 0.0
+            consts[NORM2, q, k] = 1.0
+            consts[K, q, k] = 1.0
+            frame[q, k] = 0
+            continue
+        for col in range(values.shape[1]):
+            consts[col, q, k] = values[f, col]
+        consts[GREY_DIFFUSE, q, k] *= weight[p, q]
+        consts[GREY_SPECULAR, q, k] *= weight[p, q]
+        frame[q, k] = index[f]
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -363,8 +378,8 @@ def _next_try(h: float, left: float, min_dt: float) -> float:  # pragma: no cove
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _advance_pixels(
-    order: np.ndarray, first: int, last: int, ta: float, tb: float, slots: np.ndarray, pixel: np.ndarray,
-    specular: bool, ring: tuple, openness: np.ndarray, grid: tuple, reach: np.ndarray,
+    order: np.ndarray, first: int, last: int, ta: float, tb: float, values: np.ndarray, weight: np.ndarray,
+    pixel: np.ndarray, index: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray, grid: tuple, reach: np.ndarray,
     c_pos: np.ndarray, c_neg: np.ndarray, refractory_us: float, eps: float, max_dlog: float, min_dt: float,
     max_dt: float, grid_dt: float, level: np.ndarray, hi: np.ndarray, lo: np.ndarray, blind_until: np.ndarray,
     step: np.ndarray, slope: np.ndarray, shade: np.ndarray, sums: np.ndarray, out_t: np.ndarray, out_p: np.ndarray,
@@ -374,7 +389,7 @@ def _advance_pixels(
     steps its own pixel, and a lane's state sits at its index of arrays across the lanes, so the
     shading, the log and the step control of all lanes run as SIMD loops; only the lanes that fire,
     finish or have cast shadows near take scalar turns."""
-    taps = slots.shape[2]
+    taps = pixel.shape[1]
     w = LANES
     omega, t0, phase = ring[3], ring[4], ring[2]
     cos_a, sin_a = math.cos(phase + omega * (ta - t0)), math.sin(phase + omega * (ta - t0))
@@ -387,7 +402,7 @@ def _advance_pixels(
     shadows = np.zeros(w, np.uint64)
     shadowed = np.zeros(w, np.bool_)
     cos_az, sin_az = np.ones(w), np.zeros(w)
-    consts, frame = _idle_lanes(slots.shape[1], taps)
+    consts, frame = _idle_lanes(values.shape[1], taps)
     last_shade, l_sums = np.zeros((2, taps, w)), np.zeros((2, taps, w))
     # the trial sample
     t1, cos1, sin1, l1, grey = np.empty(w), np.empty(w), np.empty(w), np.empty(w), np.empty(w)
@@ -409,13 +424,13 @@ def _advance_pixels(
             p = order[taken]
             taken += 1
             lane[k], active[k] = p, True
-            _load_lane(consts, frame, k, p, slots, pixel)
+            _load_lane(consts, frame, k, p, values, weight, pixel, index)
             # a pixel on which no cast shadow falls while lit during the block skips the table, and
             # one whose shadows come and go steps short only around them
             shadows[k] = 0
             for q in range(taps):
                 if pixel[p, q] >= 0:
-                    shadows[k] |= reach[pixel[p, q]]
+                    shadows[k] |= reach[frame[q, k]]
                 for j in range(2):
                     last_shade[j, q, k] = shade[p, q, j]
                     l_sums[j, q, k] = sums[p, q, j]
@@ -490,7 +505,8 @@ def _advance_pixels(
 
 @numba.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _advance(
-    order: np.ndarray, ta: float, tb: float, slots: np.ndarray, pixel: np.ndarray, specular: bool, ring: tuple,
+    order: np.ndarray, ta: float, tb: float, values: np.ndarray, weight: np.ndarray, pixel: np.ndarray, index: np.ndarray,
+    specular: bool, ring: tuple,
     openness: np.ndarray, grid: tuple, reach: np.ndarray,
     c_pos: np.ndarray, c_neg: np.ndarray, refractory_us: float, eps: float, max_dlog: float, min_dt: float,
     max_dt: float, grid_dt: float, level: np.ndarray, hi: np.ndarray, lo: np.ndarray, blind_until: np.ndarray,
@@ -503,29 +519,30 @@ def _advance(
     tasks = (order.shape[0] + PIXELS_PER_TASK - 1) // PIXELS_PER_TASK
     for task in numba.prange(tasks):
         first = task * PIXELS_PER_TASK
-        _advance_pixels(order, first, min(first + PIXELS_PER_TASK, order.shape[0]), ta, tb, slots, pixel,
+        _advance_pixels(order, first, min(first + PIXELS_PER_TASK, order.shape[0]), ta, tb, values, weight, pixel, index,
                         specular, ring, openness, grid, reach, c_pos, c_neg, refractory_us, eps, max_dlog, min_dt, max_dt,
                         grid_dt, level, hi, lo, blind_until, step, slope, shade, sums, out_t, out_p, count)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _start(
-    t_us: float, slots: np.ndarray, pixel: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray,
+    t_us: float, values: np.ndarray, weight: np.ndarray, pixel: np.ndarray, index: np.ndarray, specular: bool,
+    ring: tuple, openness: np.ndarray,
     grid: tuple, shadows: bool, eps: float, level: np.ndarray, shade: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
     """Levels and slot shading at ``t_us`` (the start of the simulation), ``LANES`` pixels at a time
     as ``_advance_pixels`` shades them."""
-    taps = slots.shape[2]
-    consts, frame = _idle_lanes(slots.shape[1], taps)
+    taps = pixel.shape[1]
+    consts, frame = _idle_lanes(values.shape[1], taps)
     azimuth = ring[2] + ring[3] * (t_us - ring[4])
     t1, cos_az, sin_az = np.full(LANES, t_us), np.full(LANES, math.cos(azimuth)), np.full(LANES, math.sin(azimuth))
     shadowed = np.full(LANES, shadows)
     now, grey, l1 = np.zeros((2, taps, LANES)), np.empty(LANES), np.empty(LANES)
     exponent, mantissa = np.empty(LANES, np.int64), np.empty(LANES, np.int64)
-    for first in range(0, slots.shape[0], LANES):
-        used = min(LANES, slots.shape[0] - first)
+    for first in range(0, pixel.shape[0], LANES):
+        used = min(LANES, pixel.shape[0] - first)
         for k in range(used):
-            _load_lane(consts, frame, k, first + k, slots, pixel)
+            _load_lane(consts, frame, k, first + k, values, weight, pixel, index)
         _shade_lanes(t1, cos_az, sin_az, consts, frame, shadowed, specular, ring, openness, grid, eps, now, grey)
         _log_lanes(grey, l1, exponent, mantissa)
         for k in range(used):
@@ -623,21 +640,6 @@ def footprints(renderer: Renderer, event_scale: float) -> Footprints:
     return Footprints(np.ascontiguousarray(pixel), np.ascontiguousarray(weight), owned.reshape(pixel.shape))
 
 
-def slot_constants(constants: FrameConstants, feet: Footprints) -> np.ndarray:
-    """(E, 10, K) float64: per event pixel, the closed form's constants (columns named above) of the
-    frame pixels in its K footprint slots, column c of slot q at [e, c, q], the greys times the slot's
-    area weight. An unused slot gets zeros, so it adds nothing, but for |n|² and k of one, which keep
-    its shading finite. Each event pixel's constants lie together, and the kernel needs no lookup
-    of its frame pixels."""
-    used = feet.pixel >= 0
-    slots = np.where(used[:, None, :], constants.values[np.maximum(feet.pixel, 0)].transpose(0, 2, 1), 0.0)
-    slots[:, GREY_DIFFUSE] *= feet.weight
-    slots[:, GREY_SPECULAR] *= feet.weight
-    slots[:, NORM2] = np.where(used, slots[:, NORM2], 1.0)
-    slots[:, K] = np.where(used, slots[:, K], 1.0)
-    return np.ascontiguousarray(slots)
-
-
 def owner_slots(feet: Footprints) -> tuple[np.ndarray, np.ndarray]:
     """Each masked frame pixel's owning slot: (slots into the flattened (E, K) footprints, their frame
     pixels)."""
@@ -725,10 +727,7 @@ def simulate_ring(
     block_us = BLOCK_GRID_STEPS * grid_dt_us if block_us is None else float(block_us)
     constants = frame_constants(renderer)
     feet = footprints(renderer, event_scale)
-    slots = slot_constants(constants, feet)
     owner, owned_pixel = owner_slots(feet)
-    # the slots' frame pixels as flat positions, the columns of the shadow table
-    frame = np.where(feet.pixel >= 0, renderer.index[np.maximum(feet.pixel, 0)], -1)
     n_events = height * width
     c_pos, c_neg = draw_thresholds(event_rngs(seed)[0], contrast_pos, contrast_neg, sigma, n_events)
     ring = _ring(light)
@@ -738,7 +737,7 @@ def simulate_ring(
         blind_until_us=np.full(n_events, np.inf), step_us=np.full(n_events, max_dt_us / 4.0),
         slope=np.full(n_events, np.nan), shade=np.zeros((*feet.pixel.shape, 2)), sums=np.zeros((*feet.pixel.shape, 2)),
     )
-    _start(0.0, slots, frame, constants.specular, ring, openness, grid, renderer.shadows, eps, state.level, state.shade)
+    _start(0.0, constants.values, feet.weight, feet.pixel, renderer.index, constants.specular, ring, openness, grid, renderer.shadows, eps, state.level, state.shade)
     state.hi[:] = state.level + c_pos
     state.lo[:] = state.level - c_neg
     if capacity is None:
@@ -762,8 +761,8 @@ def simulate_ring(
             order = everyone
             while True:
                 with numba.parallel_chunksize(1):
-                    _advance(order, ta, tb, slots, frame, constants.specular, ring, openness, grid, reach, c_pos,
-                             c_neg, float(refractory_us), float(eps), float(max_dlog), float(min_dt_us),
+                    _advance(order, ta, tb, constants.values, feet.weight, feet.pixel, renderer.index,
+                             constants.specular, ring, openness, grid, reach, c_pos, c_neg, float(refractory_us), float(eps), float(max_dlog), float(min_dt_us),
                              float(max_dt_us), grid_dt_us, state.level, state.hi, state.lo, state.blind_until_us,
                              state.step_us, state.slope, state.shade, state.sums, out_t, out_p, count)
                 order = np.flatnonzero(count > capacity)
