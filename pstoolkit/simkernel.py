@@ -640,11 +640,10 @@ def footprints(renderer: Renderer, event_scale: float) -> Footprints:
     return Footprints(np.ascontiguousarray(pixel), np.ascontiguousarray(weight), owned.reshape(pixel.shape))
 
 
-def owner_slots(feet: Footprints) -> tuple[np.ndarray, np.ndarray]:
-    """Each masked frame pixel's owning slot: (slots into the flattened (E, K) footprints, their frame
-    pixels)."""
+def owner_slots(feet: Footprints) -> np.ndarray:
+    """(P,): each masked frame pixel's owning slot, into the flattened (E, K) footprints."""
     slots = np.flatnonzero(feet.owned.ravel())
-    return slots, feet.pixel.ravel()[slots]
+    return slots[np.argsort(feet.pixel.ravel()[slots])]
 
 
 def _ring(light: RingLight) -> tuple[float, ...]:
@@ -727,7 +726,7 @@ def simulate_ring(
     block_us = BLOCK_GRID_STEPS * grid_dt_us if block_us is None else float(block_us)
     constants = frame_constants(renderer)
     feet = footprints(renderer, event_scale)
-    owner, owned_pixel = owner_slots(feet)
+    owner = owner_slots(feet)
     n_events = height * width
     c_pos, c_neg = draw_thresholds(event_rngs(seed)[0], contrast_pos, contrast_neg, sigma, n_events)
     ring = _ring(light)
@@ -777,8 +776,7 @@ def simulate_ring(
             x, y, t, p = _gather(out_t, out_p, count, width, math.floor(ta + 0.5), math.floor(tb + 0.5))
             sums = None
             if tb == end and end in window_ends_us:
-                sums = np.zeros((renderer.pixels, 2))
-                sums[owned_pixel] = state.sums.reshape(-1, 2)[owner]
+                sums = np.take(state.sums.reshape(-1, 2), owner, axis=0)
                 state.sums[:] = 0.0
             yield Block(EventArray(x=x, y=y, t=t, p=p), tb, sums)
             ta = tb
