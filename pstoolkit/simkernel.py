@@ -339,8 +339,9 @@ def _lit_shadow(
             for row in range(rows):
                 nl = values[f, NX] * grid_light[row, 0] + values[f, NY] * grid_light[row, 1] + values[f, NZ] * sin_e
                 lit[row] = nl > -grid_light[row, 2]
+            # the light first: on a sphere's far side the whole table is below one but nothing is lit
             for row in range(rows):
-                if openness[row, column] < 1.0 and (lit[max(row - 1, 0)] or lit[row] or lit[min(row + 1, rows - 1)]):
+                if (lit[max(row - 1, 0)] or lit[row] or lit[min(row + 1, rows - 1)]) and openness[row, column] < 1.0:
                     for interval in range(max(row - 1, 0), min(row + 1, rows - 1)):
                         out[column] |= np.uint64(1) << np.uint64(min(interval, 63))
     return out
