@@ -24,10 +24,10 @@ change takes ``max_dt_us`` steps, one that fires takes about three steps per eve
 and step control run as SIMD loops (``_shade_lanes``, ``_log_lanes``: a series for ln, and the
 light's azimuth turned on from the lane's last sample by a series for cos and sin, ``_turn``); a
 lane takes its pixel's frame-pixel constants (``_load_lane``) and sums ((E, K, 2), one per slot of
-its footprint) and gives the sums back when the pixel is done. Memory: the per-pixel state, a cast-shadow table for the
-current block of time, and the block's events (room for ``FIRST_ROOM`` per pixel at first, within
-``ROOM_BYTES``, then for as many as the busiest pixel needed so far; pixels that overflow it are run
-again from their state at the block's start).
+its footprint) and gives the sums back when the pixel is done. Memory: the per-pixel state, a
+cast-shadow table for the current block of time, and the block's events (room for ``FIRST_ROOM``
+per pixel at first, within ``ROOM_BYTES``, then for as many as the busiest pixel needed so far;
+pixels that overflow it are run again from their state at the block's start).
 """
 
 from __future__ import annotations
@@ -136,9 +136,15 @@ class PixelState:
 def _turn(d: float) -> tuple[float, float]:  # pragma: no cover - compiled
     """cos d and sin d for |d| ≤ 0.2 (to 1e-17)."""
     d2 = d * d
-    cos_d = 1.0 - d2 * (0.5 - d2 * (1.0 / 24.0 - d2 * (1.0 / 720.0 - d2 * (1.0 / 40320.0 - d2 * (1.0 / 3628800.0)))))
-    sin_d = d * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0 - d2 * (1.0 / 5040.0 - d2 * (1.0 / 362880.0 - d2 * (1.0 / 39916800.0))))))
-    return cos_d, sin_d
+    c = 1.0 / 40320.0 - d2 * (1.0 / 3628800.0)
+    c = 1.0 / 720.0 - d2 * c
+    c = 1.0 / 24.0 - d2 * c
+    c = 0.5 - d2 * c
+    s = 1.0 / 362880.0 - d2 * (1.0 / 39916800.0)
+    s = 1.0 / 5040.0 - d2 * s
+    s = 1.0 / 120.0 - d2 * s
+    s = 1.0 / 6.0 - d2 * s
+    return 1.0 - d2 * c, d * (1.0 - d2 * s)
 
 
 _LN2 = math.log(2.0)
@@ -148,7 +154,9 @@ _ONE_BITS = 0x3FF0000000000000
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _log_lanes(x: np.ndarray, out: np.ndarray, exponent: np.ndarray, mantissa: np.ndarray) -> None:  # pragma: no cover - compiled
+def _log_lanes(
+    x: np.ndarray, out: np.ndarray, exponent: np.ndarray, mantissa: np.ndarray,
+) -> None:  # pragma: no cover - compiled
     """``out`` = ln ``x`` for positive normal ``x`` (to about 1 ulp), in SIMD: x = 2^e·m with m in
     [√½, √2), ln m = 2 atanh((m − 1)/(m + 1)) by its series to the 21st power (|z| ≤ 0.172, the first
     omitted term below 1e-18). ``exponent`` and ``mantissa`` are (W,) int64 scratch."""
@@ -380,7 +388,8 @@ def _next_try(h: float, left: float, min_dt: float) -> float:  # pragma: no cove
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _advance_pixels(
     order: np.ndarray, first: int, last: int, ta: float, tb: float, values: np.ndarray, weight: np.ndarray,
-    pixel: np.ndarray, index: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray, grid: tuple, reach: np.ndarray,
+    pixel: np.ndarray, index: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray, grid: tuple,
+    reach: np.ndarray,
     c_pos: np.ndarray, c_neg: np.ndarray, refractory_us: float, eps: float, max_dlog: float, min_dt: float,
     max_dt: float, grid_dt: float, level: np.ndarray, hi: np.ndarray, lo: np.ndarray, blind_until: np.ndarray,
     step: np.ndarray, slope: np.ndarray, shade: np.ndarray, sums: np.ndarray, out_t: np.ndarray, out_p: np.ndarray,
@@ -506,9 +515,8 @@ def _advance_pixels(
 
 @numba.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _advance(
-    order: np.ndarray, ta: float, tb: float, values: np.ndarray, weight: np.ndarray, pixel: np.ndarray, index: np.ndarray,
-    specular: bool, ring: tuple,
-    openness: np.ndarray, grid: tuple, reach: np.ndarray,
+    order: np.ndarray, ta: float, tb: float, values: np.ndarray, weight: np.ndarray, pixel: np.ndarray,
+    index: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray, grid: tuple, reach: np.ndarray,
     c_pos: np.ndarray, c_neg: np.ndarray, refractory_us: float, eps: float, max_dlog: float, min_dt: float,
     max_dt: float, grid_dt: float, level: np.ndarray, hi: np.ndarray, lo: np.ndarray, blind_until: np.ndarray,
     step: np.ndarray, slope: np.ndarray, shade: np.ndarray, sums: np.ndarray, out_t: np.ndarray, out_p: np.ndarray,
@@ -520,9 +528,10 @@ def _advance(
     tasks = (order.shape[0] + PIXELS_PER_TASK - 1) // PIXELS_PER_TASK
     for task in numba.prange(tasks):
         first = task * PIXELS_PER_TASK
-        _advance_pixels(order, first, min(first + PIXELS_PER_TASK, order.shape[0]), ta, tb, values, weight, pixel, index,
-                        specular, ring, openness, grid, reach, c_pos, c_neg, refractory_us, eps, max_dlog, min_dt, max_dt,
-                        grid_dt, level, hi, lo, blind_until, step, slope, shade, sums, out_t, out_p, count)
+        _advance_pixels(order, first, min(first + PIXELS_PER_TASK, order.shape[0]), ta, tb, values, weight, pixel,
+                        index, specular, ring, openness, grid, reach, c_pos, c_neg, refractory_us, eps, max_dlog,
+                        min_dt, max_dt, grid_dt, level, hi, lo, blind_until, step, slope, shade, sums, out_t, out_p,
+                        count)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -737,7 +746,8 @@ def simulate_ring(
         blind_until_us=np.full(n_events, np.inf), step_us=np.full(n_events, max_dt_us / 4.0),
         slope=np.full(n_events, np.nan), shade=np.zeros((*feet.pixel.shape, 2)), sums=np.zeros((*feet.pixel.shape, 2)),
     )
-    _start(0.0, constants.values, feet.weight, feet.pixel, renderer.index, constants.specular, ring, openness, grid, renderer.shadows, eps, state.level, state.shade)
+    _start(0.0, constants.values, feet.weight, feet.pixel, renderer.index, constants.specular, ring, openness, grid,
+           renderer.shadows, eps, state.level, state.shade)
     state.hi[:] = state.level + c_pos
     state.lo[:] = state.level - c_neg
     if capacity is None:
@@ -762,8 +772,8 @@ def simulate_ring(
             while True:
                 with numba.parallel_chunksize(1):
                     _advance(order, ta, tb, constants.values, feet.weight, feet.pixel, renderer.index,
-                             constants.specular, ring, openness, grid, reach, c_pos, c_neg, float(refractory_us), float(eps), float(max_dlog), float(min_dt_us),
-                             float(max_dt_us), grid_dt_us, state.level, state.hi, state.lo, state.blind_until_us,
+                             constants.specular, ring, openness, grid, reach, c_pos, c_neg, float(refractory_us),
+                             float(eps), float(max_dlog), float(min_dt_us), float(max_dt_us), grid_dt_us, state.level, state.hi, state.lo, state.blind_until_us,
                              state.step_us, state.slope, state.shade, state.sums, out_t, out_p, count)
                 order = np.flatnonzero(count > capacity)
                 if order.size == 0:
