@@ -28,8 +28,8 @@ def test_threaded_chunks_read_back_as_hdf5_stores_them(
 ) -> None:
     """Every chunk, edge chunks included, reads back equal through HDF5, and inflates to the bytes
     HDF5's shuffle filter makes (but for the zero padding of edge chunks, which HDF5 leaves
-    unspecified); ISA-L's stream is as small as zlib's, and without ISA-L (not installed, or another
-    level) the chunks are byte for byte what HDF5's filters write."""
+    unspecified); ISA-L's streams are within 20 % of zlib's size, and without ISA-L (not installed,
+    or another level) the chunks are byte for byte what HDF5's filters write."""
     if not isal:
         monkeypatch.setattr(deflate, "isal_zlib", None)
     rng = np.random.default_rng(0)
@@ -58,7 +58,7 @@ def test_threaded_chunks_read_back_as_hdf5_stores_them(
                 sizes += len(raw), len(reference)
                 whole += 1
         assert whole >= 2
-        assert sizes[0] < 1.1 * sizes[1]
+        assert sizes[0] < 1.2 * sizes[1]
 
 
 def test_blocks_go_on_at_a_chunk_boundary_and_the_caller_may_reuse_its_array(tmp_path: Path) -> None:
