@@ -65,12 +65,15 @@ PIXELS_PER_TASK = 1024
 # Pixels a task steps at once (see ``_advance_pixels``): 32 lanes took 20 % less time than 16, 10 %
 # less than 64 (256×256 blobs, one thread).
 LANES = 32
-# Length of a block of time, in shadow-grid intervals: one shadow table and one batch of events.
-BLOCK_GRID_STEPS = 32
+# Length of a block of time, in shadow-grid intervals: one shadow table and one batch of events. Each
+# block ends with a sample of every pixel and costs a table, masks and an event sort: 60 took 7–9 %
+# less time than 32 (256×256 blobs and sphere, refractory 0), and a block's intervals still fit the
+# 64 bits of ``_lit_shadow``.
+BLOCK_GRID_STEPS = 60
 # First room for events per pixel and block, and the most memory (bytes) it may take at first: a pixel
 # that fires more is run again, which cost 5–6 % more renders with room for 8 (256×256 sphere and
 # blobs at refractory 0) and, with 64, a widening of the room (a copy) in each blobs capture, whose
-# busiest pixels fire 74–83 times a block at refractory 0 (the sphere's 33–37).
+# busiest pixels fire 75–84 times a block at refractory 0 (the sphere's 34–56).
 FIRST_ROOM = 128
 ROOM_BYTES = 32 << 20
 # Keeps the half vector's normalisation finite when l = −v, as in ``pstoolkit.brdf``.
