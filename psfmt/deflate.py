@@ -52,8 +52,8 @@ def deflate_chunk(block: np.ndarray, chunk: tuple[int, ...], level: int) -> byte
     if size > 1:
         raw = np.ascontiguousarray(raw.reshape(-1).view(np.uint8).reshape(-1, size).T)
     if isal_zlib is not None and level == ISAL_LEVEL:
-        return isal_zlib.compress(raw.tobytes(), ISAL_ENCODER_LEVEL)
-    return zlib.compress(raw.tobytes(), level)
+        return isal_zlib.compress(raw, ISAL_ENCODER_LEVEL)
+    return zlib.compress(raw, level)
 
 
 def _deflate_level(dataset: h5py.Dataset) -> int | None:
@@ -77,10 +77,12 @@ class ChunkCompressor:
         # each dataset's deflate level (None: other filters), read once: a lookup in a busy file is slow
         self._levels: dict[h5py.h5d.DatasetID, int | None] = {}
 
-    def write(self, dataset: h5py.Dataset, data: np.ndarray, start: int = 0) -> None:
+    def write(self, dataset: h5py.Dataset, data: np.ndarray, start: int = 0, *, copy: bool = True) -> None:
         """Write ``data`` into ``dataset[start : start + len(data)]``, which must exist (resize first),
         ``start`` on a chunk boundary of the first axis and the other axes whole; a last chunk that
-        ``data`` fills only in part must be the dataset's last."""
+        ``data`` fills only in part must be the dataset's last. The caller may reuse its array once
+        ``write`` returns, unless it passes ``copy=False``: then it must leave it as it is until
+        ``flush`` (its chunks are compressed from it, not from copies)."""
         data = np.asarray(data, dtype=dataset.dtype)
         if data.ndim == 0:
             dataset[()] = data
@@ -98,8 +100,8 @@ class ChunkCompressor:
             self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="psfmt-deflate")
         grid = [range(0, n, c) for n, c in zip(data.shape, chunk)]
         for corner in itertools.product(*grid):
-            # a copy: the caller may reuse its array once write returns
-            block = np.array(data[tuple(slice(a, a + c) for a, c in zip(corner, chunk))])
+            block = data[tuple(slice(a, a + c) for a, c in zip(corner, chunk))]
+            block = np.array(block) if copy else block
             offset = (start + corner[0], *corner[1:])
             self._pending.append((dataset, offset, self._pool.submit(deflate_chunk, block, chunk, level)))
             # chunks are written at points that depend on counts only, never on timing, so the same data

@@ -232,7 +232,8 @@ class CaptureWriter:
         for c in "xytp":
             ds = self._event_columns[c]
             ds.resize(n0 + cut, axis=0)
-            self._chunks.write(ds, getattr(block, c)[:cut], n0)
+            # the block is the writer's own (a concatenation), left as it is: no copies of its chunks
+            self._chunks.write(ds, getattr(block, c)[:cut], n0, copy=False)
         self._n_events += cut
         rest = block[cut:]
         self._event_buffer = [rest] if len(rest) else []

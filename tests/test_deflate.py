@@ -62,6 +62,8 @@ def test_threaded_chunks_read_back_as_hdf5_stores_them(
 
 
 def test_blocks_go_on_at_a_chunk_boundary_and_the_caller_may_reuse_its_array(tmp_path: Path) -> None:
+    """Blocks written one after another read back whole; an array written with copies may be refilled
+    at once, one written without (``copy=False``) is compressed from where it lies."""
     chunk = 1000
     with h5py.File(tmp_path / "a.h5", "w") as f:
         ds = f.create_dataset("t", shape=(0,), maxshape=(None,), dtype=np.int64, chunks=(chunk,),
@@ -73,7 +75,7 @@ def test_blocks_go_on_at_a_chunk_boundary_and_the_caller_may_reuse_its_array(tmp
             compressor.write(ds, buffer, block * 3 * chunk)
             buffer += 3 * chunk  # the next block, in the same array
         ds.resize(ds.shape[0] + 10, axis=0)
-        compressor.write(ds, np.arange(10) + 9 * chunk, 9 * chunk)
+        compressor.write(ds, np.arange(10) + 9 * chunk, 9 * chunk, copy=False)
         with pytest.raises(ValueError, match="not aligned"):
             compressor.write(ds, np.arange(10), 5)
         compressor.flush()
