@@ -12,7 +12,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import psfmt
-from psfmt.events import MsIndexBuilder
+from psfmt.deflate import deflate_chunk
+from psfmt.events import EVENT_DTYPES, MsIndexBuilder
+from psfmt.writer import GROW_CHUNKS
 
 SENSOR = 16
 
@@ -86,6 +88,27 @@ def test_many_small_appends_give_the_same_content_and_index_as_one(events: psfmt
                 assert origin == (int(events.t[0]) // 1000) * 1000
                 assert origin + 1000 * (len(index) - 1) > events.t[-1] >= origin + 1000 * (len(index) - 2)
         assert psfmt.validate(many).errors == []
+
+
+def test_columns_grow_ahead_and_end_exactly_as_long_as_the_events(tmp_path: Path) -> None:
+    """Appends of 13 events into chunks of 8, far past the writer's first growth: the columns end
+    exactly as long as the events, and every chunk, the partial last one too, is stored as the
+    writer compressed it (the final resize cut none)."""
+    rng = np.random.default_rng(4)
+    n = 8 * (4 * GROW_CHUNKS) + 5
+    events = psfmt.EventArray(rng.integers(0, SENSOR, n), rng.integers(0, SENSOR, n),
+                              np.sort(rng.integers(0, 50_000, n)), rng.choice([-1, 1], n))
+    write_stream(tmp_path / "e.h5", events, [13] * (n // 13) + [n % 13])
+    chunks = -(-n // 8)
+    with h5py.File(tmp_path / "e.h5", "r") as f:
+        for c in "xytp":
+            column, expected = f["events"][c], getattr(events, c).astype(EVENT_DTYPES[c])
+            assert column.shape == (n,)
+            np.testing.assert_array_equal(column[()], expected)
+            assert column.id.get_num_chunks() == chunks
+            for i in range(chunks):
+                stored = column.id.read_direct_chunk((8 * i,))[1]
+                assert stored == deflate_chunk(expected[8 * i : 8 * i + 8], (8,), 1)
 
 
 @pytest.mark.parametrize("size", [None, 1, 7, 64, 10_000])
