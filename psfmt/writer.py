@@ -3,7 +3,8 @@
 Every write goes to a hidden temporary file in the target's folder and is renamed over the target
 only when complete, so an exception, Ctrl-C or a crash never leaves a half file at the target path
 and never harms a file already there. Chunks of frames, events and ground-truth maps are shuffled and
-deflated in worker threads (``psfmt.deflate``) while the caller goes on; the bytes are HDF5's own.
+deflated in worker threads (``psfmt.deflate``) while the caller goes on, into the standard
+streams HDF5's own filters read.
 """
 
 from __future__ import annotations

@@ -372,20 +372,17 @@ class Renderer:
         n = len(key0)
         return table, inverse[:n], inverse[n:], after
 
-    def grid_openness(self, keys: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    def grid_openness(self, keys: np.ndarray) -> np.ndarray:
         """(N, P) float32 unclipped V (``_openness`` of the margins) of the masked pixels at the shadow
-        grid times ``keys`` × ``shadow_step_us``, swept anew: the bounded cache of ``_grid_margins``
-        serves renders near each other, while a caller walking time in blocks needs each row once and
-        passes ``out`` to write them into (the sweep then goes to a buffer the renderer keeps, so block
-        after block allocates nothing; ``frame_openness`` skips the copy)."""
+        grid times ``keys`` × ``shadow_step_us``, swept anew into fresh arrays (the bounded cache of
+        ``_grid_margins`` keeps its rows)."""
         keys = np.asarray(keys)
-        frame = self.frame_openness(keys) if out is not None else self._sweep_openness(keys, None)
-        out = np.empty((len(keys), self.pixels), dtype=np.float32) if out is None else out
-        return np.take(frame, self.index, axis=1, out=out)
+        return self._sweep_openness(keys, None)[:, self.index]
 
     def frame_openness(self, keys: np.ndarray) -> np.ndarray:
         """``grid_openness`` of every frame pixel, (N, H·W) (those outside the mask open, V > 1):
-        a view of the buffer the renderer keeps for its sweeps, valid until its next call."""
+        a view of the buffer the renderer keeps for its sweeps, valid until its next call, so a
+        caller walking time in blocks allocates nothing block after block."""
         keys = np.asarray(keys)
         if self._sweep_buffer.shape[0] < len(keys):
             self._sweep_buffer = np.empty((len(keys), self.maps.height, self.maps.width), dtype=np.float32)

@@ -392,11 +392,10 @@ def _next_try(h: float, left: float, min_dt: float) -> float:  # pragma: no cove
 def _advance_pixels(
     order: np.ndarray, first: int, last: int, ta: float, tb: float, values: np.ndarray, weight: np.ndarray,
     pixel: np.ndarray, index: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray, grid: tuple,
-    reach: np.ndarray,
-    c_pos: np.ndarray, c_neg: np.ndarray, refractory_us: float, eps: float, max_dlog: float, min_dt: float,
-    max_dt: float, grid_dt: float, level: np.ndarray, hi: np.ndarray, lo: np.ndarray, blind_until: np.ndarray,
-    step: np.ndarray, slope: np.ndarray, shade: np.ndarray, sums: np.ndarray, out_t: np.ndarray, out_p: np.ndarray,
-    count: np.ndarray,
+    reach: np.ndarray, c_pos: np.ndarray, c_neg: np.ndarray, refractory_us: float, eps: float, max_dlog: float,
+    min_dt: float, max_dt: float, grid_dt: float, level: np.ndarray, hi: np.ndarray, lo: np.ndarray,
+    blind_until: np.ndarray, step: np.ndarray, slope: np.ndarray, shade: np.ndarray, sums: np.ndarray,
+    out_t: np.ndarray, out_p: np.ndarray, count: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
     """Event pixels ``order[first:last]`` from ``ta`` to ``tb``, ``LANES`` at a time: each lane
     steps its own pixel, and a lane's state sits at its index of arrays across the lanes, so the
@@ -540,8 +539,7 @@ def _advance(
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _start(
     t_us: float, values: np.ndarray, weight: np.ndarray, pixel: np.ndarray, index: np.ndarray, specular: bool,
-    ring: tuple, openness: np.ndarray,
-    grid: tuple, shadows: bool, eps: float, level: np.ndarray, shade: np.ndarray,
+    ring: tuple, openness: np.ndarray, grid: tuple, shadows: bool, eps: float, level: np.ndarray, shade: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
     """Levels and slot shading at ``t_us`` (the start of the simulation), ``LANES`` pixels at a time
     as ``_advance_pixels`` shades them."""
@@ -776,8 +774,9 @@ def simulate_ring(
                 with numba.parallel_chunksize(1):
                     _advance(order, ta, tb, constants.values, feet.weight, feet.pixel, renderer.index,
                              constants.specular, ring, openness, grid, reach, c_pos, c_neg, float(refractory_us),
-                             float(eps), float(max_dlog), float(min_dt_us), float(max_dt_us), grid_dt_us, state.level, state.hi, state.lo, state.blind_until_us,
-                             state.step_us, state.slope, state.shade, state.sums, out_t, out_p, count)
+                             float(eps), float(max_dlog), float(min_dt_us), float(max_dt_us), grid_dt_us,
+                             state.level, state.hi, state.lo, state.blind_until_us, state.step_us, state.slope,
+                             state.shade, state.sums, out_t, out_p, count)
                 order = np.flatnonzero(count > capacity)
                 if order.size == 0:
                     break

@@ -139,12 +139,12 @@ class SimulationConfig(CaptureTiming):
     brdf: str = "ggx"
     bit_depth: int = 8
     exposure_gain: float | None = None
+    shadows: bool = True
+    device: str = "cpu"
 
     def event_rule(self) -> dict[str, Any]:
         """``CaptureTiming.event_rule`` with the per-pixel contrast mismatch."""
         return {**super().event_rule(), "sigma": self.contrast_sigma}
-    shadows: bool = True
-    device: str = "cpu"
 
     def check(self) -> None:
         """Raise UserError naming the first option out of range."""

@@ -76,18 +76,18 @@ def test_shadow_grid_is_exact_on_the_grid_and_keeps_frames_within_half_a_percent
     assert np.abs(coarse - dense).max() > 2 * np.abs(frame - dense).max()
 
 
-def test_grid_openness_into_a_reused_buffer_equals_a_fresh_sweep() -> None:
-    """``grid_openness`` sweeps each grid time anew; given room it writes there, and reusing the room
-    and the renderer's sweep buffer for other times changes nothing."""
+def test_frame_openness_in_the_reused_buffer_equals_a_fresh_sweep() -> None:
+    """``grid_openness`` sweeps each grid time anew; ``frame_openness`` sweeps into the renderer's
+    buffer, and reusing it for other times changes nothing."""
     maps = Blobs().build(48, 1, **defaults(Blobs.options))
     keys = [np.arange(0, 12), np.arange(40, 45), np.arange(100, 112)]
     fresh = [Renderer(maps, light(), GGX(), shadow_step_us=grid_step(1.0)).grid_openness(k) for k in keys]
     reused = Renderer(maps, light(), GGX(), shadow_step_us=grid_step(1.0))
-    room = np.empty((12, reused.pixels), dtype=np.float32)
+    buffer = reused.frame_openness(keys[0])
     for k, expected in zip(keys, fresh):
-        got = reused.grid_openness(k, room[: len(k)])
-        assert np.shares_memory(got, room)
-        np.testing.assert_array_equal(got, expected)
+        got = reused.frame_openness(k)
+        assert np.shares_memory(got, buffer)
+        np.testing.assert_array_equal(got[:, reused.index], expected)
     assert (fresh[0] < 1.0).any() and (fresh[0] >= 1.0).any()
 
 
