@@ -20,11 +20,11 @@ its slot of the owner's footprint: the exposures come from the same shading as t
 
 Work per event pixel is about (number of steps) × (frame pixels under it): a pixel that sees no
 change takes ``max_dt_us`` steps, one that fires takes about three steps per event. A thread steps
-``LANES`` pixels at once, each lane's state at its index of arrays across the lanes, so shading, log
-and step control run as SIMD loops (``_shade_lanes``, ``_log_lanes``: a series for ln, and the
-light's azimuth turned on from the lane's last sample by a series for cos and sin, ``_turn``); a
-lane takes its pixel's frame-pixel constants (``_load_lane``) and sums ((E, K, 2), one per slot of
-its footprint) and gives the sums back when the pixel is done. Memory: the per-pixel state, a
+``LANES`` pixels at once, each lane's state at its index of arrays across the lanes, so shading, log,
+step control and firing rule run as SIMD loops (``_shade_lanes``, ``_log_lanes``: a series for ln,
+``_fire_lanes``, and the light's azimuth turned on from the lane's last sample by a series for cos
+and sin, ``_turn``); a lane takes its pixel's frame-pixel constants (``_load_lane``) and sums
+((E, K, 2), one per slot of its footprint) and gives the sums back when the pixel is done. Memory: the per-pixel state, a
 cast-shadow table for the current block of time, and the block's events (room for ``FIRST_ROOM``
 per pixel at first, within ``ROOM_BYTES``, then for as many as the busiest pixel needed so far;
 pixels that overflow it are run again from their state at the block's start).
@@ -267,51 +267,75 @@ def _load_lane(
         frame[q, k] = index[f]
 
 
+# Rows of ``_fire_lanes``' output per lane: events, level of the first, level between them, the line's
+# start level and 1/rise (all in the events' sense), and the sense (±1).
+FIRE_COUNT, FIRE_FIRST, FIRE_GAP, FIRE_FROM, FIRE_INV_SPAN, FIRE_SIGN = range(6)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _fire_lanes(
+    accepted: np.ndarray, ta: np.ndarray, la: np.ndarray, tb: np.ndarray, lb: np.ndarray, c_pos: np.ndarray,
+    c_neg: np.ndarray, refractory_us: float, hi: np.ndarray, lo: np.ndarray, blind_until: np.ndarray,
+    fire: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """The events of each ``accepted`` lane on the line from (``ta``, ``la``) to (``tb``, ``lb``) by
+    the rule of ``pstoolkit.eventmodel`` (as ``esim._Pixels`` applies it to whole sensors): its firing
+    state ``hi``, ``lo``, ``blind_until`` updated, and in ``fire`` (6, W) what ``_emit`` needs to
+    place them (rows ``FIRE_*``; no events: a count of 0). Every lane takes the same arithmetic, its
+    branches as selects, so the loop compiles to SIMD; the slope is floored at the smallest normal
+    double so a flat line cannot divide by zero."""
+    for k in range(accepted.size):
+        dt = tb[k] - ta[k]
+        reset = accepted[k] and blind_until[k] <= tb[k]
+        level = la[k] + (lb[k] - la[k]) * (blind_until[k] - ta[k]) / dt
+        h = level + c_pos[k] if reset else hi[k]
+        l = level - c_neg[k] if reset else lo[k]
+        blind = np.inf if reset else blind_until[k]
+        up = accepted[k] and lb[k] >= h
+        fired = up or (accepted[k] and lb[k] <= l)
+        sign = 1.0 if up else -1.0
+        a, b = sign * la[k], sign * lb[k]
+        first = h if up else -l
+        gap = c_pos[k] if up else c_neg[k]
+        slope = max((b - a) / dt, _TINY)
+        gap = gap + slope * refractory_us if refractory_us > 0 else gap
+        rise = (b - first) / gap if fired else 0.0
+        count = math.floor(rise) + 1.0 if fired else 0.0
+        last = first + (count - 1.0) * gap
+        if refractory_us == 0:
+            reference = sign * last
+            blind_now = False
+        else:
+            until = min(ta[k] + (last - a) / slope, tb[k]) + refractory_us
+            blind_now = until > tb[k]
+            reference = sign * (last + slope * refractory_us)
+            blind = until if fired and blind_now else blind
+        hi[k] = (np.inf if blind_now else reference + c_pos[k]) if fired else h
+        lo[k] = (-np.inf if blind_now else reference - c_neg[k]) if fired else l
+        blind_until[k] = blind
+        fire[FIRE_COUNT, k] = count
+        fire[FIRE_FIRST, k] = first
+        fire[FIRE_GAP, k] = gap
+        fire[FIRE_FROM, k] = a
+        fire[FIRE_INV_SPAN, k] = 1.0 / max(b - a, _TINY)
+        fire[FIRE_SIGN, k] = sign
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _fire(
-    ta: float, la: float, tb: float, lb: float, p: int, c_pos: float, c_neg: float, refractory_us: float,
-    hi: np.ndarray, lo: np.ndarray, blind_until: np.ndarray, out_t: np.ndarray, out_p: np.ndarray, n: int,
+def _emit(
+    fire: np.ndarray, k: int, ta: float, tb: float, out_t: np.ndarray, out_p: np.ndarray, n: int,
 ) -> int:  # pragma: no cover - compiled
-    """Events of a pixel with ``n`` events so far, its firing state at ``hi[p]``, ``lo[p]`` and
-    ``blind_until[p]``, on the line from (``ta``, ``la``) to (``tb``, ``lb``) by the rule of
-    ``pstoolkit.eventmodel`` (as ``esim._Pixels`` applies it to whole sensors); returns its event
-    count, storing the events that fit in its rows ``out_t`` (whole µs)/``out_p``."""
-    if blind_until[p] <= tb:
-        level = la + (lb - la) * (blind_until[p] - ta) / (tb - ta)
-        hi[p] = level + c_pos
-        lo[p] = level - c_neg
-        blind_until[p] = np.inf
-    if lb >= hi[p]:
-        sign, a, b, first, gap = 1, la, lb, hi[p], c_pos
-    elif lb <= lo[p]:
-        sign, a, b, first, gap = -1, -la, -lb, -lo[p], c_neg
-    else:
-        return n
-    slope = max((b - a) / (tb - ta), _TINY)
-    if refractory_us > 0:
-        gap = gap + slope * refractory_us
-    count = int(math.floor((b - first) / gap)) + 1
-    inv_span = 1.0 / max(b - a, _TINY)
+    """Lane ``k``'s events from ``_fire_lanes`` on its step from ``ta`` to ``tb``, stored in the rows
+    ``out_t`` (whole µs, rounded half up)/``out_p`` after the ``n`` there as far as they have room;
+    returns the pixel's event count."""
+    count = np.int64(fire[FIRE_COUNT, k])
+    first, gap, a, inv_span = fire[FIRE_FIRST, k], fire[FIRE_GAP, k], fire[FIRE_FROM, k], fire[FIRE_INV_SPAN, k]
+    sign = np.int8(fire[FIRE_SIGN, k])
     for i in range(min(count, out_t.shape[0] - n)):
         frac = min(max((first + i * gap - a) * inv_span, 0.0), 1.0)
-        # whole µs, rounded half up
         out_t[n + i] = np.int64(math.floor(ta + frac * (tb - ta) + 0.5))
         out_p[n + i] = sign
-    n += count
-    last = first + (count - 1) * gap
-    if refractory_us == 0:
-        reference = sign * last
-    else:
-        until = min(ta + (last - a) / slope, tb) + refractory_us
-        if until > tb:
-            hi[p] = np.inf
-            lo[p] = -np.inf
-            blind_until[p] = until
-            return n
-        reference = sign * (last + slope * refractory_us)
-    hi[p] = reference + c_pos
-    lo[p] = reference - c_neg
-    return n
+    return n + count
 
 
 _TINY = np.finfo(np.float64).tiny
@@ -399,8 +423,8 @@ def _advance_pixels(
 ) -> None:  # pragma: no cover - compiled
     """Event pixels ``order[first:last]`` from ``ta`` to ``tb``, ``LANES`` at a time: each lane
     steps its own pixel, and a lane's state sits at its index of arrays across the lanes, so the
-    shading, the log and the step control of all lanes run as SIMD loops; only the lanes that fire,
-    finish or have cast shadows near take scalar turns."""
+    shading, the log, the step control and the firing rule of all lanes run as SIMD loops; only the
+    lanes that store events, finish or have cast shadows near take scalar turns."""
     taps = pixel.shape[1]
     w = LANES
     omega, t0, phase = ring[3], ring[4], ring[2]
@@ -421,7 +445,7 @@ def _advance_pixels(
     now = np.zeros((2, taps, w))
     exponent, mantissa = np.empty(w, np.int64), np.empty(w, np.int64)
     dt, grown = np.empty(w), np.empty(w)
-    accepted, fires = np.zeros(w, np.bool_), np.zeros(w, np.bool_)
+    accepted, fire = np.zeros(w, np.bool_), np.zeros((6, w))
     taken = first
     while True:
         # idle lanes take the next pixels with frame pixels (those without fire nothing)
@@ -475,12 +499,12 @@ def _advance_pixels(
             grown[k] = max(min_dt, h_try[k] * max(0.5, grow))
             h_try[k] = max(min_dt, h_try[k] * max(0.2, shrink)) if rejected else h_try[k]
             accepted[k] = active[k] and not rejected
-            fires[k] = accepted[k] and (l1[k] >= l_hi[k] or l1[k] <= l_lo[k] or l_blind[k] <= t1[k])
+        # events: the firing rule in SIMD, then each firing lane's events stored
+        _fire_lanes(accepted, t, l0, t1, l1, l_pos, l_neg, refractory_us, l_hi, l_lo, l_blind, fire)
         for k in range(w):
-            if fires[k]:
+            if fire[FIRE_COUNT, k] > 0:
                 p = lane[k]
-                n[k] = _fire(t[k], l0[k], t1[k], l1[k], k, l_pos[k], l_neg[k], refractory_us, l_hi, l_lo, l_blind,
-                             out_t[p], out_p[p], n[k])
+                n[k] = _emit(fire, k, t[k], t1[k], out_t[p], out_p[p], n[k])
         # accepted samples: exposure sums by the trapezoid rule, the next step
         for q in range(taps):
             for k in range(w):
