@@ -17,6 +17,7 @@ import os
 import zlib
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
 
 import h5py
 import numpy as np
@@ -65,6 +66,23 @@ def _deflate_level(dataset: h5py.Dataset) -> int | None:
     return int(filters[1][2][0])
 
 
+@dataclass(frozen=True)
+class _Layout:
+    """What ``ChunkCompressor.write`` needs of a dataset: dtype, chunk shape, deflate level (None:
+    written through h5py) and the shape after the first axis where it cannot change (else None)."""
+
+    dtype: np.dtype
+    chunks: tuple[int, ...] | None
+    level: int | None
+    tail: tuple[int, ...] | None
+
+    @classmethod
+    def of(cls, dataset: h5py.Dataset) -> _Layout:
+        shape, maxshape, chunks = dataset.shape, dataset.maxshape, dataset.chunks
+        level = _deflate_level(dataset) if chunks is not None else None
+        return cls(dataset.dtype, chunks, level, shape[1:] if maxshape is None or maxshape[1:] == shape[1:] else None)
+
+
 class ChunkCompressor:
     """Writes array blocks into chunked, shuffle + deflate datasets, compressing their chunks in
     ``threads`` worker threads (default: the CPUs, at most 8). ``write`` returns once the chunks are
@@ -74,8 +92,9 @@ class ChunkCompressor:
         self.threads = max(1, min(8, os.cpu_count() or 1) if threads is None else int(threads))
         self._pool: ThreadPoolExecutor | None = None
         self._pending: deque[tuple[h5py.Dataset, tuple[int, ...], Future[bytes]]] = deque()
-        # each dataset's deflate level (None: other filters), read once: a lookup in a busy file is slow
-        self._levels: dict[h5py.h5d.DatasetID, int | None] = {}
+        # what each dataset's writes need to know of it, read once: every h5py property is a lookup in
+        # the file, slow while it is busy with chunk writes (0.01–0.07 ms each, ~100 a capture)
+        self._layouts: dict[h5py.h5d.DatasetID, _Layout] = {}
 
     def write(self, dataset: h5py.Dataset, data: np.ndarray, start: int = 0, *, copy: bool = True) -> None:
         """Write ``data`` into ``dataset[start : start + len(data)]``, which must exist (resize first),
@@ -83,18 +102,20 @@ class ChunkCompressor:
         ``data`` fills only in part must be the dataset's last. The caller may reuse its array once
         ``write`` returns, unless it passes ``copy=False``: then it must leave it as it is until
         ``flush`` (its chunks are compressed from it, not from copies)."""
-        data = np.asarray(data, dtype=dataset.dtype)
+        if dataset.id not in self._layouts:
+            self._layouts[dataset.id] = _Layout.of(dataset)
+        layout = self._layouts[dataset.id]
+        data = np.asarray(data, dtype=layout.dtype)
         if data.ndim == 0:
             dataset[()] = data
             return
-        if dataset.id not in self._levels:
-            self._levels[dataset.id] = _deflate_level(dataset) if dataset.chunks is not None else None
-        level = self._levels[dataset.id]
-        if level is None:
+        if layout.level is None:
             dataset[start : start + len(data)] = data
             return
-        chunk = dataset.chunks
-        if start % chunk[0] or data.shape[1:] != dataset.shape[1:]:
+        chunk = layout.chunks
+        assert chunk is not None
+        tail = dataset.shape[1:] if layout.tail is None else layout.tail
+        if start % chunk[0] or data.shape[1:] != tail:
             raise ValueError(f"direct chunk write at row {start} of {dataset.name} is not aligned to its chunks {chunk}")
         if self._pool is None:
             self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="psfmt-deflate")
@@ -103,7 +124,7 @@ class ChunkCompressor:
             block = data[tuple(slice(a, a + c) for a, c in zip(corner, chunk))]
             block = np.array(block) if copy else block
             offset = (start + corner[0], *corner[1:])
-            self._pending.append((dataset, offset, self._pool.submit(deflate_chunk, block, chunk, level)))
+            self._pending.append((dataset, offset, self._pool.submit(deflate_chunk, block, chunk, layout.level)))
             # chunks are written at points that depend on counts only, never on timing, so the same data
             # lays out the same file bytes
             while len(self._pending) > PENDING_CHUNKS:

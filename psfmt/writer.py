@@ -232,6 +232,7 @@ class CaptureWriter:
         # whole storage chunks only, so compressed chunks are written once and never rewritten
         cut = len(block) if final else (len(block) // self._event_chunk) * self._event_chunk
         n0 = self._n_events
+        room = self._event_columns["t"].shape[0]
         for c in "xytp":
             ds = self._event_columns[c]
             # a resize costs about 0.2 ms in a file busy with chunk writes: the columns grow ahead
@@ -239,8 +240,8 @@ class CaptureWriter:
             # the partial last chunk exists, so no written chunk is cut
             if final:
                 ds.resize(n0 + cut, axis=0)
-            elif n0 + cut > ds.shape[0]:
-                ds.resize(max(n0 + cut, 2 * ds.shape[0], GROW_CHUNKS * self._event_chunk), axis=0)
+            elif n0 + cut > room:
+                ds.resize(max(n0 + cut, 2 * room, GROW_CHUNKS * self._event_chunk), axis=0)
             # the block is the writer's own (a concatenation), left as it is: no copies of its chunks
             self._chunks.write(ds, getattr(block, c)[:cut], n0, copy=False)
         self._n_events += cut

@@ -76,6 +76,9 @@ BLOCK_GRID_STEPS = 60
 # busiest pixels fire 75–84 times a block at refractory 0 (the sphere's 34–56).
 FIRST_ROOM = 128
 ROOM_BYTES = 32 << 20
+# Runs of pixels the event sort of a block counts and places in parallel (see ``_gather``); fixed, so
+# the work does not depend on the threads.
+GATHER_RUNS = 16
 # Keeps the half vector's normalisation finite when l = −v, as in ``pstoolkit.brdf``.
 HALF_EPS = 1e-12
 
@@ -587,35 +590,47 @@ def _start(
                     shade[first + k, q, j] = now[j, q, k]
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _gather(out_t: np.ndarray, out_p: np.ndarray, count: np.ndarray, width: int, t_first: int, t_last: int,
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
     """The events of a block, at whole µs in [``t_first``, ``t_last``], sorted by (µs, pixel): a
-    counting sort on the µs (pixels visited in order, each pixel's events in time order, so ties
-    keep pixel order and, within a pixel, emission order)."""
+    counting sort on the µs, in parallel over ``GATHER_RUNS`` runs of pixels. Slots are laid out µs
+    by µs and, within one, run by run; each run visits its pixels in order, each pixel's events in
+    time order, so ties keep pixel order and, within a pixel, emission order."""
+    pixels = count.shape[0]
     total = 0
-    for p in range(count.shape[0]):
+    for p in range(pixels):
         total += count[p]
     x = np.empty(total, np.uint16)
     y = np.empty(total, np.uint16)
     t_out = np.empty(total, np.int64)
     p_out = np.empty(total, np.int8)
-    slots = np.zeros(t_last - t_first + 2, np.int64)
-    for p in range(count.shape[0]):
-        for i in range(count[p]):
-            slots[out_t[p, i] - t_first + 1] += 1
-    for k in range(1, slots.shape[0]):
-        slots[k] += slots[k - 1]
-    for p in range(count.shape[0]):
-        column, row = p % width, p // width
-        for i in range(count[p]):
-            t = out_t[p, i]
-            j = slots[t - t_first]
-            slots[t - t_first] += 1
-            x[j] = column
-            y[j] = row
-            t_out[j] = t
-            p_out[j] = out_p[p, i]
+    span = t_last - t_first + 1
+    run_pixels = (pixels + GATHER_RUNS - 1) // GATHER_RUNS
+    slots = np.zeros((GATHER_RUNS, span), np.int64)
+    for run in numba.prange(GATHER_RUNS):
+        mine = slots[run]
+        for p in range(run * run_pixels, min((run + 1) * run_pixels, pixels)):
+            for i in range(count[p]):
+                mine[out_t[p, i] - t_first] += 1
+    at = 0
+    for k in range(span):
+        for run in range(GATHER_RUNS):
+            n = slots[run, k]
+            slots[run, k] = at
+            at += n
+    for run in numba.prange(GATHER_RUNS):
+        mine = slots[run]
+        for p in range(run * run_pixels, min((run + 1) * run_pixels, pixels)):
+            column, row = p % width, p // width
+            for i in range(count[p]):
+                t = out_t[p, i]
+                j = mine[t - t_first]
+                mine[t - t_first] += 1
+                x[j] = column
+                y[j] = row
+                t_out[j] = t
+                p_out[j] = out_p[p, i]
     return x, y, t_out, p_out
 
 
