@@ -693,7 +693,10 @@ def footprints(renderer: Renderer, event_scale: float) -> Footprints:
 def owner_slots(feet: Footprints) -> np.ndarray:
     """(P,): each masked frame pixel's owning slot, into the flattened (E, K) footprints."""
     slots = np.flatnonzero(feet.owned.ravel())
-    return slots[np.argsort(feet.pixel.ravel()[slots])]
+    # every masked pixel has exactly one owner, so the owned slots' pixels are a permutation of 0 … P − 1
+    owner = np.empty_like(slots)
+    owner[feet.pixel.ravel()[slots]] = slots
+    return owner
 
 
 def _ring(light: RingLight) -> tuple[float, ...]:

@@ -271,6 +271,12 @@ def _simulate(config: SimulationConfig, path: str | os.PathLike[str], progress: 
     with psfmt.CaptureWriter(
         path, description=_description(config), creator="pstoolkit", creator_version=pstoolkit.__version__
     ) as writer:
+        # first, so the writer's threads compress the maps while the engine is set up
+        writer.set_ground_truth(
+            psfmt.GroundTruth(
+                normal=maps.normal, mask=maps.mask, albedo=maps.albedo, depth=maps.depth, materials=maps.materials()
+            )
+        )
         dtype = BIT_DEPTHS[config.bit_depth]
         writer.begin_frames(config.size, config.size, 3, dtype, bit_depth=config.bit_depth)
         if config.discrete_lights:
@@ -286,11 +292,6 @@ def _simulate(config: SimulationConfig, path: str | os.PathLike[str], progress: 
                 )
             )
         writer.set_lights(renderer.light.to_spec())
-        writer.set_ground_truth(
-            psfmt.GroundTruth(
-                normal=maps.normal, mask=maps.mask, albedo=maps.albedo, depth=maps.depth, materials=maps.materials()
-            )
-        )
     n_frames = config.discrete_lights or config.frames * config.periods
     return SimulationSummary(path, n_frames, n_events, event_size, time.perf_counter() - started)
 

@@ -7,6 +7,7 @@ import sys
 import typer
 
 from psfmt import FormatError
+from pstoolkit.allocator import keep_freed_memory
 from pstoolkit.errors import UserError
 from pstoolkit.solver import Progress, no_progress
 
@@ -54,6 +55,7 @@ def _usage_error(exc: BaseException) -> bool:
 def main(argv: list[str] | None = None) -> int:
     """Console entry point. Exit codes: 0 success, 1 a negative finding (validate), 2 a user error
     (a usage error, a bad file, a bad option), 130 interrupted. Every error is one line on stderr."""
+    keep_freed_memory()
     try:
         result = app(args=argv, prog_name="pstoolkit", standalone_mode=False)
         code = result if isinstance(result, int) else 0
