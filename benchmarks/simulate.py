@@ -96,7 +96,8 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--refractory-us", type=float, default=SimulationConfig.refractory_us)
     parser.add_argument("--repeat", type=int, default=1, help="runs per scene; the fastest is kept")
-    parser.add_argument("--no-keep", action="store_true", help="leave glibc's allocator defaults (see pstoolkit.allocator)")
+    parser.add_argument("--no-keep", action="store_true",
+                        help="leave glibc's allocator defaults (see pstoolkit.allocator)")
     args = parser.parse_args()
     kept = False if args.no_keep else keep_freed_memory()
     rows = []
@@ -120,7 +121,8 @@ def main() -> None:
     print(f"{'scene':8s} {'events':>9s} {'total s':>8s} {'first s':>8s} {'CPU s':>7s} {'M ev/s':>7s} {'engine s':>9s} "
           f"{'engine M ev/s':>14s} {'traced MB':>10s} {'rate %':>7s}")
     for r in rows:
-        print(f"{r['scene']:8s} {r['events']:9,d} {r['seconds']:8.3f} {r['first_seconds']:8.3f} {r['cpu_seconds']:7.2f} "
+        print(f"{r['scene']:8s} {r['events']:9,d} {r['seconds']:8.3f} {r['first_seconds']:8.3f} "
+              f"{r['cpu_seconds']:7.2f} "
               f"{r['events_per_s'] / 1e6:7.3f} {r['engine_seconds']:9.3f} {r['engine_events_per_s'] / 1e6:14.3f} "
               f"{r['traced_peak_mb']:10.1f} {100 * r['data_rate']:7.1f}")
     best = max(r["events_per_s"] for r in rows)

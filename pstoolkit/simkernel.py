@@ -24,10 +24,10 @@ change takes ``max_dt_us`` steps, one that fires takes about three steps per eve
 step control and firing rule run as SIMD loops (``_shade_lanes``, ``_log_lanes``: a series for ln,
 ``_fire_lanes``, and the light's azimuth turned on from the lane's last sample by a series for cos
 and sin, ``_turn``); a lane takes its pixel's frame-pixel constants (``_load_lane``) and sums
-((E, K, 2), one per slot of its footprint) and gives the sums back when the pixel is done. Memory: the per-pixel state, a
-cast-shadow table for the current block of time, and the block's events (room for ``FIRST_ROOM``
-per pixel at first, within ``ROOM_BYTES``, then for as many as the busiest pixel needed so far;
-pixels that overflow it are run again from their state at the block's start).
+((E, K, 2), one per slot of its footprint) and gives the sums back when the pixel is done. Memory:
+the per-pixel state, a cast-shadow table for the current block of time, and the block's events
+(room for ``FIRST_ROOM`` per pixel at first, within ``ROOM_BYTES``, then for as many as the busiest
+pixel needed so far; pixels that overflow it are run again from their state at the block's start).
 """
 
 from __future__ import annotations
