@@ -12,7 +12,6 @@ command-line run, so the CLI sets it at start (``pstoolkit.cli.main``) and a lib
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import sys
 
 # mallopt(3) parameters and the values set: blocks up to MMAP_THRESHOLD_BYTES come from the heap, and
@@ -28,11 +27,11 @@ def keep_freed_memory() -> bool:
     (glibc on Linux), False elsewhere (nothing changed)."""
     if not sys.platform.startswith("linux"):
         return False
-    name = ctypes.util.find_library("c")
     try:
-        libc = ctypes.CDLL(name or "libc.so.6")
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):  # not glibc (musl has no mallopt)
+        # the process's own symbols, which hold the C library's: ctypes.util.find_library would run
+        # ldconfig in a subprocess (about 4 ms at every start of the CLI)
+        mallopt = ctypes.CDLL(None).mallopt
+    except AttributeError:  # a C library without mallopt
         return False
     mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
     mallopt.restype = ctypes.c_int

@@ -115,15 +115,15 @@ def _sweep(
             if transpose:
                 target[cols - 1 - c if flip else c, :] = column_out
             elif c % _TILE == 0:
-                # the tile holds columns c … c + span − 1 of the oriented maps
-                span = min(_TILE, cols - c)
+                # the tile holds columns c … c + filled − 1 of the oriented maps
+                filled = min(_TILE, cols - c)
                 for r in range(rows):
                     line = target[r]
                     if flip:
-                        for i in range(span):
+                        for i in range(filled):
                             line[cols - 1 - c - i] = tile[i, r]
                     else:
-                        for i in range(span):
+                        for i in range(filled):
                             line[c + i] = tile[i, r]
             i0 = int(np.floor(base))
             f = np.float32(base - i0)

@@ -236,14 +236,25 @@ def _shade_lanes(
             now[1, q, k] = nl * ratio
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _idle_slot(consts: np.ndarray, frame: np.ndarray, q: int, k: int) -> None:  # pragma: no cover - compiled
+    """Slot ``q`` of lane ``k`` without a frame pixel: constants of zero (no light), but |n|² and k of
+    one, which keep its shading finite, at frame position 0."""
+    for col in range(consts.shape[0]):
+        consts[col, q, k] = 0.0
+    consts[NORM2, q, k] = 1.0
+    consts[K, q, k] = 1.0
+    frame[q, k] = 0
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _idle_lanes(columns: int, taps: int) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """(10, K, LANES) constants and (K, LANES) frame positions of lanes without a pixel: zeros (no
-    light), but |n|² and k of one, which keep their shading finite."""
-    consts = np.zeros((columns, taps, LANES))
-    consts[NORM2] = 1.0
-    consts[K] = 1.0
-    return consts, np.zeros((taps, LANES), np.int64)
+    """(10, K, LANES) constants and (K, LANES) frame positions of lanes without a pixel (``_idle_slot``)."""
+    consts, frame = np.empty((columns, taps, LANES)), np.empty((taps, LANES), np.int64)
+    for q in range(taps):
+        for k in range(LANES):
+            _idle_slot(consts, frame, q, k)
+    return consts, frame
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -253,15 +264,11 @@ def _load_lane(
 ) -> None:  # pragma: no cover - compiled
     """Lane ``k`` takes event pixel ``p``: per slot of its footprint (``Footprints``), the frame
     pixel's ``FrameConstants.values`` with the greys times the slot's area weight, and its flat
-    position (``index``); an unused slot is an idle lane's (adds nothing)."""
+    position (``index``); an unused slot is idle (``_idle_slot``: adds nothing)."""
     for q in range(pixel.shape[1]):
         f = pixel[p, q]
         if f < 0:
-            for col in range(values.shape[1]):
-                consts[col, q, k] = 0.0
-            consts[NORM2, q, k] = 1.0
-            consts[K, q, k] = 1.0
-            frame[q, k] = 0
+            _idle_slot(consts, frame, q, k)
             continue
         for col in range(values.shape[1]):
             consts[col, q, k] = values[f, col]
