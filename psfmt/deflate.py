@@ -6,8 +6,9 @@ filters the format allows for compression (shuffle, then deflate) are plain byte
 the GIL for deflate — in a pool of threads, and hands each finished chunk to ``write_direct_chunk``;
 meanwhile the writer's caller goes on with its work. At level 1, the format's, the encoder is ISA-L's
 where ``isal`` is installed (pstoolkit depends on it; psfmt works without it): a standard zlib
-stream, which HDF5's filter and every inflate read (see ``ISAL_ENCODER_LEVEL``). Otherwise the
-stored bytes are zlib's, those HDF5's own filters write (``tests/test_deflate.py`` checks both).
+stream, which HDF5's filter and every inflate read (see ``ISAL_ENCODER_LEVEL``; ``psfmt.inflate``
+reads with ISA-L too). Otherwise the stored bytes are zlib's, those HDF5's own filters write
+(``tests/test_deflate.py`` checks both).
 """
 
 from __future__ import annotations
@@ -28,12 +29,12 @@ except ImportError:  # pragma: no cover - exercised where isal is absent
     isal_zlib = None
 
 # The deflate level whose chunks ISA-L compresses (see the module docstring), and ISA-L's own level
-# for them. Events of a 256² blobs capture (8.1 MB shuffled), against zlib's level 1 (47 ms, 1.18 MB,
-# inflated by zlib in 14 ms): ISA-L's level 1 takes 7 ms for 1.18 MB, but zlib inflates that in
-# 20 ms, so every read of the file would be slower; its level 3 takes 19 ms for 1.23 MB, inflated
-# in 12 ms. On random events its streams are up to 15 % larger and inflate up to 20 % slower.
+# for them. A 256² blobs capture (events 8.1 MB, maps 3.2 MB, frames 0.6 MB shuffled), against zlib's
+# level 1 (97 ms, 2.80 MB): ISA-L's level 3 takes 38 ms for 2.89 MB, its level 2 13 ms for 2.80 MB,
+# 25 ms less CPU per simulated capture. zlib inflates level 2's events in 24 ms against 16 for
+# level 3's; ISA-L inflates them in 11 (``psfmt.inflate`` reads event columns that way).
 ISAL_LEVEL = 1
-ISAL_ENCODER_LEVEL = 3
+ISAL_ENCODER_LEVEL = 2
 # Chunks compressing or waiting to be written before a write waits for the oldest: bounds the memory
 # held by chunks in flight. Not tied to the thread count, so a file's bytes do not depend on the machine.
 PENDING_CHUNKS = 32
@@ -57,7 +58,7 @@ def deflate_chunk(block: np.ndarray, chunk: tuple[int, ...], level: int) -> byte
     return zlib.compress(raw, level)
 
 
-def _deflate_level(dataset: h5py.Dataset) -> int | None:
+def shuffle_deflate_level(dataset: h5py.Dataset) -> int | None:
     """The deflate level of a dataset filtered by exactly shuffle then deflate (None otherwise)."""
     plist = dataset.id.get_create_plist()
     filters = [plist.get_filter(i) for i in range(plist.get_nfilters())]
@@ -79,7 +80,7 @@ class _Layout:
     @classmethod
     def of(cls, dataset: h5py.Dataset) -> _Layout:
         shape, maxshape, chunks = dataset.shape, dataset.maxshape, dataset.chunks
-        level = _deflate_level(dataset) if chunks is not None else None
+        level = shuffle_deflate_level(dataset) if chunks is not None else None
         return cls(dataset.dtype, chunks, level, shape[1:] if maxshape is None or maxshape[1:] == shape[1:] else None)
 
 

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from psfmt.files import damaged
+from psfmt.inflate import ColumnReader
 
 EVENT_DTYPES: dict[str, np.dtype[Any]] = {
     "x": np.dtype(np.uint16),
@@ -145,6 +146,7 @@ class H5EventStore:
     def __init__(self, group: Any) -> None:
         self._group = group
         self._cols = {c: group[c] for c in "xytp"}
+        self._readers = {c: ColumnReader(ds) for c, ds in self._cols.items()}
         self._n = int(self._cols["t"].shape[0])
         self._index = group["ms_to_idx"] if "ms_to_idx" in group else None
         self._origin = int(group.attrs.get("ms_origin_us", 0))
@@ -163,7 +165,7 @@ class H5EventStore:
 
     def _column(self, c: str, lo: int, hi: int) -> np.ndarray:
         try:
-            return self._cols[c][lo:hi]
+            return self._readers[c].read(lo, hi)
         except OSError as exc:
             raise damaged(self._group.file.filename, exc) from exc
 
@@ -203,15 +205,7 @@ class H5EventStore:
     def read(self) -> EventArray:
         if self._n == 0:
             return EventArray.empty()
-        cols = {}
-        for c in "xytp":
-            arr = np.empty(self._n, dtype=EVENT_DTYPES[c])
-            try:
-                self._cols[c].read_direct(arr)
-            except OSError as exc:
-                raise damaged(self._group.file.filename, exc) from exc
-            cols[c] = arr
-        return EventArray(**cols)
+        return self._slice(0, self._n)
 
 
 @dataclass
