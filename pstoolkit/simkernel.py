@@ -45,7 +45,7 @@ from pstoolkit.brdf import GGX
 from pstoolkit.errors import UserError
 from pstoolkit.esim import check_options, draw_thresholds, event_rngs
 from pstoolkit.eventmodel import GREY_WEIGHTS, LOG_EPS
-from pstoolkit.lights import RingLight
+from pstoolkit.lights import US_PER_S, RingLight
 from pstoolkit.render import Renderer, event_shape
 
 # Columns of the per-frame-pixel constants (``FrameConstants.values``).
@@ -639,6 +639,31 @@ def _gather(out_t: np.ndarray, out_p: np.ndarray, count: np.ndarray, width: int,
                 t_out[j] = t
                 p_out[j] = out_p[p, i]
     return x, y, t_out, p_out
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _exposure_images(
+    sums: np.ndarray, albedo: np.ndarray, f0: np.ndarray, e_per_us: np.ndarray, index: np.ndarray, out: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """Into ``out`` (2, H·W, 3), zero outside the masked pixels ``index``: albedo·e·∫ V·[n·l]₊ dt, then that
+    plus F0·e·∫ V·[n·l]₊·ratio dt (``sums`` (P, 2), dt in µs; ``e_per_us`` the RGB intensity per µs)."""
+    for i in range(index.size):
+        f = index[i]
+        for c in range(3):
+            diffuse = albedo[i, c] * sums[i, 0] * e_per_us[c]
+            out[0, f, c] = diffuse
+            out[1, f, c] = diffuse + f0[i, c] * sums[i, 1] * e_per_us[c]
+
+
+def window_exposures(renderer: Renderer, sums: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The (H, W, 3) float64 radiant exposures (dt in seconds) of a window from its ``Block.window_sums``:
+    the diffuse part alone, and with the GGX specular part (as ``renderer`` shades them)."""
+    rgb = renderer.closed_form_constants()[1]
+    e_per_us = np.asarray(renderer.light.intensity, dtype=np.float64) / US_PER_S  # type: ignore[attr-defined]
+    out = np.zeros((2, renderer.maps.height * renderer.maps.width, 3))
+    _exposure_images(sums, rgb["albedo"].cpu().numpy(), rgb["f0"].cpu().numpy(), e_per_us, renderer.index, out)
+    diffuse, gloss = out.reshape(2, renderer.maps.height, renderer.maps.width, 3)
+    return diffuse, gloss
 
 
 @dataclass

@@ -43,7 +43,7 @@ from pstoolkit import simkernel
 from pstoolkit.brdf import GGX
 from pstoolkit.errors import UserError
 from pstoolkit.esim import simulate_events
-from pstoolkit.lights import US_PER_S, RingLight
+from pstoolkit.lights import RingLight
 from pstoolkit.options import parse_assignments
 from pstoolkit.plugins import get_registries
 from pstoolkit.render import Renderer, event_shape, exposure_plan, exposure_samples
@@ -401,15 +401,10 @@ def _write_compiled(
             yield block.events, block.t_end_us
 
     count = append_event_chunks(writer, event_size, chunks(), config.duration_us, report)
-    rgb = renderer.closed_form_constants()[1]
-    albedo, f0 = rgb["albedo"].cpu().numpy(), rgb["f0"].cpu().numpy()
-    intensity = np.asarray(renderer.light.intensity, dtype=np.float64) / US_PER_S  # type: ignore[attr-defined]
     exposures = []
     for sums in window_sums:
-        diffuse = albedo * sums[:, :1] * intensity
-        gloss = diffuse + f0 * sums[:, 1:] * intensity
-        per_brdf = [gloss if isinstance(b, GGX) else diffuse for b in brdfs]
-        exposures.append([renderer.scatter(torch.as_tensor(e[None]))[0].numpy() for e in per_brdf])
+        diffuse, gloss = simkernel.window_exposures(renderer, sums)
+        exposures.append([gloss if isinstance(b, GGX) else diffuse for b in brdfs])
     return count, exposures
 
 
