@@ -46,8 +46,8 @@ CHUNK_VALUES = 1 << 21
 MARGIN_CACHE_VALUES = 1 << 22
 # Keeps the half vector's normalisation finite when l = −v, as in ``pstoolkit.brdf``.
 _HALF_EPS = 1e-12
-# Columns a sweep of untransposed maps gathers before writing them out (see ``_sweep``): 16 float32
-# fill a cache line; the sweeps of those maps took 40 % less time than writing column by column.
+# Columns a sweep gathers before writing them out (see ``_sweep``): 16 float32 fill a cache line; the
+# sweeps of untransposed maps took 40 % less time than writing column by column.
 _TILE = 16
 _NO_OCCLUDER = -1e9
 _LOW_MARGIN = -1e3
@@ -56,7 +56,8 @@ _LOW_MARGIN = -1e3
 @numba.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _sweep(
     occluder_t: np.ndarray, height_t: np.ndarray, inside_t: np.ndarray, k: np.ndarray, rise: np.ndarray,
-    lights: np.ndarray, transpose: bool, flip: bool, openness: tuple[float, float] | None, out: np.ndarray,
+    lights: np.ndarray, transpose: bool, flip: bool, column_major: bool, openness: tuple[float, float] | None,
+    out: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
     """Shadow margins for lights towards increasing column index of the oriented maps: how far
     (pixels of height) the highest occluder rises above each pixel's ray towards the light (negative:
@@ -64,7 +65,8 @@ def _sweep(
     (bias, penumbra in pixels) — their unclipped V (``_openness``, in float32). ``occluder_t``, ``height_t``
     and ``inside_t`` (the mask) are the oriented maps transposed to (C, R), so a column is contiguous;
     the oriented maps are the originals transposed (``transpose``), then with their columns reversed
-    (``flip``). Pixels outside the mask get ``_LOW_MARGIN``.
+    (``flip``). Pixels outside the mask get ``_LOW_MARGIN``. With ``column_major`` the maps of an
+    untransposed sweep are stored column by column: ``out[lights[g]]`` holds the (W, H) transpose.
 
     Light g's rays go one column per step and ``k[g]`` rows per column (|k| ≤ 1), climbing ``rise[g]``
     pixels of height per step. All rays of one light are parallel, so they lie on lines
@@ -87,12 +89,15 @@ def _sweep(
     one = np.float32(1.0)
     # V in float32, as stored: to within an ulp of ``_openness``, and 10–15 % faster sweeps than in float64
     bias, fade = (np.float32(openness[0]), np.float32(1.0 / openness[1])) if openness is not None else (one, one)
+    # the oriented maps' columns are rows of ``target``: those of transposed maps, and of all with ``column_major``
+    whole_rows = transpose or column_major
     for g in numba.prange(k.size):
-        target = out[lights[g]]
+        target = out[lights[g]] if not column_major or transpose else out[lights[g]].reshape((cols, rows))
         running = np.full(lines, no_occluder, dtype=np.float32)
-        # columns of untransposed maps are strided in ``target``: they gather in a tile, written
-        # out a row of ``_TILE`` values (a cache line) at a time; the tile's rows are padded so they
-        # do not all fall in the same cache sets
+        # the columns gather in a tile, written out every ``_TILE`` columns: as whole rows in ascending
+        # order (one by one against the sweep, descending, they took up to twice as long), or else a
+        # row of ``_TILE`` values (a cache line) at a time; the tile's rows are padded so they do not
+        # all fall in the same cache sets
         tile = np.empty((_TILE, rows + 16), dtype=np.float32)
         first_base = np.floor(min(0.0, -k[g] * (cols - 1))) - 1.0
         for c in range(cols - 1, -1, -1):
@@ -112,10 +117,16 @@ def _sweep(
             if openness is not None:
                 for r in range(rows):
                     column_out[r] = one - (column_out[r] - bias) * fade
-            if transpose:
-                target[cols - 1 - c if flip else c, :] = column_out
-            elif c % _TILE == 0:
+            if c % _TILE == 0 and whole_rows:
                 # the tile holds columns c … c + filled − 1 of the oriented maps
+                filled = min(_TILE, cols - c)
+                if flip:
+                    for i in range(filled - 1, -1, -1):
+                        target[cols - 1 - c - i, :] = tile[i, :rows]
+                else:
+                    for i in range(filled):
+                        target[c + i, :] = tile[i, :rows]
+            elif c % _TILE == 0:
                 filled = min(_TILE, cols - c)
                 for r in range(rows):
                     line = target[r]
@@ -164,21 +175,24 @@ class ShadowCaster:
             self._oriented[transpose, flip] = tuple(np.ascontiguousarray(a.T) for a in oriented)  # type: ignore[assignment]
         return self._oriented[transpose, flip]
 
-    def margins(self, directions: np.ndarray, out: np.ndarray | None = None, *, openness: bool = False) -> np.ndarray:
+    def margins(
+        self, directions: np.ndarray, out: np.ndarray | None = None, *, openness: bool = False,
+        column_major: bool = False,
+    ) -> np.ndarray:
         """``shadow_margin`` for ``directions`` (T, 3), written into ``out`` ((T, H, W) float32) when
         given: a caller sweeping block after block reuses one buffer. With ``openness`` the unclipped V
-        of them (``_openness``), made as they are written."""
+        of them (``_openness``), made as they are written. With ``column_major`` the lights of
+        ``column_major_lights`` are stored column-major, their (H, W) slot holding the (W, H)
+        transpose: their sweeps walk the columns, and storing those whole took half the time of
+        scattering them into rows."""
         l = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
         t = l.shape[0]
         h, w = self.height.shape
         out = np.empty((t, h, w), dtype=np.float32) if out is None else out
         affine = (SHADOW_BIAS_PX, PENUMBRA_PX) if openness else None
-        du, dv = l[:, 0], -l[:, 1]  # image v points down
-        rho = np.hypot(du, dv)
-        side = rho > 1e-9
+        du, dv, side, along_u = _sweep_axes(l)
         out[~side] = _openness(np.float32(_LOW_MARGIN)) if openness else _LOW_MARGIN
-        tan_e = np.where(side, l[:, 2] / np.where(side, rho, 1.0), 0.0)
-        along_u = np.abs(du) >= np.abs(dv)
+        tan_e = np.where(side, l[:, 2] / np.where(side, np.hypot(du, dv), 1.0), 0.0)
         for transpose in (False, True):
             for flip in (False, True):
                 main, other = (dv, du) if transpose else (du, dv)
@@ -187,8 +201,23 @@ class ShadowCaster:
                     continue
                 k = other[index] / np.abs(main[index])
                 rise = tan_e[index] * np.sqrt(1.0 + k * k)
-                _sweep(*self._maps(transpose, flip), k, rise, index, transpose, flip, affine, out)
+                _sweep(*self._maps(transpose, flip), k, rise, index, transpose, flip, column_major, affine, out)
         return out
+
+    @staticmethod
+    def column_major_lights(directions: np.ndarray) -> np.ndarray:
+        """(T,) bool: the lights ``margins(column_major=True)`` stores column-major (those whose rays
+        run more along the image's rows than its columns)."""
+        _, _, side, along_u = _sweep_axes(np.asarray(directions, dtype=np.float64).reshape(-1, 3))
+        return side & along_u
+
+
+def _sweep_axes(l: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """For unit directions ``l`` (T, 3): their image components du, dv (v points down), whether they
+    leave the vertical (lights straight overhead cast no shadows) and whether they run more along u."""
+    du, dv = l[:, 0], -l[:, 1]
+    side = np.hypot(du, dv) > 1e-9
+    return du, dv, side, np.abs(du) >= np.abs(dv)
 
 
 def shadow_margin(
@@ -379,21 +408,31 @@ class Renderer:
         grid times ``keys`` × ``shadow_step_us``, swept anew into fresh arrays (the bounded cache of
         ``_grid_margins`` keeps its rows)."""
         keys = np.asarray(keys)
-        return self._sweep_openness(keys, None)[:, self.index]
+        margin = self.shadow_caster.margins(self._grid_directions(keys), openness=True)
+        return margin.reshape(len(keys), -1)[:, self.index]
 
-    def frame_openness(self, keys: np.ndarray) -> np.ndarray:
-        """``grid_openness`` of every frame pixel, (N, H·W) (those outside the mask open, V > 1):
-        a view of the buffer the renderer keeps for its sweeps, valid until its next call, so a
-        caller walking time in blocks allocates nothing block after block."""
+    def frame_openness(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``grid_openness`` of every frame pixel, (N, H·W) (those outside the mask open, V > 1),
+        each row row-major (H, W) or, where the (N,) bool it comes with says so, column-major (W, H)
+        (``ShadowCaster.margins(column_major=True)``, the faster sweeps). The table is a view of the
+        buffer the renderer keeps for its sweeps, valid until its next call, so a caller walking time
+        in blocks allocates nothing block after block."""
         keys = np.asarray(keys)
         if self._sweep_buffer.shape[0] < len(keys):
             self._sweep_buffer = np.empty((len(keys), self.maps.height, self.maps.width), dtype=np.float32)
-        return self._sweep_openness(keys, self._sweep_buffer[: len(keys)])
+        directions = self._grid_directions(keys)
+        table = self.shadow_caster.margins(directions, self._sweep_buffer[: len(keys)], openness=True, column_major=True)
+        return table.reshape(len(keys), -1), ShadowCaster.column_major_lights(directions)
 
-    def _sweep_openness(self, keys: np.ndarray, out: np.ndarray | None) -> np.ndarray:
+    @property
+    def column_major_index(self) -> np.ndarray:
+        """The masked pixels' flat positions in the column-major rows of ``frame_openness`` (``index``
+        is theirs in the row-major ones)."""
+        return (self.index % self.maps.width) * self.maps.height + self.index // self.maps.width
+
+    def _grid_directions(self, keys: np.ndarray) -> np.ndarray:
         direction, _ = self.light.evaluate(keys * float(self.shadow_step_us), self._points)  # type: ignore[arg-type]
-        margin = self.shadow_caster.margins(self._shadow_directions(direction), out, openness=True)
-        return margin.reshape(len(keys), -1)
+        return self._shadow_directions(direction)
 
     @property
     def shadow_caster(self) -> ShadowCaster:

@@ -195,14 +195,15 @@ def _log_lanes(
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _shade_lanes(
     t1: np.ndarray, cos_az: np.ndarray, sin_az: np.ndarray, consts: np.ndarray, frame: np.ndarray,
-    shadowed: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray, grid: tuple, eps: float,
-    now: np.ndarray, grey: np.ndarray,
+    frame_t: np.ndarray, shadowed: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray,
+    column_major: np.ndarray, grid: tuple, eps: float, now: np.ndarray, grey: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
     """Grey irradiance + ``eps`` of each lane's event pixel at its time ``t1`` into ``grey`` (W,),
     the light at azimuth (``cos_az``, ``sin_az``); ``now`` (2, K, W) gets each slot's V·[n·l]₊ and
-    V·[n·l]₊·ratio (``consts`` (10, K, W) and ``frame`` (K, W): the lanes' slots' constants and
-    flat frame positions, the columns of ``openness``, see ``_load_lane``; V read only for
-    ``shadowed`` lanes). The loops run across the lanes, so they compile to SIMD."""
+    V·[n·l]₊·ratio (``consts`` (10, K, W), ``frame`` and ``frame_t`` (K, W): the lanes' slots'
+    constants and flat frame positions row- and column-major, the columns of ``openness``'s rows
+    without and with ``column_major``, see ``_load_lane``; V read only for ``shadowed`` lanes). The
+    loops run across the lanes, so they compile to SIMD."""
     cos_e, sin_e, inv_h, hh, lift = ring[0], ring[1], ring[5], ring[6], ring[7]
     hz = 1.0 + sin_e
     lanes, taps = t1.size, consts.shape[1]
@@ -225,9 +226,10 @@ def _shade_lanes(
         x = t1[k] / grid[0] - grid[1]
         row = min(max(int(math.floor(x)), 0), rows - 2)
         after = x - row
+        major, major_next = column_major[row], column_major[row + 1]
         for q in range(taps):
-            f = frame[q, k]
-            v = openness[row, f] * (1.0 - after) + openness[row + 1, f] * after
+            f, f_t = frame[q, k], frame_t[q, k]
+            v = openness[row, f_t if major else f] * (1.0 - after) + openness[row + 1, f_t if major_next else f] * after
             now[0, q, k] *= min(max(v, 0.0), 1.0)
     for q in range(taps):
         for k in range(lanes):
@@ -237,7 +239,9 @@ def _shade_lanes(
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _idle_slot(consts: np.ndarray, frame: np.ndarray, q: int, k: int) -> None:  # pragma: no cover - compiled
+def _idle_slot(
+    consts: np.ndarray, frame: np.ndarray, frame_t: np.ndarray, q: int, k: int,
+) -> None:  # pragma: no cover - compiled
     """Slot ``q`` of lane ``k`` without a frame pixel: constants of zero (no light), but |n|² and k of
     one, which keep its shading finite, at frame position 0."""
     for col in range(consts.shape[0]):
@@ -245,36 +249,40 @@ def _idle_slot(consts: np.ndarray, frame: np.ndarray, q: int, k: int) -> None:  
     consts[NORM2, q, k] = 1.0
     consts[K, q, k] = 1.0
     frame[q, k] = 0
+    frame_t[q, k] = 0
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _idle_lanes(columns: int, taps: int) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """(10, K, LANES) constants and (K, LANES) frame positions of lanes without a pixel (``_idle_slot``)."""
-    consts, frame = np.empty((columns, taps, LANES)), np.empty((taps, LANES), np.int64)
+def _idle_lanes(columns: int, taps: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """(10, K, LANES) constants and two (K, LANES) frame positions (row- and column-major) of lanes
+    without a pixel (``_idle_slot``)."""
+    consts, frame, frame_t = np.empty((columns, taps, LANES)), np.empty((taps, LANES), np.int64), np.empty((taps, LANES), np.int64)
     for q in range(taps):
         for k in range(LANES):
-            _idle_slot(consts, frame, q, k)
-    return consts, frame
+            _idle_slot(consts, frame, frame_t, q, k)
+    return consts, frame, frame_t
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _load_lane(
-    consts: np.ndarray, frame: np.ndarray, k: int, p: int, values: np.ndarray, weight: np.ndarray, pixel: np.ndarray,
-    index: np.ndarray,
+    consts: np.ndarray, frame: np.ndarray, frame_t: np.ndarray, k: int, p: int, values: np.ndarray,
+    weight: np.ndarray, pixel: np.ndarray, index: np.ndarray, index_t: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
     """Lane ``k`` takes event pixel ``p``: per slot of its footprint (``Footprints``), the frame
     pixel's ``FrameConstants.values`` with the greys times the slot's area weight, and its flat
-    position (``index``); an unused slot is idle (``_idle_slot``: adds nothing)."""
+    positions row- and column-major (``index``, ``index_t``); an unused slot is idle (``_idle_slot``:
+    adds nothing)."""
     for q in range(pixel.shape[1]):
         f = pixel[p, q]
         if f < 0:
-            _idle_slot(consts, frame, q, k)
+            _idle_slot(consts, frame, frame_t, q, k)
             continue
         for col in range(values.shape[1]):
             consts[col, q, k] = values[f, col]
         consts[GREY_DIFFUSE, q, k] *= weight[p, q]
         consts[GREY_SPECULAR, q, k] *= weight[p, q]
         frame[q, k] = index[f]
+        frame_t[q, k] = index_t[f]
 
 
 # Rows of ``_fire_lanes``' output per lane: events, level of the first, level between them, the line's
@@ -353,40 +361,54 @@ _TINY = np.finfo(np.float64).tiny
 
 @numba.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _lit_shadow(
-    values: np.ndarray, index: np.ndarray, sin_e: float, openness: np.ndarray, grid_light: np.ndarray,
+    values: np.ndarray, index: np.ndarray, index_t: np.ndarray, sin_e: float, openness: np.ndarray,
+    column_major: np.ndarray, grid_light: np.ndarray,
 ) -> np.ndarray:  # pragma: no cover - compiled
     """(H·W,) uint64: bit i set where a cast shadow falls on the frame pixel while it is lit between
     grid times i and i + 1 of the table (V < 1 at one of them, next to a grid time where n·l > 0: a
     shadow inside the attached shadow changes nothing, as on the far side of a sphere); intervals
     past the 64th share the last bit. ``grid_light`` (rows, 3): the light's x and y at each grid
     time of the table and how far n·l may exceed its values at the grid times around (n·l is a
-    sinusoid in the azimuth). ``values`` are the masked pixels' ``FrameConstants``, ``index`` their
-    flat positions, the columns of ``openness``."""
-    rows = openness.shape[0]
+    sinusoid in the azimuth). ``values`` are the masked pixels' ``FrameConstants``, ``index`` and
+    ``index_t`` their flat positions row- and column-major, the columns of ``openness``'s rows without
+    and with ``column_major`` (``Renderer.frame_openness``)."""
+    rows, span = openness.shape
     pixels = index.size
-    out = np.zeros(openness.shape[1], np.uint64)
+    out = np.zeros(span, np.uint64)
     run_pixels = PIXELS_PER_TASK * 16
+    # the least V of the column-major rows (SIMD, in runs of their columns), then per masked pixel
+    least_major = np.full(span, np.float32(np.inf), np.float32)
+    for run in numba.prange((span + run_pixels - 1) // run_pixels):
+        part = least_major[run * run_pixels: (run + 1) * run_pixels]
+        for row in range(rows):
+            if column_major[row]:
+                line = openness[row, run * run_pixels: run * run_pixels + part.size]
+                for j in range(part.size):
+                    part[j] = min(part[j], line[j])
     for run in numba.prange((pixels + run_pixels - 1) // run_pixels):
         first, last = run * run_pixels, min((run + 1) * run_pixels, pixels)
         # the least V of each column the run's pixels span (``index`` increases), along the table's
-        # rows (SIMD): most pixels are never shadowed in a block and are done with there
+        # row-major rows (SIMD): most pixels are never shadowed in a block and are done with there
         start = index[first]
         least = np.full(index[last - 1] + 1 - start, np.float32(np.inf), np.float32)
         for row in range(rows):
+            if column_major[row]:
+                continue
             line = openness[row, start: start + least.size]
             for j in range(least.size):
                 least[j] = min(least[j], line[j])
         lit = np.empty(rows, np.bool_)
         for f in range(first, last):
-            column = index[f]
-            if least[column - start] >= 1.0:
+            column, column_t = index[f], index_t[f]
+            if least[column - start] >= 1.0 and least_major[column_t] >= 1.0:
                 continue
             for row in range(rows):
                 nl = values[f, NX] * grid_light[row, 0] + values[f, NY] * grid_light[row, 1] + values[f, NZ] * sin_e
                 lit[row] = nl > -grid_light[row, 2]
             # the light first: on a sphere's far side the whole table is below one but nothing is lit
             for row in range(rows):
-                if (lit[max(row - 1, 0)] or lit[row] or lit[min(row + 1, rows - 1)]) and openness[row, column] < 1.0:
+                v = openness[row, column_t if column_major[row] else column]
+                if (lit[max(row - 1, 0)] or lit[row] or lit[min(row + 1, rows - 1)]) and v < 1.0:
                     for interval in range(max(row - 1, 0), min(row + 1, rows - 1)):
                         out[column] |= np.uint64(1) << np.uint64(min(interval, 63))
     return out
@@ -425,9 +447,10 @@ def _next_try(h: float, left: float, min_dt: float) -> float:  # pragma: no cove
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _advance_pixels(
     order: np.ndarray, first: int, last: int, ta: float, tb: float, values: np.ndarray, weight: np.ndarray,
-    pixel: np.ndarray, index: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray, grid: tuple,
-    reach: np.ndarray, c_pos: np.ndarray, c_neg: np.ndarray, refractory_us: float, eps: float, max_dlog: float,
-    min_dt: float, max_dt: float, grid_dt: float, level: np.ndarray, hi: np.ndarray, lo: np.ndarray,
+    pixel: np.ndarray, index: np.ndarray, index_t: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray,
+    column_major: np.ndarray, grid: tuple, reach: np.ndarray, c_pos: np.ndarray, c_neg: np.ndarray,
+    refractory_us: float, eps: float, max_dlog: float, min_dt: float, max_dt: float, grid_dt: float,
+    level: np.ndarray, hi: np.ndarray, lo: np.ndarray,
     blind_until: np.ndarray, step: np.ndarray, slope: np.ndarray, shade: np.ndarray, sums: np.ndarray,
     out_t: np.ndarray, out_p: np.ndarray, count: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
@@ -448,7 +471,7 @@ def _advance_pixels(
     shadows = np.zeros(w, np.uint64)
     shadowed = np.zeros(w, np.bool_)
     cos_az, sin_az = np.ones(w), np.zeros(w)
-    consts, frame = _idle_lanes(values.shape[1], taps)
+    consts, frame, frame_t = _idle_lanes(values.shape[1], taps)
     last_shade, l_sums = np.zeros((2, taps, w)), np.zeros((2, taps, w))
     # the trial sample
     t1, cos1, sin1, l1, grey = np.empty(w), np.empty(w), np.empty(w), np.empty(w), np.empty(w)
@@ -470,7 +493,7 @@ def _advance_pixels(
             p = order[taken]
             taken += 1
             lane[k], active[k] = p, True
-            _load_lane(consts, frame, k, p, values, weight, pixel, index)
+            _load_lane(consts, frame, frame_t, k, p, values, weight, pixel, index, index_t)
             # a pixel on which no cast shadow falls while lit during the block skips the table, and
             # one whose shadows come and go steps short only around them
             shadows[k] = 0
@@ -494,7 +517,8 @@ def _advance_pixels(
             cos_d, sin_d = _turn(omega * (t1[k] - t[k]))
             cos1[k] = cos_az[k] * cos_d - sin_az[k] * sin_d
             sin1[k] = sin_az[k] * cos_d + cos_az[k] * sin_d
-        _shade_lanes(t1, cos1, sin1, consts, frame, shadowed, specular, ring, openness, grid, eps, now, grey)
+        _shade_lanes(t1, cos1, sin1, consts, frame, frame_t, shadowed, specular, ring, openness, column_major, grid, eps,
+                     now, grey)
         _log_lanes(grey, l1, exponent, mantissa)
         # step control: a step whose change or bend is too large is shortened and tried again
         for k in range(w):
@@ -552,9 +576,10 @@ def _advance_pixels(
 @numba.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _advance(
     order: np.ndarray, ta: float, tb: float, values: np.ndarray, weight: np.ndarray, pixel: np.ndarray,
-    index: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray, grid: tuple, reach: np.ndarray,
-    c_pos: np.ndarray, c_neg: np.ndarray, refractory_us: float, eps: float, max_dlog: float, min_dt: float,
-    max_dt: float, grid_dt: float, level: np.ndarray, hi: np.ndarray, lo: np.ndarray, blind_until: np.ndarray,
+    index: np.ndarray, index_t: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray,
+    column_major: np.ndarray, grid: tuple, reach: np.ndarray, c_pos: np.ndarray, c_neg: np.ndarray,
+    refractory_us: float, eps: float, max_dlog: float, min_dt: float, max_dt: float, grid_dt: float,
+    level: np.ndarray, hi: np.ndarray, lo: np.ndarray, blind_until: np.ndarray,
     step: np.ndarray, slope: np.ndarray, shade: np.ndarray, sums: np.ndarray, out_t: np.ndarray, out_p: np.ndarray,
     count: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
@@ -565,20 +590,21 @@ def _advance(
     for task in numba.prange(tasks):
         first = task * PIXELS_PER_TASK
         _advance_pixels(order, first, min(first + PIXELS_PER_TASK, order.shape[0]), ta, tb, values, weight, pixel,
-                        index, specular, ring, openness, grid, reach, c_pos, c_neg, refractory_us, eps, max_dlog,
-                        min_dt, max_dt, grid_dt, level, hi, lo, blind_until, step, slope, shade, sums, out_t, out_p,
-                        count)
+                        index, index_t, specular, ring, openness, column_major, grid, reach, c_pos, c_neg,
+                        refractory_us, eps, max_dlog, min_dt, max_dt, grid_dt, level, hi, lo, blind_until, step, slope,
+                        shade, sums, out_t, out_p, count)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _start(
-    t_us: float, values: np.ndarray, weight: np.ndarray, pixel: np.ndarray, index: np.ndarray, specular: bool,
-    ring: tuple, openness: np.ndarray, grid: tuple, shadows: bool, eps: float, level: np.ndarray, shade: np.ndarray,
+    t_us: float, values: np.ndarray, weight: np.ndarray, pixel: np.ndarray, index: np.ndarray, index_t: np.ndarray,
+    specular: bool, ring: tuple, openness: np.ndarray, column_major: np.ndarray, grid: tuple, shadows: bool,
+    eps: float, level: np.ndarray, shade: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
     """Levels and slot shading at ``t_us`` (the start of the simulation), ``LANES`` pixels at a time
     as ``_advance_pixels`` shades them."""
     taps = pixel.shape[1]
-    consts, frame = _idle_lanes(values.shape[1], taps)
+    consts, frame, frame_t = _idle_lanes(values.shape[1], taps)
     azimuth = ring[2] + ring[3] * (t_us - ring[4])
     t1, cos_az, sin_az = np.full(LANES, t_us), np.full(LANES, math.cos(azimuth)), np.full(LANES, math.sin(azimuth))
     shadowed = np.full(LANES, shadows)
@@ -587,8 +613,9 @@ def _start(
     for first in range(0, pixel.shape[0], LANES):
         used = min(LANES, pixel.shape[0] - first)
         for k in range(used):
-            _load_lane(consts, frame, k, first + k, values, weight, pixel, index)
-        _shade_lanes(t1, cos_az, sin_az, consts, frame, shadowed, specular, ring, openness, grid, eps, now, grey)
+            _load_lane(consts, frame, frame_t, k, first + k, values, weight, pixel, index, index_t)
+        _shade_lanes(t1, cos_az, sin_az, consts, frame, frame_t, shadowed, specular, ring, openness, column_major, grid,
+                     eps, now, grey)
         _log_lanes(grey, l1, exponent, mantissa)
         for k in range(used):
             level[first + k] = l1[k]
@@ -744,17 +771,20 @@ def _ring(light: RingLight) -> tuple[float, ...]:
             hh / (hh + HALF_EPS), HALF_EPS / (hh + HALF_EPS))
 
 
-def _shadow_table(renderer: Renderer, ta: float, tb: float) -> tuple[np.ndarray, tuple[float, float]]:
+def _shadow_table(renderer: Renderer, ta: float, tb: float) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
     """Unclipped visibility (``render._openness`` of the shadow margins) of the frame pixels at the
-    grid times around [ta, tb], (N, H·W) float32 rows for keys first, first + 1, … (the renderer's
-    sweep buffer, valid until its next sweep), and the grid (step µs, first key): V at a time is the
-    linear mix of the two rows around it, clipped to [0, 1]. Without cast shadows two rows of ones
-    (V = 1 everywhere)."""
+    grid times around [ta, tb]: (N, H·W) float32 rows for keys first, first + 1, … (the renderer's
+    sweep buffer, valid until its next sweep), which of them are column-major (N,) (see
+    ``Renderer.frame_openness``), and the grid (step µs, first key): V at a time is the linear mix
+    of the two rows around it, clipped to [0, 1]. Without cast shadows two rows of ones (V = 1
+    everywhere)."""
     if not renderer.shadows:
-        return np.ones((2, renderer.maps.height * renderer.maps.width), dtype=np.float32), (1.0, 0.0)
+        return (np.ones((2, renderer.maps.height * renderer.maps.width), dtype=np.float32), np.zeros(2, np.bool_),
+                (1.0, 0.0))
     step = float(renderer.shadow_step_us)  # type: ignore[arg-type]
     first = math.floor(ta / step)
-    return renderer.frame_openness(np.arange(first, math.floor(tb / step) + 2)), (step, float(first))
+    openness, column_major = renderer.frame_openness(np.arange(first, math.floor(tb / step) + 2))
+    return openness, column_major, (step, float(first))
 
 
 def _grid_light(ring: tuple, rows: int, grid: tuple[float, float]) -> np.ndarray:
@@ -815,14 +845,15 @@ def simulate_ring(
     n_events = height * width
     c_pos, c_neg = draw_thresholds(event_rngs(seed)[0], contrast_pos, contrast_neg, sigma, n_events)
     ring = _ring(light)
-    openness, grid = _shadow_table(renderer, 0.0, 0.0)
+    index_t = renderer.column_major_index
+    openness, column_major, grid = _shadow_table(renderer, 0.0, 0.0)
     state = PixelState(
         level=np.empty(n_events), hi=np.empty(n_events), lo=np.empty(n_events),
         blind_until_us=np.full(n_events, np.inf), step_us=np.full(n_events, max_dt_us / 4.0),
         slope=np.full(n_events, np.nan), shade=np.zeros((*feet.pixel.shape, 2)), sums=np.zeros((*feet.pixel.shape, 2)),
     )
-    _start(0.0, constants.values, feet.weight, feet.pixel, renderer.index, constants.specular, ring, openness, grid,
-           renderer.shadows, eps, state.level, state.shade)
+    _start(0.0, constants.values, feet.weight, feet.pixel, renderer.index, index_t, constants.specular, ring, openness,
+           column_major, grid, renderer.shadows, eps, state.level, state.shade)
     state.hi[:] = state.level + c_pos
     state.lo[:] = state.level - c_neg
     if capacity is None:
@@ -839,16 +870,17 @@ def simulate_ring(
             tb = min(end, ta + block_us)
             if end - tb < 0.25 * block_us:
                 tb = end
-            openness, grid = _shadow_table(renderer, ta, tb)
-            reach = _lit_shadow(constants.values, renderer.index, ring[1], openness,
+            openness, column_major, grid = _shadow_table(renderer, ta, tb)
+            reach = _lit_shadow(constants.values, renderer.index, index_t, ring[1], openness, column_major,
                                 _grid_light(ring, openness.shape[0], grid))
             state.copy_to(saved)
             order = everyone
             while True:
                 with numba.parallel_chunksize(1):
-                    _advance(order, ta, tb, constants.values, feet.weight, feet.pixel, renderer.index,
-                             constants.specular, ring, openness, grid, reach, c_pos, c_neg, float(refractory_us),
-                             float(eps), float(max_dlog), float(min_dt_us), float(max_dt_us), grid_dt_us,
+                    _advance(order, ta, tb, constants.values, feet.weight, feet.pixel, renderer.index, index_t,
+                             constants.specular, ring, openness, column_major, grid, reach, c_pos, c_neg,
+                             float(refractory_us), float(eps), float(max_dlog), float(min_dt_us), float(max_dt_us),
+                             grid_dt_us,
                              state.level, state.hi, state.lo, state.blind_until_us, state.step_us, state.slope,
                              state.shade, state.sums, out_t, out_p, count)
                 order = np.flatnonzero(count > capacity)

@@ -12,6 +12,7 @@ from pstoolkit.options import defaults
 from pstoolkit.plugins import get_registries
 from pstoolkit.render import (
     Renderer,
+    ShadowCaster,
     area_weights,
     cast_shadow_mask,
     exposure_samples,
@@ -67,6 +68,26 @@ def test_shadow_region_matches_the_geometry_within_a_pixel_from_any_side() -> No
             to_edge = np.where(reference, distance_transform_edt(reference), distance_transform_edt(~reference))
             wrong = (shadow != reference) & ~beside_block
             assert not wrong.any() or to_edge[wrong].max() <= 1.0, (azimuth, elevation)
+
+
+def test_column_major_margins_are_the_transposed_maps_of_the_lights_along_the_rows() -> None:
+    """``margins(column_major=True)`` stores the maps of lights running more along the image rows
+    (|l_x| ≥ |l_y|) transposed, the others as they are, equal to the row-major sweep in every
+    orientation, on a map that is not square, in margins and in V."""
+    depth, mask = block_on_plane(48)
+    depth, mask = depth[:, :41], mask[:, :41]
+    lights = np.concatenate([direction(a, 35.0) for a in np.arange(0.0, 360.0, 11.0)] + [direction(0.0, 90.0)])
+    caster = ShadowCaster(depth, mask)
+    major = ShadowCaster.column_major_lights(lights)
+    np.testing.assert_array_equal(major[:-1], np.abs(lights[:-1, 0]) >= np.abs(lights[:-1, 1]))
+    assert not major[-1]
+    for openness in (False, True):
+        rows = caster.margins(lights, openness=openness)
+        stored = caster.margins(lights, openness=openness, column_major=True)
+        assert (rows[:-1].min(axis=(1, 2)) < rows[:-1].max(axis=(1, 2))).all()
+        for g in range(len(lights)):
+            got = stored[g].reshape(41, 48).T if major[g] else stored[g]
+            np.testing.assert_array_equal(got, rows[g], err_msg=f"light {g}")
 
 
 def test_convex_sphere_casts_no_shadow_on_its_lit_side_and_overhead_light_none_at_all() -> None:

@@ -76,18 +76,28 @@ def test_shadow_grid_is_exact_on_the_grid_and_keeps_frames_within_half_a_percent
     assert np.abs(coarse - dense).max() > 2 * np.abs(frame - dense).max()
 
 
+def _row_major(renderer: Renderer, table: np.ndarray, column_major: np.ndarray) -> np.ndarray:
+    """``frame_openness``'s rows, the column-major ones transposed back to row-major."""
+    h, w = renderer.maps.height, renderer.maps.width
+    return np.stack([row.reshape(w, h).T.ravel() if major else row for row, major in zip(table, column_major)])
+
+
 def test_frame_openness_in_the_reused_buffer_equals_a_fresh_sweep() -> None:
     """``grid_openness`` sweeps each grid time anew; ``frame_openness`` sweeps into the renderer's
-    buffer, and reusing it for other times changes nothing."""
+    buffer, and reusing it for other times changes nothing. Its rows of lights that run more along
+    the image rows than its columns are column-major, the others row-major."""
     maps = Blobs().build(48, 1, **defaults(Blobs.options))
     keys = [np.arange(0, 12), np.arange(40, 45), np.arange(100, 112)]
     fresh = [Renderer(maps, light(), GGX(), shadow_step_us=grid_step(1.0)).grid_openness(k) for k in keys]
     reused = Renderer(maps, light(), GGX(), shadow_step_us=grid_step(1.0))
-    buffer = reused.frame_openness(keys[0])
+    buffer, _ = reused.frame_openness(keys[0])
     for k, expected in zip(keys, fresh):
-        got = reused.frame_openness(k)
+        got, column_major = reused.frame_openness(k)
         assert np.shares_memory(got, buffer)
-        np.testing.assert_array_equal(got[:, reused.index], expected)
+        direction, _ = reused.light.evaluate(k * grid_step(1.0))
+        np.testing.assert_array_equal(column_major, np.abs(direction[:, 0]) >= np.abs(direction[:, 1]))
+        np.testing.assert_array_equal(_row_major(reused, got, column_major)[:, reused.index], expected)
+        np.testing.assert_array_equal(got[column_major][:, reused.column_major_index], expected[column_major])
     assert (fresh[0] < 1.0).any() and (fresh[0] >= 1.0).any()
 
 
@@ -95,9 +105,11 @@ def test_frame_openness_holds_every_frame_pixel() -> None:
     """``frame_openness`` is ``grid_openness`` at the masked pixels' flat positions; pixels outside
     the mask (a sphere's corners) are open."""
     renderer = Renderer(Sphere().build(40, 0, **defaults(Sphere.options)), light(), GGX(), shadow_step_us=grid_step(1.0))
-    keys = np.arange(30, 40)
-    frame = renderer.frame_openness(keys)
-    assert frame.shape == (10, 40 * 40) and renderer.pixels < 40 * 40
+    keys = np.arange(30, 70)
+    table, column_major = renderer.frame_openness(keys)
+    assert table.shape == (40, 40 * 40) and renderer.pixels < 40 * 40
+    assert column_major.any() and not column_major.all()
+    frame = _row_major(renderer, table, column_major)
     np.testing.assert_array_equal(frame[:, renderer.index], renderer.grid_openness(keys))
     assert (np.delete(frame, renderer.index, axis=1) > 1.0).all()
     assert (frame[:, renderer.index] < 1.0).any()

@@ -179,8 +179,8 @@ def test_only_shadows_on_lit_pixels_shorten_the_steps() -> None:
         r = renderer(scene, GGX())
         constants = simkernel.frame_constants(r)
         ring = simkernel._ring(r.light)  # type: ignore[arg-type]
-        openness, grid = simkernel._shadow_table(r, 0.0, PERIOD_US)
-        reach = simkernel._lit_shadow(constants.values, r.index, ring[1], openness,
+        openness, column_major, grid = simkernel._shadow_table(r, 0.0, PERIOD_US)
+        reach = simkernel._lit_shadow(constants.values, r.index, r.column_major_index, ring[1], openness, column_major,
                                       simkernel._grid_light(ring, openness.shape[0], grid))
         assert (openness < 1.0).any()
         assert reach.any() == reached
