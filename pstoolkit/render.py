@@ -341,7 +341,7 @@ class Renderer:
             "f0": maps.f0.reshape(-1, 3),
             "roughness": maps.roughness.reshape(-1, 1),
         }
-        self._t = {k: self._tensor(v[self.index]) for k, v in flat.items()}
+        self._t = {k: self._tensor(np.take(v, self.index, axis=0)) for k, v in flat.items()}
         self._view = self._tensor(np.array([0.0, 0.0, 1.0]))
         self._points: np.ndarray | None = None
         if light.near:

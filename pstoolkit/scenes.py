@@ -189,8 +189,9 @@ class Blobs:
             h += g
             dh_dx -= g * (x - cx) / (s * s)
             dh_dy -= g * (y - cy) / (s * s)
-        normal = np.stack([-dh_dx, -dh_dy, np.ones_like(h)], axis=-1)
-        normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+        # (−∂h/∂x, −∂h/∂y, 1) / its length, summed as np.linalg.norm sums, without (H, W, 3) temporaries
+        length = np.sqrt(dh_dx * dh_dx + dh_dy * dh_dy + 1.0)
+        normal = np.stack([-dh_dx / length, -dh_dy / length, 1.0 / length], axis=-1)
         mask = np.ones((size, size), bool)
         materials = build_materials(mask, rng, options)
         return assemble(normal, h * size, mask, materials)
