@@ -305,6 +305,8 @@ class Renderer:
 
     Speed (the simulator renders thousands of times per light turn):
 
+    - A scene without self-shadowing (``SceneMaps.self_shadowing``, a convex surface) has no cast
+      shadows to compute: ``shadows`` is then False whatever is asked.
     - ``shadow_step_us`` (optional) puts the cast-shadow sweeps on a time grid of that step: the
       margin of ``shadow_margin`` (continuous in the light direction by design) is computed at the
       grid times, kept in a bounded cache, and interpolated linearly in between. One sweep then serves
@@ -330,7 +332,8 @@ class Renderer:
         self.maps = maps
         self.light = light
         self.brdf = brdf
-        self.shadows = shadows
+        # a surface that cannot shadow itself needs no sweeps: its V is 1 wherever it faces the light
+        self.shadows = shadows and maps.self_shadowing
         self.device = torch.device(device)
         self.dtype = dtype
         self.shadow_step_us = shadow_step_us

@@ -37,7 +37,9 @@ class SceneMaps:
     ``depth`` (H, W) float32 height towards the camera in pixels, ``mask`` (H, W) bool, ``albedo``
     (H, W, 3) and ``f0`` (H, W, 3) float32 in [0, 1], ``roughness`` (H, W) float32, ``metallic``
     (H, W) float32 (already folded into albedo and F0; kept as ground truth). Outside the mask every
-    map is 0."""
+    map is 0. ``self_shadowing`` False declares a surface that cannot cast a shadow on itself (a
+    convex one, whose every point below a line of sight to the light faces away from it): the
+    renderer then spends no time on cast shadows."""
 
     normal: np.ndarray
     depth: np.ndarray
@@ -46,6 +48,7 @@ class SceneMaps:
     f0: np.ndarray
     roughness: np.ndarray
     metallic: np.ndarray
+    self_shadowing: bool = True
 
     @property
     def height(self) -> int:
@@ -126,7 +129,10 @@ def pixel_grid(size: int) -> tuple[np.ndarray, np.ndarray]:
     return np.meshgrid(c, 1.0 - c)
 
 
-def assemble(normal: np.ndarray, depth: np.ndarray, mask: np.ndarray, materials: dict[str, np.ndarray]) -> SceneMaps:
+def assemble(
+    normal: np.ndarray, depth: np.ndarray, mask: np.ndarray, materials: dict[str, np.ndarray], *,
+    self_shadowing: bool = True,
+) -> SceneMaps:
     """SceneMaps with geometry zeroed outside the mask and dtypes fixed."""
     mask = np.asarray(mask, bool)
     return SceneMaps(
@@ -134,12 +140,14 @@ def assemble(normal: np.ndarray, depth: np.ndarray, mask: np.ndarray, materials:
         depth=(np.asarray(depth, np.float32) * mask).astype(np.float32),
         mask=mask,
         **materials,
+        self_shadowing=self_shadowing,
     )
 
 
 class Sphere:
-    """A sphere on a black background, seen from the top: no cast shadows, every normal of the
-    visible hemisphere (like DiLiGenT's ball)."""
+    """A sphere on a black background, seen from the top: every normal of the visible hemisphere
+    (like DiLiGenT's ball), and no cast shadows: a convex surface shadows only where it faces away
+    from the light, so it is built without self-shadowing."""
 
     name: ClassVar[str] = "sphere"
     summary: ClassVar[str] = "sphere on a black background (all normals of a hemisphere, no cast shadows)"
@@ -158,7 +166,7 @@ class Sphere:
         z = np.sqrt(np.clip(1.0 - r2, 0.0, None))
         normal = np.stack([x, y, z], axis=-1)
         materials = build_materials(mask, np.random.default_rng(seed), options)
-        return assemble(normal, radius_px * z, mask, materials)
+        return assemble(normal, radius_px * z, mask, materials, self_shadowing=False)
 
 
 class Blobs:

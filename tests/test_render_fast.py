@@ -131,7 +131,7 @@ def test_single_event_pixels_equal_the_event_frame(event_scale: float) -> None:
 
 
 def test_event_pixels_need_a_shadow_grid_and_a_closed_form_brdf() -> None:
-    maps = Sphere().build(32, 0, **defaults(Sphere.options))
+    maps = Blobs().build(32, 0, **defaults(Blobs.options))
     assert not Renderer(maps, light(), GGX()).event_pixels_supported
     assert not Renderer(maps, light(), GenericGGX(), shadow_step_us=100.0).event_pixels_supported
     assert Renderer(maps, light(), Lambertian(), shadows=False).event_pixels_supported

@@ -3,6 +3,7 @@ engine (``Renderer`` + ``pstoolkit.esim``) and dense frame integrals."""
 
 from __future__ import annotations
 
+import dataclasses
 import tempfile
 from pathlib import Path
 
@@ -177,6 +178,8 @@ def test_only_shadows_on_lit_pixels_shorten_the_steps() -> None:
     so no pixel counts as reached by a cast shadow; the blobs cast shadows on lit pixels."""
     for scene, reached in ((Sphere(), False), (Blobs(), True)):
         r = renderer(scene, GGX())
+        # the sphere declares that it casts no shadows; swept all the same, the table says so
+        r = Renderer(dataclasses.replace(r.maps, self_shadowing=True), r.light, r.brdf, shadow_step_us=r.shadow_step_us)
         constants = simkernel.frame_constants(r)
         ring = simkernel._ring(r.light)  # type: ignore[arg-type]
         openness, column_major, grid = simkernel._shadow_table(r, 0.0, PERIOD_US)
@@ -184,6 +187,22 @@ def test_only_shadows_on_lit_pixels_shorten_the_steps() -> None:
                                       simkernel._grid_light(ring, openness.shape[0], grid))
         assert (openness < 1.0).any()
         assert reach.any() == reached
+
+
+def test_a_sphere_without_self_shadowing_is_simulated_as_with_it() -> None:
+    """The sphere declares no self-shadowing, so no shadow table is swept for it; swept all the same,
+    its events and window sums are the same bytes (a convex surface shadows only where it is unlit)."""
+    r = renderer(Sphere(), GGX())
+    assert not r.maps.self_shadowing and not r.shadows
+    swept = Renderer(dataclasses.replace(r.maps, self_shadowing=True), r.light, r.brdf, shadow_step_us=r.shadow_step_us)
+    assert swept.shadows
+    events, sums = run(r)
+    swept_events, swept_sums = run(swept)
+    assert len(events) > 5000
+    for c in "xytp":
+        np.testing.assert_array_equal(getattr(events, c), getattr(swept_events, c))
+    for a, b in zip(sums, swept_sums, strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_supported_only_for_the_closed_form_on_the_cpu() -> None:
