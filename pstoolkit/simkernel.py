@@ -731,22 +731,39 @@ def frame_constants(renderer: Renderer) -> FrameConstants:
 def footprints(renderer: Renderer, event_scale: float) -> Footprints:
     """The event pixels' frame pixels (``Renderer.footprint``), unused slots last and marked −1, and
     each frame pixel's owner: the event pixel covering most of it (the first such on a tie)."""
-    position, weight = (a.cpu().numpy() for a in renderer.footprint(event_scale))
-    used = weight > 0
-    order = np.argsort(~used, axis=1, kind="stable")
-    position = np.take_along_axis(position, order, axis=1)
-    weight = np.take_along_axis(weight, order, axis=1)
-    used = np.take_along_axis(used, order, axis=1)
-    pixel = np.where(used, position, -1)
-    flat = np.flatnonzero(used.ravel())
-    # among each frame pixel's slots the largest weight wins; lexsort puts it first
-    by_pixel = np.lexsort((-weight.ravel()[flat], pixel.ravel()[flat]))
-    slots = flat[by_pixel]
-    first = np.ones(slots.size, dtype=bool)
-    first[1:] = pixel.ravel()[slots][1:] != pixel.ravel()[slots][:-1]
-    owned = np.zeros(pixel.size, dtype=bool)
-    owned[slots[first]] = True
-    return Footprints(np.ascontiguousarray(pixel), np.ascontiguousarray(weight), owned.reshape(pixel.shape))
+    position, weight = (np.ascontiguousarray(a.cpu().numpy()) for a in renderer.footprint(event_scale))
+    pixel, ordered, owned = np.empty_like(position), np.empty_like(weight), np.zeros(position.shape, np.bool_)
+    _order_slots(position, weight, renderer.pixels, pixel, ordered, owned)
+    return Footprints(pixel, ordered, owned)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _order_slots(
+    position: np.ndarray, weight: np.ndarray, pixels: int, pixel: np.ndarray, ordered: np.ndarray, owned: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """``footprints`` in one pass over the (E, K) slots: each event pixel's used slots (weight > 0)
+    first, in their order, then the unused (position −1); the slot with a frame pixel's largest
+    weight owns it, the first in flat order on a tie."""
+    best = np.full(pixels, -np.inf)
+    owner = np.full(pixels, -1, np.int64)
+    taps = position.shape[1]
+    for e in range(position.shape[0]):
+        j = 0
+        for used in (True, False):
+            for q in range(taps):
+                if (weight[e, q] > 0) == used:
+                    pixel[e, j] = position[e, q] if used else -1
+                    ordered[e, j] = weight[e, q]
+                    j += 1
+        for q in range(taps):
+            f = pixel[e, q]
+            if f >= 0 and ordered[e, q] > best[f]:
+                best[f] = ordered[e, q]
+                owner[f] = e * taps + q
+    flat = owned.reshape(-1)
+    for f in range(pixels):
+        if owner[f] >= 0:
+            flat[owner[f]] = True
 
 
 def owner_slots(feet: Footprints) -> np.ndarray:
