@@ -47,7 +47,7 @@ MARGIN_CACHE_VALUES = 1 << 22
 # Keeps the half vector's normalisation finite when l = −v, as in ``pstoolkit.brdf``.
 _HALF_EPS = 1e-12
 # Columns a sweep gathers before writing them out (see ``_sweep``): 16 float32 fill a cache line; the
-# sweeps of untransposed maps took 40 % less time than writing column by column.
+# sweeps of untransposed maps stored row-major took 40 % less time than writing column by column.
 _TILE = 16
 _NO_OCCLUDER = -1e9
 _LOW_MARGIN = -1e3
@@ -117,25 +117,22 @@ def _sweep(
             if openness is not None:
                 for r in range(rows):
                     column_out[r] = one - (column_out[r] - bias) * fade
-            if c % _TILE == 0 and whole_rows:
+            if c % _TILE == 0:
                 # the tile holds columns c … c + filled − 1 of the oriented maps
                 filled = min(_TILE, cols - c)
-                if flip:
-                    for i in range(filled - 1, -1, -1):
-                        target[cols - 1 - c - i, :] = tile[i, :rows]
-                else:
+                if whole_rows:
                     for i in range(filled):
-                        target[c + i, :] = tile[i, :rows]
-            elif c % _TILE == 0:
-                filled = min(_TILE, cols - c)
-                for r in range(rows):
-                    line = target[r]
-                    if flip:
-                        for i in range(filled):
-                            line[cols - 1 - c - i] = tile[i, r]
-                    else:
-                        for i in range(filled):
-                            line[c + i] = tile[i, r]
+                        j = filled - 1 - i if flip else i
+                        target[cols - 1 - c - j if flip else c + j, :] = tile[j, :rows]
+                else:
+                    for r in range(rows):
+                        line = target[r]
+                        if flip:
+                            for i in range(filled):
+                                line[cols - 1 - c - i] = tile[i, r]
+                        else:
+                            for i in range(filled):
+                                line[c + i] = tile[i, r]
             i0 = int(np.floor(base))
             f = np.float32(base - i0)
             occluder = occluder_t[c]
