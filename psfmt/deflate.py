@@ -40,6 +40,11 @@ ISAL_ENCODER_LEVEL = 2
 PENDING_CHUNKS = 32
 
 
+def default_threads() -> int:
+    """Threads for compressing or inflating chunks: the CPUs, at most 8."""
+    return max(1, min(8, os.cpu_count() or 1))
+
+
 def deflate_chunk(block: np.ndarray, chunk: tuple[int, ...], level: int) -> bytes:
     """One chunk as HDF5's shuffle and deflate filters store it: ``block`` (at most ``chunk`` in each
     axis; an edge chunk is padded with zeros to the full chunk, as HDF5 keeps edge chunks whole),
@@ -90,7 +95,7 @@ class ChunkCompressor:
     queued; ``flush`` writes all that are queued. Datasets with other filters are written directly."""
 
     def __init__(self, threads: int | None = None) -> None:
-        self.threads = max(1, min(8, os.cpu_count() or 1) if threads is None else int(threads))
+        self.threads = default_threads() if threads is None else max(1, int(threads))
         self._pool: ThreadPoolExecutor | None = None
         self._pending: deque[tuple[h5py.Dataset, tuple[int, ...], Future[bytes]]] = deque()
         # what each dataset's writes need to know of it, read once: every h5py property is a lookup in

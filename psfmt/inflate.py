@@ -10,13 +10,12 @@ of a damaged file, are HDF5's own.
 
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 
 import h5py
 import numpy as np
 
-from psfmt.deflate import isal_zlib, shuffle_deflate_level
+from psfmt.deflate import default_threads, isal_zlib, shuffle_deflate_level
 
 _POOL: list[ThreadPoolExecutor] = []
 
@@ -24,7 +23,7 @@ _POOL: list[ThreadPoolExecutor] = []
 def _pool() -> ThreadPoolExecutor:
     """The inflating threads (the CPUs, at most 8), started at the first read that needs them."""
     if not _POOL:
-        _POOL.append(ThreadPoolExecutor(max(1, min(8, os.cpu_count() or 1)), thread_name_prefix="psfmt-inflate"))
+        _POOL.append(ThreadPoolExecutor(default_threads(), thread_name_prefix="psfmt-inflate"))
     return _POOL[0]
 
 

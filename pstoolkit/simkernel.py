@@ -450,9 +450,8 @@ def _advance_pixels(
     pixel: np.ndarray, index: np.ndarray, index_t: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray,
     column_major: np.ndarray, grid: tuple, reach: np.ndarray, c_pos: np.ndarray, c_neg: np.ndarray,
     refractory_us: float, eps: float, max_dlog: float, min_dt: float, max_dt: float, grid_dt: float,
-    level: np.ndarray, hi: np.ndarray, lo: np.ndarray,
-    blind_until: np.ndarray, step: np.ndarray, slope: np.ndarray, shade: np.ndarray, sums: np.ndarray,
-    out_t: np.ndarray, out_p: np.ndarray, count: np.ndarray,
+    level: np.ndarray, hi: np.ndarray, lo: np.ndarray, blind_until: np.ndarray, step: np.ndarray, slope: np.ndarray,
+    shade: np.ndarray, sums: np.ndarray, out_t: np.ndarray, out_p: np.ndarray, count: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
     """Event pixels ``order[first:last]`` from ``ta`` to ``tb``, ``LANES`` at a time: each lane
     steps its own pixel, and a lane's state sits at its index of arrays across the lanes, so the
@@ -897,9 +896,8 @@ def simulate_ring(
                     _advance(order, ta, tb, constants.values, feet.weight, feet.pixel, renderer.index, index_t,
                              constants.specular, ring, openness, column_major, grid, reach, c_pos, c_neg,
                              float(refractory_us), float(eps), float(max_dlog), float(min_dt_us), float(max_dt_us),
-                             grid_dt_us,
-                             state.level, state.hi, state.lo, state.blind_until_us, state.step_us, state.slope,
-                             state.shade, state.sums, out_t, out_p, count)
+                             grid_dt_us, state.level, state.hi, state.lo, state.blind_until_us, state.step_us,
+                             state.slope, state.shade, state.sums, out_t, out_p, count)
                 order = np.flatnonzero(count > capacity)
                 if order.size == 0:
                     break
