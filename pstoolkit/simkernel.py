@@ -47,6 +47,7 @@ from pstoolkit.esim import check_options, draw_thresholds, event_rngs
 from pstoolkit.eventmodel import GREY_WEIGHTS, LOG_EPS
 from pstoolkit.lights import US_PER_S, RingLight
 from pstoolkit.render import Renderer, event_shape
+from pstoolkit.worksharing import take_task
 
 # Columns of the per-frame-pixel constants (``FrameConstants.values``).
 NX, NY, NZ, GREY_DIFFUSE, GREY_SPECULAR, NORM2, ALPHA2_1, K, ONE_K, VIEW = range(10)
@@ -60,16 +61,23 @@ MAX_BEND = 4e-3
 # Event pixels handed to a thread at a time: pixels differ a lot in work (a dark background pixel
 # against one a shadow edge sweeps), so threads take chunks as they finish instead of equal shares;
 # a chunk is long enough that its lanes are seldom idle (a task's last pixels leave lanes without
-# work): 1024 took 5–10 % less time than 256 (256×256 blobs and sphere, refractory 0).
+# work): 1024 took 5–10 % less time than 256 and as long as 512 or 2048 (256×256 blobs and sphere,
+# refractory 0).
 PIXELS_PER_TASK = 1024
 # Pixels a task steps at once (see ``_advance_pixels``): 32 lanes took 20 % less time than 16, 10 %
 # less than 64 (256×256 blobs, one thread).
 LANES = 32
 # Length of a block of time, in shadow-grid intervals: one shadow table and one batch of events. Each
 # block ends with a sample of every pixel and costs a table, masks and an event sort: 60 took 7–9 %
-# less time than 32 (256×256 blobs and sphere, refractory 0), and a block's intervals still fit the
-# 64 bits of ``_lit_shadow``.
+# less time than 32 (256×256 blobs and sphere, refractory 0).
 BLOCK_GRID_STEPS = 60
+# Most grid times in a block's shadow table: one bit each in ``_lit_shadow``'s masks. A block of n
+# intervals that starts between grid times spans up to n + 3 of them, so a block is at most
+# ``TABLE_ROWS`` − 3 intervals long (a window's short last stretch joins the block before only within it).
+TABLE_ROWS = 64
+# Columns of the shadow table whose masks ``_lit_shadow`` builds at once: their 8 KiB of bits stay in
+# the L1 cache while the table's rows stream by.
+SHADOW_TILE = 1024
 # First room for events per pixel and block, and the most memory (bytes) it may take at first: a pixel
 # that fires more is run again, which cost 5–6 % more renders with room for 8 (256×256 sphere and
 # blobs at refractory 0) and, with 64, a widening of the room (a copy) in each blobs capture, whose
@@ -366,51 +374,46 @@ def _lit_shadow(
 ) -> np.ndarray:  # pragma: no cover - compiled
     """(H·W,) uint64: bit i set where a cast shadow falls on the frame pixel while it is lit between
     grid times i and i + 1 of the table (V < 1 at one of them, next to a grid time where n·l > 0: a
-    shadow inside the attached shadow changes nothing, as on the far side of a sphere); intervals
-    past the 64th share the last bit. ``grid_light`` (rows, 3): the light's x and y at each grid
-    time of the table and how far n·l may exceed its values at the grid times around (n·l is a
-    sinusoid in the azimuth). ``values`` are the masked pixels' ``FrameConstants``, ``index`` and
-    ``index_t`` their flat positions row- and column-major, the columns of ``openness``'s rows without
-    and with ``column_major`` (``Renderer.frame_openness``)."""
+    shadow inside the attached shadow changes nothing, as on the far side of a sphere); at most
+    ``TABLE_ROWS`` grid times. ``grid_light`` (3, rows): the light's x and y at each grid time of
+    the table and how far n·l may exceed its values at the grid times around (n·l is a sinusoid in
+    the azimuth). ``values`` are the masked pixels' ``FrameConstants``, ``index`` and ``index_t``
+    their flat positions row- and column-major, the columns of ``openness``'s rows without and with
+    ``column_major`` (``Renderer.frame_openness``)."""
     rows, span = openness.shape
+    if rows > TABLE_ROWS:
+        raise ValueError("_lit_shadow: a shadow table of more than TABLE_ROWS grid times")
     pixels = index.size
+    # bit r: V < 1 at grid time r, by column of the row-major rows and of the column-major ones; in
+    # tiles of columns whose bits stay in the L1 cache while the table's rows stream by (SIMD)
+    below = np.empty(span, np.uint64)
+    below_t = np.empty(span, np.uint64)
+    for tile in numba.prange((span + SHADOW_TILE - 1) // SHADOW_TILE):
+        start, stop = tile * SHADOW_TILE, min((tile + 1) * SHADOW_TILE, span)
+        bits, bits_t = below[start:stop], below_t[start:stop]
+        bits[:] = 0
+        bits_t[:] = 0
+        for row in range(rows):
+            line, target = openness[row, start:stop], bits_t if column_major[row] else bits
+            bit = np.uint64(1) << np.uint64(row)
+            for j in range(stop - start):
+                target[j] |= bit if line[j] < 1.0 else np.uint64(0)
     out = np.zeros(span, np.uint64)
-    run_pixels = PIXELS_PER_TASK * 16
-    # the least V of the column-major rows (SIMD, in runs of their columns), then per masked pixel
-    least_major = np.full(span, np.float32(np.inf), np.float32)
-    for run in numba.prange((span + run_pixels - 1) // run_pixels):
-        part = least_major[run * run_pixels: (run + 1) * run_pixels]
-        for row in range(rows):
-            if column_major[row]:
-                line = openness[row, run * run_pixels: run * run_pixels + part.size]
-                for j in range(part.size):
-                    part[j] = min(part[j], line[j])
-    for run in numba.prange((pixels + run_pixels - 1) // run_pixels):
-        first, last = run * run_pixels, min((run + 1) * run_pixels, pixels)
-        # the least V of each column the run's pixels span (``index`` increases), along the table's
-        # row-major rows (SIMD): most pixels are never shadowed in a block and are done with there
-        start = index[first]
-        least = np.full(index[last - 1] + 1 - start, np.float32(np.inf), np.float32)
-        for row in range(rows):
-            if column_major[row]:
+    light_x, light_y, slack = grid_light[0], grid_light[1], grid_light[2]
+    intervals = (np.uint64(1) << np.uint64(rows - 1)) - np.uint64(1)
+    # most pixels are never shadowed in a block and are done with at the first test
+    for run in numba.prange((pixels + PIXELS_PER_TASK - 1) // PIXELS_PER_TASK):
+        for f in range(run * PIXELS_PER_TASK, min((run + 1) * PIXELS_PER_TASK, pixels)):
+            shadow = below[index[f]] | below_t[index_t[f]]
+            if shadow == 0:
                 continue
-            line = openness[row, start: start + least.size]
-            for j in range(least.size):
-                least[j] = min(least[j], line[j])
-        lit = np.empty(rows, np.bool_)
-        for f in range(first, last):
-            column, column_t = index[f], index_t[f]
-            if least[column - start] >= 1.0 and least_major[column_t] >= 1.0:
-                continue
+            lit = np.uint64(0)
             for row in range(rows):
-                nl = values[f, NX] * grid_light[row, 0] + values[f, NY] * grid_light[row, 1] + values[f, NZ] * sin_e
-                lit[row] = nl > -grid_light[row, 2]
+                nl = values[f, NX] * light_x[row] + values[f, NY] * light_y[row] + values[f, NZ] * sin_e
+                lit |= (np.uint64(1) << np.uint64(row)) if nl > -slack[row] else np.uint64(0)
             # the light first: on a sphere's far side the whole table is below one but nothing is lit
-            for row in range(rows):
-                v = openness[row, column_t if column_major[row] else column]
-                if (lit[max(row - 1, 0)] or lit[row] or lit[min(row + 1, rows - 1)]) and v < 1.0:
-                    for interval in range(max(row - 1, 0), min(row + 1, rows - 1)):
-                        out[column] |= np.uint64(1) << np.uint64(min(interval, 63))
+            near = shadow & (lit | (lit << np.uint64(1)) | (lit >> np.uint64(1)))
+            out[index[f]] = (near | (near >> np.uint64(1))) & intervals
     return out
 
 
@@ -580,18 +583,26 @@ def _advance(
     refractory_us: float, eps: float, max_dlog: float, min_dt: float, max_dt: float, grid_dt: float,
     level: np.ndarray, hi: np.ndarray, lo: np.ndarray, blind_until: np.ndarray,
     step: np.ndarray, slope: np.ndarray, shade: np.ndarray, sums: np.ndarray, out_t: np.ndarray, out_p: np.ndarray,
-    count: np.ndarray,
+    count: np.ndarray, threads: int,
 ) -> None:  # pragma: no cover - compiled
     """The event pixels ``order`` from ``ta`` to ``tb`` (see the module docstring), ``PIXELS_PER_TASK``
-    to a task; state arrays are updated in place, events go to ``out_t``/``out_p`` and their numbers
-    to ``count``."""
+    to a task, each of the ``threads`` (numba's) taking the next task as it comes free
+    (``pstoolkit.worksharing``); state arrays are updated in place, events go to ``out_t``/``out_p``
+    and their numbers to ``count``."""
     tasks = (order.shape[0] + PIXELS_PER_TASK - 1) // PIXELS_PER_TASK
-    for task in numba.prange(tasks):
-        first = task * PIXELS_PER_TASK
-        _advance_pixels(order, first, min(first + PIXELS_PER_TASK, order.shape[0]), ta, tb, values, weight, pixel,
-                        index, index_t, specular, ring, openness, column_major, grid, reach, c_pos, c_neg,
-                        refractory_us, eps, max_dlog, min_dt, max_dt, grid_dt, level, hi, lo, blind_until, step, slope,
-                        shade, sums, out_t, out_p, count)
+    # set, not np.zeros: under parallel=True that would be a parallel loop of its own
+    taken = np.empty(1, np.int64)
+    taken[0] = 0
+    for _ in numba.prange(threads):
+        while True:
+            task = take_task(taken)
+            if task >= tasks:
+                break
+            first = task * PIXELS_PER_TASK
+            _advance_pixels(order, first, min(first + PIXELS_PER_TASK, order.shape[0]), ta, tb, values, weight, pixel,
+                            index, index_t, specular, ring, openness, column_major, grid, reach, c_pos, c_neg,
+                            refractory_us, eps, max_dlog, min_dt, max_dt, grid_dt, level, hi, lo, blind_until, step,
+                            slope, shade, sums, out_t, out_p, count)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -804,12 +815,12 @@ def _shadow_table(renderer: Renderer, ta: float, tb: float) -> tuple[np.ndarray,
 
 
 def _grid_light(ring: tuple, rows: int, grid: tuple[float, float]) -> np.ndarray:
-    """For ``_lit_shadow``: per grid time of a shadow table, the light's x and y and how far
+    """For ``_lit_shadow``, (3, rows): per grid time of a shadow table, the light's x and y and how far
     n·l may exceed the larger of its values at neighbouring grid times (``cos e·(ω·step)²``)."""
     cos_e, _, phase, omega, t0 = ring[:5]
     phi = phase + omega * ((grid[1] + np.arange(rows)) * grid[0] - t0)
     slack = np.full(rows, cos_e * (omega * grid[0]) ** 2)
-    return np.stack([cos_e * np.cos(phi), cos_e * np.sin(phi), slack], axis=1)
+    return np.stack([cos_e * np.cos(phi), cos_e * np.sin(phi), slack])
 
 
 def simulate_ring(
@@ -835,7 +846,8 @@ def simulate_ring(
     order (see the module docstring). ``renderer`` must be ``supported``. ``max_dlog`` defaults to
     half the smaller contrast, ``max_dt_us`` (the longest step away from the shadow-grid intervals in
     which a cast shadow falls on the pixel while it is lit; around those it steps at most one) to
-    ``MAX_STEP_TURNS`` of the turn, ``block_us`` to ``BLOCK_GRID_STEPS`` shadow-grid intervals;
+    ``MAX_STEP_TURNS`` of the turn, ``block_us`` to ``BLOCK_GRID_STEPS`` shadow-grid intervals (at
+    most ``TABLE_ROWS`` − 3);
     ``capacity`` is the first room for events per pixel and block (grown as needed; by default
     ``FIRST_ROOM`` within ``ROOM_BYTES``). Thresholds are drawn as ``pstoolkit.esim`` draws them for
     ``seed``."""
@@ -854,7 +866,8 @@ def simulate_ring(
     grid_dt_us = float(renderer.shadow_step_us or light.period_us / 360.0)
     if max_dt_us is None:
         max_dt_us = light.period_us * MAX_STEP_TURNS
-    block_us = BLOCK_GRID_STEPS * grid_dt_us if block_us is None else float(block_us)
+    longest_us = (TABLE_ROWS - 3) * grid_dt_us
+    block_us = min(BLOCK_GRID_STEPS * grid_dt_us if block_us is None else float(block_us), longest_us)
     constants = frame_constants(renderer)
     feet = footprints(renderer, event_scale)
     owner = owner_slots(feet)
@@ -863,6 +876,8 @@ def simulate_ring(
     ring = _ring(light)
     index_t = renderer.column_major_index
     openness, column_major, grid = _shadow_table(renderer, 0.0, 0.0)
+    # without cast shadows the table of ones stays, and no pixel is shadowed while lit
+    reach = np.zeros(openness.shape[1], np.uint64)
     state = PixelState(
         level=np.empty(n_events), hi=np.empty(n_events), lo=np.empty(n_events),
         blind_until_us=np.full(n_events, np.inf), step_us=np.full(n_events, max_dt_us / 4.0),
@@ -884,20 +899,20 @@ def simulate_ring(
     for end in ends:
         while ta < end:
             tb = min(end, ta + block_us)
-            if end - tb < 0.25 * block_us:
+            if end - tb < 0.25 * block_us and end - ta <= longest_us:
                 tb = end
-            openness, column_major, grid = _shadow_table(renderer, ta, tb)
-            reach = _lit_shadow(constants.values, renderer.index, index_t, ring[1], openness, column_major,
-                                _grid_light(ring, openness.shape[0], grid))
+            if renderer.shadows:
+                openness, column_major, grid = _shadow_table(renderer, ta, tb)
+                reach = _lit_shadow(constants.values, renderer.index, index_t, ring[1], openness, column_major,
+                                    _grid_light(ring, openness.shape[0], grid))
             state.copy_to(saved)
             order = everyone
             while True:
-                with numba.parallel_chunksize(1):
-                    _advance(order, ta, tb, constants.values, feet.weight, feet.pixel, renderer.index, index_t,
-                             constants.specular, ring, openness, column_major, grid, reach, c_pos, c_neg,
-                             float(refractory_us), float(eps), float(max_dlog), float(min_dt_us), float(max_dt_us),
-                             grid_dt_us, state.level, state.hi, state.lo, state.blind_until_us, state.step_us,
-                             state.slope, state.shade, state.sums, out_t, out_p, count)
+                _advance(order, ta, tb, constants.values, feet.weight, feet.pixel, renderer.index, index_t,
+                         constants.specular, ring, openness, column_major, grid, reach, c_pos, c_neg,
+                         float(refractory_us), float(eps), float(max_dlog), float(min_dt_us), float(max_dt_us),
+                         grid_dt_us, state.level, state.hi, state.lo, state.blind_until_us, state.step_us,
+                         state.slope, state.shade, state.sums, out_t, out_p, count, numba.get_num_threads())
                 order = np.flatnonzero(count > capacity)
                 if order.size == 0:
                     break

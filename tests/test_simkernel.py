@@ -182,11 +182,69 @@ def test_only_shadows_on_lit_pixels_shorten_the_steps() -> None:
         r = Renderer(dataclasses.replace(r.maps, self_shadowing=True), r.light, r.brdf, shadow_step_us=r.shadow_step_us)
         constants = simkernel.frame_constants(r)
         ring = simkernel._ring(r.light)  # type: ignore[arg-type]
-        openness, column_major, grid = simkernel._shadow_table(r, 0.0, PERIOD_US)
-        reach = simkernel._lit_shadow(constants.values, r.index, r.column_major_index, ring[1], openness, column_major,
-                                      simkernel._grid_light(ring, openness.shape[0], grid))
-        assert (openness < 1.0).any()
-        assert reach.any() == reached
+        block_us = simkernel.BLOCK_GRID_STEPS * r.shadow_step_us  # type: ignore[operator]
+        shadowed, lit_shadowed = False, False
+        for ta in np.arange(0.0, PERIOD_US, block_us):
+            openness, column_major, grid = simkernel._shadow_table(r, ta, min(ta + block_us, PERIOD_US))
+            reach = simkernel._lit_shadow(constants.values, r.index, r.column_major_index, ring[1], openness,
+                                          column_major, simkernel._grid_light(ring, openness.shape[0], grid))
+            shadowed |= bool((openness < 1.0).any())
+            lit_shadowed |= bool(reach.any())
+        assert shadowed
+        assert lit_shadowed == reached
+
+
+def test_lit_shadow_bits_follow_their_definition() -> None:
+    """Bit i of a frame pixel's mask is set exactly where V < 1 at grid time i or i + 1 while the
+    light is on the pixel's side (n·l above minus the slack) at that grid time or one next to it;
+    checked on a table of all ``TABLE_ROWS`` grid times, with row- and column-major rows."""
+    r = renderer(Blobs(), GGX())
+    step = float(r.shadow_step_us)  # type: ignore[arg-type]
+    openness, column_major, grid = simkernel._shadow_table(r, 0.5 * step, 62.3 * step)
+    rows = openness.shape[0]
+    assert rows == simkernel.TABLE_ROWS
+    assert column_major.any() and not column_major.all()
+    constants = simkernel.frame_constants(r)
+    ring = simkernel._ring(r.light)  # type: ignore[arg-type]
+    light = simkernel._grid_light(ring, rows, grid)
+    reach = simkernel._lit_shadow(constants.values, r.index, r.column_major_index, ring[1], openness, column_major,
+                                  light)
+    v = np.where(column_major[:, None], openness[:, r.column_major_index], openness[:, r.index])
+    n = constants.values
+    nl = n[:, simkernel.NX] * light[0][:, None] + n[:, simkernel.NY] * light[1][:, None] + n[:, simkernel.NZ] * ring[1]
+    lit = nl > -light[2][:, None]
+    near = lit.copy()
+    near[1:] |= lit[:-1]
+    near[:-1] |= lit[1:]
+    shaded = (v < 1.0) & near
+    intervals = shaded[:-1] | shaded[1:]
+    expected = (intervals.astype(np.uint64) << np.arange(rows - 1, dtype=np.uint64)[:, None]).sum(axis=0, dtype=np.uint64)
+    np.testing.assert_array_equal(reach[r.index], expected)
+    assert np.count_nonzero(reach) == np.count_nonzero(expected) > 50
+    # the shadows' last interval and masks that are not all one
+    assert (expected >> np.uint64(rows - 2)).any()
+    assert (expected != (np.uint64(1) << np.uint64(rows - 1)) - np.uint64(1)).any()
+    longer = simkernel._shadow_table(r, 0.5 * step, 63.3 * step)
+    with pytest.raises(ValueError, match="more than TABLE_ROWS"):
+        simkernel._lit_shadow(constants.values, r.index, r.column_major_index, ring[1], longer[0], longer[1],
+                              simkernel._grid_light(ring, longer[0].shape[0], longer[2]))
+
+
+def test_blocks_fit_the_shadow_masks() -> None:
+    """However long the blocks are asked to be, and where a window leaves a stretch past the last
+    whole block, no block is longer than ``TABLE_ROWS`` − 3 grid intervals (its table fits the
+    masks' bits) and every window ends on a block's end."""
+    r = renderer(Blobs(), GGX(), size=32)
+    step = float(r.shadow_step_us)  # type: ignore[arg-type]
+    window_ends = [70.5 * step, 131.0 * step, PERIOD_US]
+    blocks = list(simkernel.simulate_ring(
+        r, event_scale=0.5, t1_us=PERIOD_US, window_ends_us=window_ends, contrast_pos=C, contrast_neg=C,
+        min_dt_us=MIN_DT_US, block_us=1e9,
+    ))
+    ends = [b.t_end_us for b in blocks]
+    assert max(np.diff([0.0, *ends])) <= (simkernel.TABLE_ROWS - 3) * step * (1 + 1e-12)
+    assert set(window_ends) <= set(ends)
+    assert sum(len(b.events) for b in blocks) > 1000
 
 
 def test_a_sphere_without_self_shadowing_is_simulated_as_with_it() -> None:
