@@ -130,18 +130,6 @@ class PixelState:
     shade: np.ndarray
     sums: np.ndarray
 
-    def copy(self) -> PixelState:
-        return PixelState(*(np.array(getattr(self, name)) for name in self.__dataclass_fields__))
-
-    def copy_to(self, other: PixelState, pixels: np.ndarray | None = None) -> None:
-        """Write this state into ``other``: all of it, or only that of event pixels ``pixels``."""
-        for name in self.__dataclass_fields__:
-            source, target = getattr(self, name), getattr(other, name)
-            if pixels is None:
-                np.copyto(target, source)
-            else:
-                target[pixels] = source[pixels]
-
 
 # Direction of the ring light: a lane turns it from the azimuth at its last sample by the step's angle
 # (at most ``MAX_STEP_TURNS`` of the turn, 0.14 rad) with the series of cos and sin, whose first
@@ -566,13 +554,17 @@ def _advance_pixels(
             if t[k] < tb:
                 continue
             p = lane[k]
-            level[p], step[p], slope[p], count[p] = l0[k], h[k], s0[k], n[k]
+            count[p] = n[k]
+            active[k] = False
+            # a pixel that fired more than it had room for keeps its state of the block's start: it is run again
+            if n[k] > out_t.shape[1]:
+                continue
+            level[p], step[p], slope[p] = l0[k], h[k], s0[k]
             hi[p], lo[p], blind_until[p] = l_hi[k], l_lo[k], l_blind[k]
             for q in range(taps):
                 for j in range(2):
                     shade[p, q, j] = last_shade[j, q, k]
                     sums[p, q, j] = l_sums[j, q, k]
-            active[k] = False
 
 
 @numba.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
@@ -894,7 +886,6 @@ def simulate_ring(
     out_p = np.empty((n_events, capacity), dtype=np.int8)
     count = np.zeros(n_events, dtype=np.int64)
     everyone = np.arange(n_events)
-    saved = state.copy()
     ta = 0.0
     for end in ends:
         while ta < end:
@@ -905,7 +896,6 @@ def simulate_ring(
                 openness, column_major, grid = _shadow_table(renderer, ta, tb)
                 reach = _lit_shadow(constants.values, renderer.index, index_t, ring[1], openness, column_major,
                                     _grid_light(ring, openness.shape[0], grid))
-            state.copy_to(saved)
             order = everyone
             while True:
                 _advance(order, ta, tb, constants.values, feet.weight, feet.pixel, renderer.index, index_t,
@@ -921,7 +911,6 @@ def simulate_ring(
                 capacity = most + most // 2
                 out_t = np.concatenate([out_t, np.empty((n_events, capacity - out_t.shape[1]), np.int64)], axis=1)
                 out_p = np.concatenate([out_p, np.empty((n_events, capacity - out_p.shape[1]), np.int8)], axis=1)
-                saved.copy_to(state, order)
             x, y, t, p = _gather(out_t, out_p, count, width, math.floor(ta + 0.5), math.floor(tb + 0.5))
             sums = None
             if tb == end and end in window_ends_us:
