@@ -806,6 +806,22 @@ def _shadow_table(renderer: Renderer, ta: float, tb: float) -> tuple[np.ndarray,
     return openness, column_major, (step, float(first))
 
 
+def _block_spans(ends: list[float], block_us: float, longest_us: float) -> list[tuple[float, float]]:
+    """The blocks of time (start, end) in µs, in order: ``block_us`` long, ending on each of ``ends``
+    (the windows'); a window's last stretch shorter than a quarter block joins the block before when
+    that stays within ``longest_us``."""
+    spans = []
+    ta = 0.0
+    for end in ends:
+        while ta < end:
+            tb = min(end, ta + block_us)
+            if end - tb < 0.25 * block_us and end - ta <= longest_us:
+                tb = end
+            spans.append((ta, tb))
+            ta = tb
+    return spans
+
+
 def _grid_light(ring: tuple, rows: int, grid: tuple[float, float]) -> np.ndarray:
     """For ``_lit_shadow``, (3, rows): per grid time of a shadow table, the light's x and y and how far
     n·l may exceed the larger of its values at neighbouring grid times (``cos e·(ω·step)²``)."""
@@ -867,7 +883,9 @@ def simulate_ring(
     c_pos, c_neg = draw_thresholds(event_rngs(seed)[0], contrast_pos, contrast_neg, sigma, n_events)
     ring = _ring(light)
     index_t = renderer.column_major_index
-    openness, column_major, grid = _shadow_table(renderer, 0.0, 0.0)
+    spans = _block_spans(ends, block_us, longest_us)
+    # the first block's table serves the start too
+    openness, column_major, grid = _shadow_table(renderer, *spans[0])
     # without cast shadows the table of ones stays, and no pixel is shadowed while lit
     reach = np.zeros(openness.shape[1], np.uint64)
     state = PixelState(
@@ -886,35 +904,30 @@ def simulate_ring(
     out_p = np.empty((n_events, capacity), dtype=np.int8)
     count = np.zeros(n_events, dtype=np.int64)
     everyone = np.arange(n_events)
-    ta = 0.0
-    for end in ends:
-        while ta < end:
-            tb = min(end, ta + block_us)
-            if end - tb < 0.25 * block_us and end - ta <= longest_us:
-                tb = end
-            if renderer.shadows:
+    for block, (ta, tb) in enumerate(spans):
+        if renderer.shadows:
+            if block:
                 openness, column_major, grid = _shadow_table(renderer, ta, tb)
-                reach = _lit_shadow(constants.values, renderer.index, index_t, ring[1], openness, column_major,
-                                    _grid_light(ring, openness.shape[0], grid))
-            order = everyone
-            while True:
-                _advance(order, ta, tb, constants.values, feet.weight, feet.pixel, renderer.index, index_t,
-                         constants.specular, ring, openness, column_major, grid, reach, c_pos, c_neg,
-                         float(refractory_us), float(eps), float(max_dlog), float(min_dt_us), float(max_dt_us),
-                         grid_dt_us, state.level, state.hi, state.lo, state.blind_until_us, state.step_us,
-                         state.slope, state.shade, state.sums, out_t, out_p, count, numba.get_num_threads())
-                order = np.flatnonzero(count > capacity)
-                if order.size == 0:
-                    break
-                # pixels fired more than there was room for: widen the room and run them again
-                most = int(count.max())
-                capacity = most + most // 2
-                out_t = np.concatenate([out_t, np.empty((n_events, capacity - out_t.shape[1]), np.int64)], axis=1)
-                out_p = np.concatenate([out_p, np.empty((n_events, capacity - out_p.shape[1]), np.int8)], axis=1)
-            x, y, t, p = _gather(out_t, out_p, count, width, math.floor(ta + 0.5), math.floor(tb + 0.5))
-            sums = None
-            if tb == end and end in window_ends_us:
-                sums = np.take(state.sums.reshape(-1, 2), owner, axis=0)
-                state.sums[:] = 0.0
-            yield Block(EventArray(x=x, y=y, t=t, p=p), tb, sums)
-            ta = tb
+            reach = _lit_shadow(constants.values, renderer.index, index_t, ring[1], openness, column_major,
+                                _grid_light(ring, openness.shape[0], grid))
+        order = everyone
+        while True:
+            _advance(order, ta, tb, constants.values, feet.weight, feet.pixel, renderer.index, index_t,
+                     constants.specular, ring, openness, column_major, grid, reach, c_pos, c_neg,
+                     float(refractory_us), float(eps), float(max_dlog), float(min_dt_us), float(max_dt_us),
+                     grid_dt_us, state.level, state.hi, state.lo, state.blind_until_us, state.step_us,
+                     state.slope, state.shade, state.sums, out_t, out_p, count, numba.get_num_threads())
+            order = np.flatnonzero(count > capacity)
+            if order.size == 0:
+                break
+            # pixels fired more than there was room for: widen the room and run them again
+            most = int(count.max())
+            capacity = most + most // 2
+            out_t = np.concatenate([out_t, np.empty((n_events, capacity - out_t.shape[1]), np.int64)], axis=1)
+            out_p = np.concatenate([out_p, np.empty((n_events, capacity - out_p.shape[1]), np.int8)], axis=1)
+        x, y, t, p = _gather(out_t, out_p, count, width, math.floor(ta + 0.5), math.floor(tb + 0.5))
+        sums = None
+        if tb in window_ends_us:
+            sums = np.take(state.sums.reshape(-1, 2), owner, axis=0)
+            state.sums[:] = 0.0
+        yield Block(EventArray(x=x, y=y, t=t, p=p), tb, sums)
