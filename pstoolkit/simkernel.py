@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 import torch
+from numba.cpython.unsafe.numbers import trailing_zeros
 
 from psfmt import EventArray
 from pstoolkit.brdf import GGX
@@ -191,15 +192,17 @@ def _log_lanes(
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _shade_lanes(
     t1: np.ndarray, cos_az: np.ndarray, sin_az: np.ndarray, consts: np.ndarray, frame: np.ndarray,
-    frame_t: np.ndarray, shadowed: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray,
+    frame_t: np.ndarray, shadows: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray,
     column_major: np.ndarray, grid: tuple, eps: float, now: np.ndarray, grey: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
     """Grey irradiance + ``eps`` of each lane's event pixel at its time ``t1`` into ``grey`` (W,),
     the light at azimuth (``cos_az``, ``sin_az``); ``now`` (2, K, W) gets each slot's V·[n·l]₊ and
     V·[n·l]₊·ratio (``consts`` (10, K, W), ``frame`` and ``frame_t`` (K, W): the lanes' slots'
     constants and flat frame positions row- and column-major, the columns of ``openness``'s rows
-    without and with ``column_major``, see ``_load_lane``; V read only for ``shadowed`` lanes). The
-    loops run across the lanes, so they compile to SIMD."""
+    without and with ``column_major``, see ``_load_lane``). V is read only where a lane's
+    ``shadows`` (W,) has the bit of the table interval of its time (``_lit_shadow``'s bits of its
+    frame pixels): elsewhere V ≥ 1 at both ends of the interval, or the pixels face away from the
+    light through it, and V changes nothing. The loops run across the lanes, so they compile to SIMD."""
     cos_e, sin_e, inv_h, hh, lift = ring[0], ring[1], ring[5], ring[6], ring[7]
     hz = 1.0 + sin_e
     lanes, taps = t1.size, consts.shape[1]
@@ -217,10 +220,12 @@ def _shade_lanes(
             now[1, q, k] = ratio if lit and specular else 0.0
     rows = openness.shape[0]
     for k in range(lanes):
-        if not shadowed[k]:
+        if shadows[k] == 0:
             continue
         x = t1[k] / grid[0] - grid[1]
         row = min(max(int(math.floor(x)), 0), rows - 2)
+        if not (shadows[k] >> np.uint64(row)) & np.uint64(1):
+            continue
         after = x - row
         major, major_next = column_major[row], column_major[row + 1]
         for q in range(taps):
@@ -421,10 +426,7 @@ def _shadow_room(
     rest >>= np.uint64(1)
     if rest == 0:
         return max_dt
-    j = i + 1
-    while not rest & np.uint64(1):
-        rest >>= np.uint64(1)
-        j += 1
+    j = i + 1 + int(trailing_zeros(rest))
     return min(max((grid[1] + j) * grid[0] - t_us, grid_dt), max_dt)
 
 
@@ -459,7 +461,6 @@ def _advance_pixels(
     l_hi, l_lo, l_blind, l_pos, l_neg = np.zeros(w), np.zeros(w), np.zeros(w), np.zeros(w), np.zeros(w)
     n = np.zeros(w, np.int64)
     shadows = np.zeros(w, np.uint64)
-    shadowed = np.zeros(w, np.bool_)
     cos_az, sin_az = np.ones(w), np.zeros(w)
     consts, frame, frame_t = _idle_lanes(values.shape[1], taps)
     last_shade, l_sums = np.zeros((2, taps, w)), np.zeros((2, taps, w))
@@ -493,7 +494,6 @@ def _advance_pixels(
                 for j in range(2):
                     last_shade[j, q, k] = shade[p, q, j]
                     l_sums[j, q, k] = sums[p, q, j]
-            shadowed[k] = shadows[k] != 0
             t[k], l0[k], s0[k], n[k] = ta, level[p], slope[p], 0
             l_hi[k], l_lo[k], l_blind[k], l_pos[k], l_neg[k] = hi[p], lo[p], blind_until[p], c_pos[p], c_neg[p]
             cos_az[k], sin_az[k] = cos_a, sin_a
@@ -507,7 +507,7 @@ def _advance_pixels(
             cos_d, sin_d = _turn(omega * (t1[k] - t[k]))
             cos1[k] = cos_az[k] * cos_d - sin_az[k] * sin_d
             sin1[k] = sin_az[k] * cos_d + cos_az[k] * sin_d
-        _shade_lanes(t1, cos1, sin1, consts, frame, frame_t, shadowed, specular, ring, openness, column_major, grid, eps,
+        _shade_lanes(t1, cos1, sin1, consts, frame, frame_t, shadows, specular, ring, openness, column_major, grid, eps,
                      now, grey)
         _log_lanes(grey, l1, exponent, mantissa)
         # step control: a step whose change or bend is too large is shortened and tried again
@@ -548,7 +548,7 @@ def _advance_pixels(
         for k in range(w):
             if not accepted[k]:
                 continue
-            if shadowed[k]:
+            if shadows[k]:
                 h[k] = min(_shadow_room(t[k], shadows[k], grid, grid_dt, max_dt), grown[k])
                 h_try[k] = _next_try(h[k], tb - t[k], min_dt)
             if t[k] < tb:
@@ -609,14 +609,15 @@ def _start(
     consts, frame, frame_t = _idle_lanes(values.shape[1], taps)
     azimuth = ring[2] + ring[3] * (t_us - ring[4])
     t1, cos_az, sin_az = np.full(LANES, t_us), np.full(LANES, math.cos(azimuth)), np.full(LANES, math.sin(azimuth))
-    shadowed = np.full(LANES, shadows)
+    # every interval, or none without cast shadows
+    every = np.full(LANES, np.uint64(0xFFFFFFFFFFFFFFFF) if shadows else np.uint64(0))
     now, grey, l1 = np.zeros((2, taps, LANES)), np.empty(LANES), np.empty(LANES)
     exponent, mantissa = np.empty(LANES, np.int64), np.empty(LANES, np.int64)
     for first in range(0, pixel.shape[0], LANES):
         used = min(LANES, pixel.shape[0] - first)
         for k in range(used):
             _load_lane(consts, frame, frame_t, k, first + k, values, weight, pixel, index, index_t)
-        _shade_lanes(t1, cos_az, sin_az, consts, frame, frame_t, shadowed, specular, ring, openness, column_major, grid,
+        _shade_lanes(t1, cos_az, sin_az, consts, frame, frame_t, every, specular, ring, openness, column_major, grid,
                      eps, now, grey)
         _log_lanes(grey, l1, exponent, mantissa)
         for k in range(used):
