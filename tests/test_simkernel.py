@@ -230,6 +230,47 @@ def test_lit_shadow_bits_follow_their_definition() -> None:
                               simkernel._grid_light(ring, longer[0].shape[0], longer[2]))
 
 
+def test_shading_reads_the_table_only_where_the_bits_say_it_matters() -> None:
+    """A lane reads V only in the table intervals its pixels' ``_lit_shadow`` bits mark; at random
+    times through a blobs block, every lane's shading equals that with V read in every interval."""
+    r = renderer(Blobs(), GGX())
+    step = float(r.shadow_step_us)  # type: ignore[arg-type]
+    ta, tb = 3.2 * step, 61.7 * step
+    openness, column_major, grid = simkernel._shadow_table(r, ta, tb)
+    constants = simkernel.frame_constants(r)
+    feet = simkernel.footprints(r, 0.5)
+    ring = simkernel._ring(r.light)  # type: ignore[arg-type]
+    reach = simkernel._lit_shadow(constants.values, r.index, r.column_major_index, ring[1], openness, column_major,
+                                  simkernel._grid_light(ring, openness.shape[0], grid))
+    consts, frame, frame_t = simkernel._idle_lanes(constants.values.shape[1], feet.pixel.shape[1])
+    lanes = simkernel.LANES
+    rng = np.random.default_rng(5)
+    skipped = 0
+    for first in range(0, feet.pixel.shape[0], lanes):
+        shadows = np.zeros(lanes, np.uint64)
+        for k in range(lanes):
+            simkernel._load_lane(consts, frame, frame_t, k, first + k, constants.values, feet.weight, feet.pixel,
+                                 r.index, r.column_major_index)
+            for q in range(feet.pixel.shape[1]):
+                if feet.pixel[first + k, q] >= 0:
+                    shadows[k] |= reach[frame[q, k]]
+        t1 = rng.uniform(ta, tb, lanes)
+        azimuth = ring[2] + ring[3] * (t1 - ring[4])
+        results = []
+        for bits in (shadows, np.full(lanes, np.uint64(0xFFFFFFFFFFFFFFFF))):
+            now, grey = np.empty((2, feet.pixel.shape[1], lanes)), np.empty(lanes)
+            simkernel._shade_lanes(t1, np.cos(azimuth), np.sin(azimuth), consts, frame, frame_t, bits, True, ring,
+                                   openness, column_major, grid, LOG_EPS, now, grey)
+            results.append((now, grey))
+        np.testing.assert_array_equal(results[0][0], results[1][0])
+        np.testing.assert_array_equal(results[0][1], results[1][1])
+        row = np.clip(np.floor(t1 / grid[0] - grid[1]).astype(np.int64), 0, openness.shape[0] - 2)
+        skipped += int(np.count_nonzero((shadows >> row.astype(np.uint64)) & np.uint64(1) == 0))
+    # most lanes skip the table; the check is not empty: V < 1 somewhere in the table
+    assert skipped > 0.5 * feet.pixel.shape[0]
+    assert (openness < 1.0).any() and reach.any()
+
+
 def test_blocks_fit_the_shadow_masks() -> None:
     """However long the blocks are asked to be, and where a window leaves a stretch past the last
     whole block, no block is longer than ``TABLE_ROWS`` − 3 grid intervals (its table fits the
@@ -307,3 +348,8 @@ def test_a_shadowed_pixel_steps_short_only_around_its_shadows() -> None:
     assert room(320.0, bits) == 100.0
     assert room(450.0, bits) == 1000.0
     assert room(50.0, np.uint64(0)) == 1000.0
+    # a step reaches the next marked interval however far, within the longest step
+    far = numba.njit(lambda t, bits: simkernel._shadow_room(t, bits, (100.0, 0.0), 100.0, 1e9))
+    assert far(50.0, np.uint64(1 << 40)) == 3950.0
+    assert far(450.0, np.uint64((1 << 40) | (1 << 3))) == 3550.0
+    assert far(6050.0, np.uint64(1 << 63)) == 250.0
