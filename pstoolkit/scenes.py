@@ -194,8 +194,8 @@ class Blobs:
         widths = rng.uniform(0.06, 0.12, count)
         # h and its gradient in units of the frame width (the slope is then the same in pixel units),
         # at the pixel centres of ``pixel_grid``; a bump is a product of Gaussians along x and y, so
-        # the sums over bumps are (B, H)ᵀ @ (B, W) products: 2.7× faster than a bump at a time
-        # over the whole grid
+        # the sums over bumps are (B, H)ᵀ @ (B, W) products (heights and normals at 256²: 1.9 ms,
+        # against 5.3 for a bump at a time over the whole grid)
         centre = (np.arange(size, dtype=np.float64) + 0.5) / size
         dx = centre[None, :] - centres[:, :1]
         dy = (1.0 - centre)[None, :] - centres[:, 1:]
