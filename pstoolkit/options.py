@@ -16,7 +16,9 @@ _FALSE = {"0", "false", "no", "off"}
 class Option:
     """One option of a solver, scene, backend …: ``type`` is int, float, bool or str; ``choices``
     restricts a str option; ``minimum``/``maximum`` bound a number. A ``multiple`` option may be
-    given repeatedly: its value is the tuple of the given values in order (``default`` when none)."""
+    given repeatedly: its value is the tuple of the given values in order (``default`` when none).
+    A ``nested`` option (a multiple str) collects the options of another registry entry the owner
+    uses (a solver's shadow detector): ``--set NAME.key=value`` adds ``"key=value"`` to it."""
 
     name: str
     type: type
@@ -26,6 +28,7 @@ class Option:
     minimum: float | None = None
     maximum: float | None = None
     multiple: bool = False
+    nested: bool = False
 
     def parse(self, text: str) -> Any:
         """Convert a command-line string, raising UserError with the option's name on bad input."""
@@ -53,6 +56,8 @@ class Option:
 
     def describe(self) -> str:
         extra = f"; one of {', '.join(self.choices)}" if self.choices else ""
+        if self.nested:
+            return f"{self.name}.KEY=VALUE: {self.help}"
         extra += "; repeatable" if self.multiple else ""
         return f"{self.name} ({self.type.__name__}, default {self.default!r}{extra}): {self.help}"
 
@@ -72,6 +77,13 @@ def parse_assignments(pairs: Sequence[str], options: Sequence[Option], owner: st
         key = key.strip()
         if not sep or not key:
             raise UserError(f"--set {pair!r}: expected key=value")
+        head, dot, inner = key.partition(".")
+        if dot and head in known and known[head].nested:
+            if not inner:
+                raise UserError(f"--set {pair!r}: expected {head}.key=value")
+            key, text = head, f"{inner}={text}"
+        elif key in known and known[key].nested:
+            raise UserError(f"--set {pair!r}: give {key}'s options as {key}.key=value")
         if key not in known:
             names = ", ".join(sorted(known)) or "none"
             raise UserError(f"{owner} has no option {key!r} (options: {names})")

@@ -1,4 +1,4 @@
-"""First-party plugin that registers pstoolkit's built-in light models, BRDFs and scenes.
+"""First-party plugin that registers pstoolkit's built-in light models, shadow detectors, BRDFs and scenes.
 
 It is found through the ``pstoolkit`` entry-point group and uses the same hooks as a third-party
 plugin. Imports sit inside the hooks, so a module that fails to import spoils only its own registry
@@ -20,10 +20,22 @@ def pstoolkit_register_light_models(registry: Registry) -> None:
 
 
 @hookimpl
-def pstoolkit_register_brdfs(registry: Registry) -> None:
-    from pstoolkit.brdf import GGX, Lambertian
+def pstoolkit_register_shadow_detectors(registry: Registry) -> None:
+    from pstoolkit.shadows.base import NoShadows
+    from pstoolkit.shadows.fused import FusedDetector
+    from pstoolkit.shadows.geometry import GeometryDetector
+    from pstoolkit.shadows.silences import SilenceDetector
+    from pstoolkit.shadows.spikes import SpikeDetector
 
-    for brdf in (Lambertian, GGX):
+    for detector in (NoShadows, SpikeDetector, SilenceDetector, GeometryDetector, FusedDetector):
+        registry.register(detector)
+
+
+@hookimpl
+def pstoolkit_register_brdfs(registry: Registry) -> None:
+    from pstoolkit.brdf import BRDFS
+
+    for brdf in BRDFS:
         registry.register(brdf)
 
 

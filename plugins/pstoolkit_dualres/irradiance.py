@@ -15,12 +15,12 @@ only where the interval profile |f| (eq. 20) reaches ``threshold_per_s`` — an 
 the refractory compensation may have failed: at the end of each run of such events (the burst of
 one edge), the (up to) three with the largest |f| of the super pixel; k change points cut the
 cyclic period into k pieces (none or one: s is constant). ``approximate`` without the profile puts
-the changes at the exposure window bounds instead (one value per window). The values are the least-squares solution of the frames' constraint
-Σ_m s_m ∫_{window j ∩ piece m} exp(L)(1 − m_c) dt = A_j: three windows, at most three unknowns, so the
+the changes at the exposure window bounds instead (one value per window). The values are the
+least-squares solution of the frames' constraint
+Σ_m s_m ∫_{window j ∩ piece m} exp(L) dt = A_j: three windows, at most three unknowns, so the
 frame values (the area mean of the super pixel's frame pixels, in saturation units) fix the
 absolute level and the jumps the events cannot, and the system is never underdetermined. A fit
-that gives a piece a negative or non-finite value falls back to one constant s. Inside detected
-shadows Î = 0.
+that gives a piece a negative or non-finite value falls back to one constant s.
 """
 
 from __future__ import annotations
@@ -30,7 +30,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from pstoolkit.lights import US_PER_S
-from pstoolkit_dualres.shadows import ShadowTable
 
 # Midpoint-rule samples per exposure window when fitting the scale s.
 SCALE_SAMPLES = 96
@@ -53,15 +52,14 @@ def refractory_log_alpha(p: np.ndarray, contrast: np.ndarray, interval_us: np.nd
 class Irradiance:
     """Î per super pixel as knots of L (keys ``pixel·3T + T + phase``, phases in [−T, 2T) so every
     pixel's knots cover its whole period), the phases where s changes ``change_us`` (n_pixels, M)
-    (sorted, NaN-padded), the scale ``scale`` (n_pixels, M) per piece (saturation units per second), the exposure windows ``bounds_us`` (J+1,) phases, and the
-    shadows ``shadows``."""
+    (sorted, NaN-padded), the scale ``scale`` (n_pixels, M) per piece (saturation units per second)
+    and the exposure windows ``bounds_us`` (J+1,) phases."""
 
     knot_key: np.ndarray
     knot_log: np.ndarray
     change_us: np.ndarray
     scale: np.ndarray
     bounds_us: np.ndarray
-    shadows: ShadowTable | None
     period_us: float
 
     def log_level(self, pixel: np.ndarray, phase_us: np.ndarray) -> np.ndarray:
@@ -84,17 +82,11 @@ class Irradiance:
         passed = np.sum(changes <= phase[..., None], axis=-1)
         return np.where(k > 0, np.mod(passed - 1, np.maximum(k, 1)), 0)
 
-    def lit(self, pixel: np.ndarray, phase_us: np.ndarray) -> np.ndarray:
-        """1 − m_c: False inside a detected shadow."""
-        if self.shadows is None:
-            return np.ones(np.shape(phase_us), dtype=bool)
-        return ~self.shadows.contains(pixel, phase_us)
-
     def value(self, pixel: np.ndarray, phase_us: np.ndarray) -> np.ndarray:
         """Î (saturation units per second) at event pixels and phases."""
         pixel = np.asarray(pixel, dtype=np.int64)
         level = np.exp(self.log_level(pixel, phase_us))
-        return self.scale[pixel, self.piece(pixel, phase_us)] * level * self.lit(pixel, phase_us)
+        return self.scale[pixel, self.piece(pixel, phase_us)] * level
 
 
 def approximate(
@@ -111,7 +103,6 @@ def approximate(
     refractory_us: float,
     bounds_us: np.ndarray,
     frame_values: np.ndarray,
-    shadows: ShadowTable | None,
     f: np.ndarray | None = None,
     threshold_per_s: float = np.inf,
 ) -> Irradiance:
@@ -138,7 +129,7 @@ def approximate(
         changes = np.tile(bounds[:-1], (n_pixels, 1))
     else:
         changes = _change_points(f, t_us, pixel, first, count, threshold_per_s, n_pixels)
-    irradiance = Irradiance(keys, logs, changes, np.ones(changes.shape), bounds, shadows, period)
+    irradiance = Irradiance(keys, logs, changes, np.ones(changes.shape), bounds, period)
     irradiance.scale = _fit_scale(irradiance, np.asarray(frame_values, dtype=np.float64))
     return irradiance
 
@@ -200,7 +191,7 @@ def _fit_scale(irradiance: Irradiance, frame_values: np.ndarray) -> np.ndarray:
             pix = np.arange(start, min(start + SCALE_BLOCK, n_pixels))
             grid_pixel = np.repeat(pix, SCALE_SAMPLES)
             grid_phase = np.tile(phase, len(pix))
-            unscaled = np.exp(irradiance.log_level(grid_pixel, grid_phase)) * irradiance.lit(grid_pixel, grid_phase) * dt_s
+            unscaled = np.exp(irradiance.log_level(grid_pixel, grid_phase)) * dt_s
             piece = irradiance.piece(grid_pixel, grid_phase)
             slot = np.repeat(np.arange(len(pix)), SCALE_SAMPLES) * pieces + piece
             integrals[pix, j] = np.bincount(slot, weights=unscaled, minlength=len(pix) * pieces).reshape(-1, pieces)

@@ -1,15 +1,14 @@
 """Asynchronous importance sampling of the exposure integrals (DualResPS eq. 21 and 23).
 
-Each super pixel's period is cut at its events, at the exposure window bounds and at its shadow
-boundaries. A segment of Δt seconds over which the approximated irradiance Î changes by ΔÎ gets
+Each super pixel's period is cut at its events and at the exposure window bounds. A segment of Δt seconds over which the approximated irradiance Î changes by ΔÎ gets
 
     N = ⌈round(σ·√(ΔÎ·Δt)) − 1⌉₊      extra samples (eq. 23),
 
 so N + 1 equal sub-intervals, each sampled at its midpoint with weight dt = its length: the sum
 Σ I(t)·dt over a window's samples is the midpoint rule for the frame integral, and samples crowd
 where the irradiance changes fast. A segment is also cut so no sub-interval is longer than
-``max_step_us``, which keeps the light's own sweep resolved where events are sparse. Samples inside a
-detected shadow are dropped: the model renders them as 0. The samples are fixed once, here.
+``max_step_us``, which keeps the light's own sweep resolved where events are sparse. The samples are
+fixed once, here; a cast-shadow mask weighs them later (``problem``).
 """
 
 from __future__ import annotations
@@ -21,8 +20,8 @@ import numpy as np
 from pstoolkit.lights import US_PER_S
 from pstoolkit_dualres.irradiance import Irradiance
 
-# Fraction of a segment kept away from its ends when reading Î there: the scale and the shadow mask
-# jump at segment ends, and the change across the segment is what eq. 23 needs.
+# Fraction of a segment kept away from its ends when reading Î there: the scale jumps at segment
+# ends, and the change across the segment is what eq. 23 needs.
 EDGE = 1e-6
 
 
@@ -59,10 +58,6 @@ def importance_samples(
     bounds = irradiance.bounds_us
     every = np.arange(n_pixels, dtype=np.float64)
     cuts = [event_pixel * stride + event_phase_us, (every[:, None] * stride + bounds[None, :]).ravel()]
-    table = irradiance.shadows
-    if table is not None and len(table):
-        # table keys use the same stride
-        cuts += [table.start, table.end]
     key = np.unique(np.concatenate(cuts))
     pixel_of = np.floor(key / stride)
     inside = (key - pixel_of * stride >= bounds[0]) & (key - pixel_of * stride <= bounds[-1])
@@ -81,11 +76,4 @@ def importance_samples(
     within = np.arange(segment.size) - np.repeat(np.cumsum(parts) - parts, parts)
     sub = length[segment] / parts[segment]
     phase = lo[segment] - base[segment] + (within + 0.5) * sub
-    pixel = pix[segment]
-    lit = irradiance.lit(pixel, phase)
-    return Samples(
-        pixel=pixel[lit],
-        window=irradiance.window(phase[lit]),
-        phase_us=phase[lit],
-        dt_s=sub[lit] / US_PER_S,
-    )
+    return Samples(pixel=pix[segment], window=irradiance.window(phase), phase_us=phase, dt_s=sub / US_PER_S)

@@ -1,0 +1,75 @@
+"""The event samples of DualResPS eq. 25: pairs of times at one super pixel whose log irradiance
+differs by a known amount, with a confidence weight.
+
+The capture's refractory rule (``pstoolkit.eventmodel``) decides the pairs, so that the relation is
+exact rather than compensated after the fact (the paper's α): with "reset-at-end" each event k is
+paired with the reference level taken at t_{k−1} + R, ln I(t_k) − ln I(t_{k−1} + R) = p_k·C^{p_k}.
+Pairs longer than ``max_pair_share`` of the period are dropped (a pixel that was dark that long
+carries no shading). The weight is min(1, Î/(dark_level·Î₉₉)) with Î the approximated irradiance at
+the pair's darker end (Î₉₉ its 99th percentile over all pairs): events in dark regions are sensitive
+to noise and unmodelled inter-reflections (main §3.3).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+import psfmt
+from pstoolkit.errors import UserError
+from pstoolkit.eventmodel import REFRACTORY_RULE, consecutive_pairs, reference_time_us
+from pstoolkit_dualres.irradiance import Irradiance
+
+SUPPORTED_RULES = (REFRACTORY_RULE,)
+
+
+@dataclass
+class EventSamples:
+    """Pairs at event pixels ``pixel`` (E,): the log irradiance at ``t_us`` (E,) float64 exceeds the
+    one at ``t_ref_us`` (E,) float64 by ``target`` (E,) log units; ``weight`` (E,) float32 ≥ 0."""
+
+    pixel: np.ndarray
+    t_ref_us: np.ndarray
+    t_us: np.ndarray
+    target: np.ndarray
+    weight: np.ndarray
+
+
+def refractory_rule(calibration: psfmt.Calibration, where: str) -> str:
+    """The capture's refractory rule (absent: the format's default), or a UserError if unsupported."""
+    rule = getattr(calibration, "refractory_rule", None) or REFRACTORY_RULE
+    if rule not in SUPPORTED_RULES:
+        raise UserError(f"dualres: {where}: refractory rule {rule!r} is not one of {', '.join(SUPPORTED_RULES)}")
+    return rule
+
+
+def event_samples(
+    events: psfmt.EventArray,
+    width: int,
+    irradiance: Irradiance,
+    *,
+    refractory_us: float,
+    contrast_pos: float,
+    contrast_neg: float,
+    t0_us: float,
+    period_us: float,
+    confidence: str,
+    dark_level: float,
+    max_pair_share: float,
+) -> EventSamples:
+    """The pairs of a time-sorted stream of a sensor ``width`` pixels wide (see the module docstring)."""
+    pairs = consecutive_pairs(events, width)
+    t_ref = reference_time_us(pairs.t_prev_us, refractory_us)
+    t = pairs.t_us.astype(np.float64)
+    keep = t - pairs.t_prev_us <= max_pair_share * period_us
+    pixel, t_ref, t, p = pairs.pixel[keep], t_ref[keep], t[keep], pairs.p[keep]
+    target = np.where(p > 0, contrast_pos, -contrast_neg)
+    if confidence == "linear":
+        darker = np.minimum(irradiance.value(pixel, t_ref - t0_us), irradiance.value(pixel, t - t0_us))
+        bright = float(np.percentile(darker, 99)) if darker.size else 0.0
+        level = dark_level * bright
+        weight = np.clip(darker / level, 0.0, 1.0) if level > 0 else np.ones(len(t))
+    else:
+        weight = np.ones(len(t))
+    return EventSamples(pixel=pixel, t_ref_us=t_ref, t_us=t, target=target, weight=weight.astype(np.float32))

@@ -1,0 +1,284 @@
+"""A preprocessed capture as tensors on one device (``build_problem``), and the cast-shadow mask
+applied to it (``Problem.apply_mask``).
+
+Units: frame values in units of saturation; radiometric maps (albedo, F0) in units of
+``albedo_scale`` (a bright albedo of the capture, in frame units per unit light per second), which
+the frame sample weights carry; the event irradiance is e·f_r·[n·l]₊ in those units, so a bright lit
+pixel is ≈ 1 as the event model's ε assumes (``pstoolkit.eventmodel``).
+
+The mask m_c enters all three places the paper names (eq. 14, 21–22, 25): the closed-form start
+(``preprocess.Preprocessed.closed_form``), the frames — each frame sample of the shared time grid is
+weighted by the lit share of its sub-interval, an importance sample by whether it is lit — and the
+events, whose super-pixel irradiance sums only the lit frame pixels under it at each end of a pair;
+a pair across which any of them enters or leaves a shadow is left out (the sensor saw the edge, not
+the shading).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from pstoolkit.equivalent import sample_times
+from pstoolkit.eventmodel import GREY_WEIGHTS
+from pstoolkit.lights import US_PER_S
+from pstoolkit.render import area_weights
+from pstoolkit.shadows import ShadowMask
+from pstoolkit_dualres.grid import bilinear_taps, frame_to_event
+from pstoolkit_dualres.init import Init
+from pstoolkit_dualres.preprocess import Preprocessed
+
+# Percentile of the initial grey albedo over the mask taken as the albedo scale: a bright albedo
+# that ignores the few outliers of the closed form near the terminator.
+SCALE_PERCENTILE = 95.0
+
+
+@dataclass
+class Problem:
+    """Everything a fit needs, as tensors on one device. P masked frame pixels (``pixels``, flat
+    indices into the H×W frame grid). Frames: either S samples per period on a time grid shared by
+    all pixels (``shared_*``; ``shared_visible`` (P, S) the lit share of each sample, None without a
+    mask) or M importance samples (``sample_*``). Events: E pairs with F footprint taps each; the
+    usable ones under the current mask are ``event_index``."""
+
+    height: int
+    width: int
+    frames: int
+    pixels: np.ndarray
+    albedo_scale: float
+    coords: Tensor
+    event_shape: tuple[int, int]
+    grid_taps: tuple[Tensor, Tensor]
+    init_normal: Tensor
+    init_albedo: Tensor
+    shared_light: Tensor | None
+    shared_weight: Tensor | None
+    shared_visible: Tensor | None
+    sample_pixel: Tensor
+    sample_group: Tensor
+    sample_light: Tensor
+    sample_weight: Tensor
+    measured: Tensor
+    saturated: Tensor
+    event_taps: Tensor
+    event_weight_now: Tensor
+    event_weight_ref: Tensor
+    event_light: Tensor
+    event_light_ref: Tensor
+    event_grey: Tensor
+    event_grey_ref: Tensor
+    event_target: Tensor
+    event_weight: Tensor
+    event_index: Tensor
+    tv_pairs: Tensor
+    view: Tensor
+    shadow_fraction: np.ndarray
+    diagnostics: dict[str, Any] = field(default_factory=dict)
+    # numpy copies the mask is applied from
+    source: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+
+    @property
+    def device(self) -> torch.device:
+        return self.coords.device
+
+    def apply_mask(self, shadows: ShadowMask) -> None:
+        """Take the cast-shadow mask ``shadows`` into the frame weights and the event pairs."""
+        src = self.source
+        pixels = self.pixels
+        if "shared_t" in src:
+            t, half = src["shared_t"], 0.5 * src["shared_dt_us"]
+            p = np.repeat(pixels, t.size)
+            lit = 1.0 - shadows.shadowed_us(p, np.tile(t - half, pixels.size), np.tile(t + half, pixels.size)) / np.tile(2.0 * half, pixels.size)
+            visible = np.clip(lit, 0.0, 1.0).reshape(pixels.size, t.size)
+            self.shared_visible = self._tensor(visible) if len(shadows) else None
+            lit_s = visible @ (2.0 * half) / US_PER_S
+        else:
+            lit = ~shadows.contains(pixels[src["sample_pixel"]], src["sample_t"])
+            self.sample_weight = self._tensor(src["sample_weight"] * lit[:, None])
+            lit_s = np.bincount(src["sample_pixel"], weights=src["sample_dt_s"] * lit, minlength=pixels.size)
+        self.shadow_fraction = np.zeros(self.height * self.width)
+        self.shadow_fraction[pixels] = np.clip(1.0 - lit_s / src["exposure_s"], 0.0, 1.0)
+        self.shadow_fraction = self.shadow_fraction.reshape(self.height, self.width)
+
+        taps, area, t_now, t_ref = src["event_frame_taps"], src["event_area"], src["event_t"], src["event_t_ref"]
+        n_taps = taps.shape[1]
+        flat, now, ref = taps.ravel(), np.repeat(t_now, n_taps), np.repeat(t_ref, n_taps)
+        lit_now = ~shadows.contains(flat, now).reshape(taps.shape)
+        lit_ref = ~shadows.contains(flat, ref).reshape(taps.shape)
+        in_between = shadows.shadowed_us(flat, ref, now).reshape(taps.shape)
+        steady = (in_between <= 0.0) | (in_between >= (t_now - t_ref)[:, None])
+        weight_now, weight_ref = area * lit_now, area * lit_ref
+        usable = src["event_usable"] & np.all(steady | (area <= 0), axis=1)
+        usable &= (weight_now.sum(axis=1) > 0) & (weight_ref.sum(axis=1) > 0)
+        self.event_weight_now = self._tensor(weight_now)
+        self.event_weight_ref = self._tensor(weight_ref)
+        self.event_index = torch.as_tensor(np.flatnonzero(usable), dtype=torch.int64, device=self.device)
+        self.diagnostics.update(event_pairs=int(usable.sum()), event_pairs_dropped=int(usable.size - usable.sum()),
+                                cast_shadow_share=float(self.shadow_fraction.ravel()[pixels].mean()) if pixels.size else 0.0)
+
+    def _tensor(self, array: np.ndarray) -> Tensor:
+        return torch.as_tensor(np.ascontiguousarray(array), dtype=self.coords.dtype, device=self.device)
+
+
+def _positions(pixels: np.ndarray, size: int) -> np.ndarray:
+    """Flat frame index → position among the masked pixels (−1 outside the mask)."""
+    position = np.full(size, -1, dtype=np.int64)
+    position[pixels] = np.arange(pixels.size)
+    return position
+
+
+def footprints(event_shape: tuple[int, int], frame_shape: tuple[int, int], event_scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Frame pixels under each event pixel of the grid ``psfmt.scale_affine(event_scale)``: (He·We, F)
+    flat frame indices and area weights (the simulator's area average, ``pstoolkit.render.area_weights``)."""
+    (he, we), (h, w) = event_shape, frame_shape
+    rows = [area_weights(n_e, n_f, event_scale) for n_e, n_f in ((he, h), (we, w))]
+    bands = []
+    for weights in rows:
+        taps = int((weights > 0).sum(axis=1).max())
+        index = np.argsort(-weights, axis=1, kind="stable")[:, :taps]
+        bands.append((index, np.take_along_axis(weights, index, axis=1)))
+    (r_idx, r_w), (c_idx, c_w) = bands
+    frame = (r_idx[:, None, :, None] * w + c_idx[None, :, None, :]).reshape(he * we, -1)
+    weight = (r_w[:, None, :, None] * c_w[None, :, None, :]).reshape(he * we, -1)
+    return frame, weight
+
+
+def tv_pairs(mask: np.ndarray) -> np.ndarray:
+    """(Q, 2) positions among the masked pixels of right and down neighbours that are both masked."""
+    h, w = mask.shape
+    position = _positions(np.flatnonzero(mask), h * w).reshape(h, w)
+    right = np.stack([position[:, :-1].ravel(), position[:, 1:].ravel()], axis=1)
+    down = np.stack([position[:-1, :].ravel(), position[1:, :].ravel()], axis=1)
+    pairs = np.concatenate([right, down])
+    return pairs[(pairs >= 0).all(axis=1)]
+
+
+def albedo_scale(init_albedo: np.ndarray, mask: np.ndarray) -> float:
+    grey = init_albedo[mask] @ np.asarray(GREY_WEIGHTS)
+    grey = grey[np.isfinite(grey) & (grey > 0)]
+    return float(np.percentile(grey, SCALE_PERCENTILE)) if grey.size else 1.0
+
+
+def build_problem(pre: Preprocessed, view: np.ndarray, *, device: str, frame_samples: int = 0, init: Init | None = None,
+                  dtype: torch.dtype = torch.float32) -> Problem:
+    """Tensors of a fit from ``pre``, without a cast-shadow mask (``Problem.apply_mask`` adds one):
+    the frames on ``frame_samples`` samples per frame of a shared midpoint grid (0: the importance
+    samples of preprocessing), measured frames, event pairs with footprints, lights and targets, and
+    the start values of ``init`` (default: ``pre.init``, the closed form without a mask)."""
+    init = pre.init if init is None else init
+    h, w = pre.height, pre.width
+    he, we = pre.event_height, pre.event_width
+    mask = np.asarray(pre.mask, dtype=bool)
+    pixels = np.flatnonzero(mask)
+    p = pixels.size
+    position = _positions(pixels, h * w)
+    scale = albedo_scale(np.asarray(init.albedo), mask)
+    light = pre.light
+
+    def tensor(array: np.ndarray, kind: torch.dtype = dtype) -> Tensor:
+        return torch.as_tensor(np.ascontiguousarray(array), dtype=kind, device=device)
+
+    k = int(pre.frames.shape[0])
+    t_start = np.asarray(pre.t_start_us, dtype=np.float64)
+    t_end = np.asarray(pre.t_end_us, dtype=np.float64)
+    source: dict[str, np.ndarray] = {"exposure_s": np.float64(np.sum(t_end - t_start) / US_PER_S)}
+    shared_light = shared_weight = None
+    s_pos, s_frame, s_t, s_weight = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))
+    if frame_samples > 0:
+        g_t = np.concatenate([sample_times(t_start[j], t_end[j], frame_samples) for j in range(k)])
+        g_dt_us = np.repeat((t_end - t_start) / frame_samples, frame_samples)
+        g_dir, g_int = light.evaluate(g_t)
+        shared_light, shared_weight = tensor(g_dir), tensor(g_int * (g_dt_us / US_PER_S * scale)[:, None])
+        source.update(shared_t=g_t, shared_dt_us=g_dt_us)
+    else:
+        # each masked frame pixel takes its super pixel's importance samples of each frame's window
+        s_pos, s_frame, s_t, s_dt = _pixel_samples(pre, pixels)
+        s_weight = light.evaluate(s_t)[1] * (s_dt * scale)[:, None]
+        source.update(sample_pixel=s_pos, sample_t=s_t, sample_dt_s=s_dt, sample_weight=s_weight)
+
+    measured = np.asarray(pre.frames, dtype=np.float32).reshape(k, h * w, -1)[:, pixels].reshape(k * p, -1)
+    saturated = np.asarray(pre.saturated, dtype=bool).reshape(k, h * w)[:, pixels].reshape(k * p)
+
+    # Event pairs (eq. 25) with the frame pixels under their super pixel.
+    fp_frame, fp_weight = footprints((he, we), (h, w), float(we) / float(w))
+    pairs = pre.events
+    frame_taps = fp_frame[pairs.pixel]
+    taps = position[frame_taps]
+    area = np.where(taps >= 0, fp_weight[pairs.pixel], 0.0)
+    usable = (area.sum(axis=1) > 0) & (pairs.weight > 0)
+    dir_ev, int_ev = light.evaluate(pairs.t_us)
+    dir_ref, int_ref = light.evaluate(pairs.t_ref_us)
+    grey_w = np.asarray(GREY_WEIGHTS)
+    source.update(event_frame_taps=frame_taps, event_area=area, event_t=pairs.t_us, event_t_ref=pairs.t_ref_us,
+                  event_usable=usable)
+
+    v, u = np.divmod(pixels, w)
+    ue, ve = frame_to_event(pre.event_to_frame, u.astype(np.float64), v.astype(np.float64))
+    grid_index, grid_weight = bilinear_taps(ue, ve, we, he)
+    init_normal, init_albedo = start_values(init.normal, init.albedo, pixels, scale)
+    coords = np.stack([2.0 * u / max(w - 1, 1) - 1.0, 1.0 - 2.0 * v / max(h - 1, 1)], axis=1)
+
+    problem = Problem(
+        height=h, width=w, frames=k, pixels=pixels, albedo_scale=scale,
+        coords=tensor(coords), event_shape=(he, we),
+        grid_taps=(tensor(grid_index, torch.int64), tensor(grid_weight)),
+        init_normal=tensor(init_normal), init_albedo=tensor(init_albedo),
+        shared_light=shared_light, shared_weight=shared_weight, shared_visible=None,
+        sample_pixel=tensor(s_pos, torch.int64), sample_group=tensor(s_frame * p + s_pos, torch.int64),
+        sample_light=tensor(light.evaluate(s_t)[0] if s_t.size else np.zeros((0, 3))), sample_weight=tensor(s_weight),
+        measured=tensor(measured), saturated=tensor(saturated, torch.bool),
+        event_taps=tensor(np.maximum(taps, 0), torch.int64), event_weight_now=tensor(area), event_weight_ref=tensor(area),
+        event_light=tensor(dir_ev), event_light_ref=tensor(dir_ref),
+        event_grey=tensor(int_ev * grey_w), event_grey_ref=tensor(int_ref * grey_w),
+        event_target=tensor(pairs.target), event_weight=tensor(pairs.weight),
+        event_index=torch.as_tensor(np.flatnonzero(usable), dtype=torch.int64, device=device),
+        tv_pairs=tensor(tv_pairs(mask), torch.int64),
+        view=tensor(np.asarray(view, dtype=np.float64)),
+        shadow_fraction=np.zeros((h, w)),
+        diagnostics={"pixels": int(p), "frame_samples": int(s_pos.size) if shared_light is None else int(p * shared_light.shape[0]),
+                     "albedo_scale": scale},
+        source=source,
+    )
+    problem.apply_mask(ShadowMask.none(h * w, pre.t0_us, pre.period_us))
+    return problem
+
+
+def start_values(normal: np.ndarray, albedo: np.ndarray, pixels: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """(P, 3) start normals (facing the camera where the closed form has none) and (P, 3) albedo in
+    units of ``scale`` at ``pixels``, from the (H, W, 3) maps of an ``init.Init``."""
+    n = np.asarray(normal, dtype=np.float64).reshape(-1, 3)[pixels]
+    bad = ~np.isfinite(n).all(axis=1) | (np.linalg.norm(n, axis=1) < 0.5)
+    n[bad] = (0.0, 0.0, 1.0)
+    a = np.asarray(albedo, dtype=np.float64).reshape(-1, 3)[pixels] / scale
+    return n, np.where(np.isfinite(a), a, 1.0)
+
+
+def _pixel_samples(pre: Preprocessed, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The importance samples of each masked frame pixel (its super pixel's, shifted to each frame's
+    period), grouped by pixel: (position, frame, t_us, dt_s)."""
+    samples = pre.samples
+    order = np.lexsort((samples.phase_us, samples.pixel, samples.window))
+    window, owner_of = samples.window[order], samples.pixel[order]
+    phase, dt = samples.phase_us[order], samples.dt_s[order]
+    n_super = pre.event_height * pre.event_width
+    out: list[list[np.ndarray]] = [[], [], [], []]
+    for k, j in enumerate(pre.frame_window):
+        sel = np.flatnonzero(window == j)
+        counts = np.bincount(owner_of[sel], minlength=n_super)
+        offsets = np.cumsum(counts) - counts
+        per_pixel = counts[pre.super_pixel[pixels]]
+        owner = np.repeat(np.arange(pixels.size), per_pixel)
+        local = np.arange(owner.size) - np.repeat(np.cumsum(per_pixel) - per_pixel, per_pixel)
+        index = sel[offsets[pre.super_pixel[pixels[owner]]] + local]
+        shift = float(pre.t_start_us[k]) - (pre.t0_us + pre.windows_us[j, 0])
+        out[0].append(owner)
+        out[1].append(np.full(owner.size, k, dtype=np.int64))
+        out[2].append(pre.t0_us + phase[index] + shift)
+        out[3].append(dt[index])
+    pos, frame, t, dt_s = (np.concatenate(part) for part in out)
+    by_pixel = np.argsort(pos, kind="stable")
+    return pos[by_pixel].astype(np.int64), frame[by_pixel], t[by_pixel].astype(np.float64), dt_s[by_pixel].astype(np.float64)

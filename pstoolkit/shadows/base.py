@@ -1,0 +1,149 @@
+"""The shadow-detector contract: what a detector sees (``ShadowEvidence``), what it returns
+(``ShadowMask``, the cast-shadow mask m_c(x, t) of DualResPS eq. 14 at frame pixels) and the base
+class registered through ``pstoolkit_register_shadow_detectors``.
+
+    class Mine(ShadowDetector):
+        name = "mine"
+        summary = "pixels whose events fall silent for longer than a threshold"
+        options = (Option("threshold_ms", float, 5.0, "shortest silence"),)
+
+        def detect(self, evidence, options):
+            intervals = ...                        # ShadowIntervals at event pixels, phases
+            return evidence.event_mask(intervals)
+
+A solver builds the evidence once per capture and calls ``detect`` again whenever it has a better
+surface estimate (``evidence.normal``) if the detector sets ``uses_surface``.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, replace
+from typing import Any, ClassVar
+
+import numpy as np
+
+from pstoolkit.lights import LightModel
+from pstoolkit.options import Option
+from pstoolkit.shadows.intervals import ShadowIntervals, ShadowTable
+from pstoolkit.shadows.profile import Profile
+
+
+@dataclass
+class ShadowMask:
+    """When each frame pixel is in a cast shadow: intervals of the light's phase in ``table``, keyed
+    by ``cell`` (H·W,) int64 — the frame pixel's own index for a frame-resolution mask, or the event
+    pixel covering it for an event-resolution one. Times are absolute µs; the phase origin is
+    ``t0_us`` and the light repeats every ``table.period_us``."""
+
+    table: ShadowTable
+    cell: np.ndarray
+    t0_us: float
+
+    @property
+    def period_us(self) -> float:
+        return self.table.period_us
+
+    def __len__(self) -> int:
+        """Merged intervals in the table (0: no pixel is ever in shadow)."""
+        return len(self.table)
+
+    @classmethod
+    def from_intervals(cls, intervals: ShadowIntervals, cell: np.ndarray, t0_us: float, period_us: float) -> ShadowMask:
+        return cls(ShadowTable.build(intervals, period_us), np.asarray(cell, dtype=np.int64), float(t0_us))
+
+    @classmethod
+    def none(cls, n_pixels: int, t0_us: float, period_us: float) -> ShadowMask:
+        """The mask of no shadow at all for ``n_pixels`` frame pixels."""
+        return cls.from_intervals(ShadowIntervals.empty(), np.arange(n_pixels), t0_us, period_us)
+
+    def contains(self, frame_pixel: np.ndarray, t_us: np.ndarray) -> np.ndarray:
+        """(N,) bool: frame pixel ``frame_pixel`` (N,) (flat v·W + u) is in shadow at time ``t_us`` (N,)."""
+        cell = self.cell[np.asarray(frame_pixel, dtype=np.int64)]
+        return self.table.contains(cell, np.asarray(t_us, dtype=np.float64) - self.t0_us)
+
+    def shadowed_us(self, frame_pixel: np.ndarray, t0_us: np.ndarray, t1_us: np.ndarray) -> np.ndarray:
+        """(N,) µs frame pixel ``frame_pixel`` (N,) spends in shadow between times ``t0_us`` ≤ ``t1_us``
+        (at most one period apart)."""
+        cell = self.cell[np.asarray(frame_pixel, dtype=np.int64)]
+        t0 = np.asarray(t0_us, dtype=np.float64) - self.t0_us
+        return self.table.shadowed_us(cell, t0, t0 + (np.asarray(t1_us, dtype=np.float64) - np.asarray(t0_us, dtype=np.float64)))
+
+    def coverage(self) -> np.ndarray:
+        """(H·W,) share of the period each frame pixel spends in shadow."""
+        return self.table.coverage(int(self.cell.max()) + 1 if self.cell.size else 0)[self.cell]
+
+
+@dataclass
+class ShadowEvidence:
+    """What a shadow detector may look at, for one capture.
+
+    Geometry: ``frame_shape`` (H, W) and ``event_shape`` (He, We); ``super_pixel`` (H·W,) the event
+    pixel nearest each frame pixel (through the calibrated event→frame affine); ``mask`` (H, W) the
+    frame pixels on the object. Light: ``light`` (directional and periodic), ``t0_us`` the phase
+    origin (the first exposure's start), ``period_us``. Sensor: ``contrast_pos``/``contrast_neg``
+    (log units), ``refractory_us`` and ``refractory_rule`` (``pstoolkit.eventmodel``). Data:
+    ``profile`` the events of one period from ``t0_us`` at the event pixels (eq. 20);
+    ``frames`` (J, H, W, 3) the mean frame of each of the period's exposure windows ``windows_us``
+    (J, 2) phases, in units of saturation. Surface: ``normal`` (H, W, 3) the current estimate of
+    the solver, None before it has one."""
+
+    frame_shape: tuple[int, int]
+    event_shape: tuple[int, int]
+    super_pixel: np.ndarray
+    mask: np.ndarray
+    light: LightModel
+    t0_us: float
+    period_us: float
+    contrast_pos: float
+    contrast_neg: float
+    refractory_us: float
+    refractory_rule: str
+    profile: Profile
+    frames: np.ndarray
+    windows_us: np.ndarray
+    normal: np.ndarray | None = None
+
+    def with_normal(self, normal: np.ndarray) -> ShadowEvidence:
+        """The same evidence with the surface estimate ``normal`` (H, W, 3)."""
+        return replace(self, normal=np.asarray(normal, dtype=np.float32))
+
+    def event_mask(self, intervals: ShadowIntervals) -> ShadowMask:
+        """A mask from intervals at event pixels: each frame pixel takes those of its super pixel."""
+        return ShadowMask.from_intervals(intervals, self.super_pixel, self.t0_us, self.period_us)
+
+    def frame_mask(self, intervals: ShadowIntervals) -> ShadowMask:
+        """A mask from intervals at frame pixels (flat v·W + u)."""
+        h, w = self.frame_shape
+        return ShadowMask.from_intervals(intervals, np.arange(h * w), self.t0_us, self.period_us)
+
+    def no_mask(self) -> ShadowMask:
+        h, w = self.frame_shape
+        return ShadowMask.none(h * w, self.t0_us, self.period_us)
+
+
+class ShadowDetector(ABC):
+    """A rule that finds cast shadows: ``name`` (registry name), ``summary`` (one line), typed
+    ``options``; ``uses_surface`` True when ``detect`` uses ``evidence.normal``, so a solver calls it
+    again as its estimate improves (with no estimate yet such a detector returns what it can, at
+    worst ``evidence.no_mask()``)."""
+
+    name: ClassVar[str]
+    summary: ClassVar[str]
+    options: ClassVar[tuple[Option, ...]] = ()
+    uses_surface: ClassVar[bool] = False
+
+    @abstractmethod
+    def detect(self, evidence: ShadowEvidence, options: dict[str, Any]) -> ShadowMask:
+        """The cast-shadow mask of the capture behind ``evidence``, with the full ``options`` dict
+        (defaults filled in)."""
+
+
+class NoShadows(ShadowDetector):
+    """The ablation without a cast-shadow mask (supplement Table 2, "w/o m_c")."""
+
+    name: ClassVar[str] = "none"
+    summary: ClassVar[str] = "no cast-shadow mask: every observation counts as lit"
+
+    def detect(self, evidence: ShadowEvidence, options: dict[str, Any]) -> ShadowMask:
+        return evidence.no_mask()

@@ -1,0 +1,161 @@
+"""Cast-shadow intervals of a periodic light and fast lookups in them.
+
+A shadow is an interval of the light's phase (µs since a phase origin, in [0, period)) during which a
+pixel is in a cast shadow; ``t1 < t0`` means it wraps past the period's end. ``ShadowIntervals`` is
+a plain list of them; ``ShadowTable`` merges a list into disjoint, non-wrapping intervals keyed by
+pixel·2·period + phase, and answers "is pixel x in shadow at phase t" and "how long is pixel x in
+shadow between two phases" for many queries at once, each by one ``searchsorted``.
+``intervals_from_grid`` turns a boolean map of a time grid into intervals (detectors that test
+discrete light directions); ``rasterize`` does the opposite.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class ShadowIntervals:
+    """Shadow intervals: flat ``pixel`` (S,) (event or frame pixel, as the producer says), phases
+    ``t0_us``, ``t1_us`` (S,) in µs (float64); t1 < t0 wraps past the period's end."""
+
+    pixel: np.ndarray
+    t0_us: np.ndarray
+    t1_us: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.pixel)
+
+    @classmethod
+    def empty(cls) -> ShadowIntervals:
+        return cls(np.empty(0, np.int64), np.empty(0), np.empty(0))
+
+
+@dataclass
+class ShadowTable:
+    """Merged, non-wrapping shadow intervals keyed by pixel·2·period + phase, for vectorised lookups:
+    ``start``/``end`` (S,) float64 keys, sorted, disjoint; closed intervals; ``before`` (S,) the total
+    shadow time of all earlier intervals in key order. The stride of two periods keeps one pixel's
+    interval ending at the period apart from the next pixel's at 0."""
+
+    start: np.ndarray
+    end: np.ndarray
+    period_us: float
+    before: np.ndarray
+
+    @classmethod
+    def build(cls, shadows: ShadowIntervals, period_us: float) -> ShadowTable:
+        period = float(period_us)
+        t0 = np.mod(shadows.t0_us, period)
+        t1 = np.mod(shadows.t1_us, period)
+        wraps = t1 < t0
+        base = np.asarray(shadows.pixel, dtype=np.float64) * (2.0 * period)
+        # a wrapping interval is split into [t0, period) and [0, t1]
+        start = np.concatenate([base + t0, base[wraps]])
+        end = np.concatenate([base + np.where(wraps, period, t1), base[wraps] + t1[wraps]])
+        order = np.argsort(start, kind="stable")
+        start, end = start[order], end[order]
+        if start.size:
+            # a pixel's keys lie in [2·pixel·period, (2·pixel+1)·period], so a running maximum of
+            # the ends never reaches across pixels; a new group starts where an interval begins after it
+            reach = np.maximum.accumulate(end)
+            new = np.flatnonzero(np.r_[True, start[1:] > reach[:-1]])
+            start, end = start[new], np.maximum.reduceat(end, new)
+        lengths = end - start
+        return cls(start=start, end=end, period_us=period, before=np.cumsum(lengths) - lengths)
+
+    def __len__(self) -> int:
+        return len(self.start)
+
+    def _key(self, pixel: np.ndarray, phase_us: np.ndarray) -> np.ndarray:
+        return np.asarray(pixel, dtype=np.int64).astype(np.float64) * (2.0 * self.period_us) + np.asarray(phase_us, dtype=np.float64)
+
+    def contains(self, pixel: np.ndarray, t_us: np.ndarray) -> np.ndarray:
+        """(N,) bool: whether ``pixel`` (N,) is in shadow at phase ``t_us`` (N,) (any time; reduced
+        modulo the period, so phase 0 is the phase origin the intervals were found in)."""
+        key = self._key(pixel, np.mod(t_us, self.period_us))
+        if self.start.size == 0:
+            return np.zeros(key.shape, dtype=bool)
+        slot = np.searchsorted(self.start, key, side="right") - 1
+        inside = slot >= 0
+        slot = np.maximum(slot, 0)
+        return inside & (key <= self.end[slot]) & (key >= self.start[slot])
+
+    def _cumulative(self, key: np.ndarray) -> np.ndarray:
+        """Total shadow time of all intervals up to ``key`` (keys of one pixel differ by that pixel's
+        shadow time between them)."""
+        if self.start.size == 0:
+            return np.zeros(key.shape)
+        slot = np.searchsorted(self.start, key, side="right") - 1
+        safe = np.maximum(slot, 0)
+        partial = np.clip(key - self.start[safe], 0.0, self.end[safe] - self.start[safe])
+        return np.where(slot >= 0, self.before[safe] + partial, 0.0)
+
+    def shadowed_us(self, pixel: np.ndarray, t0_us: np.ndarray, t1_us: np.ndarray) -> np.ndarray:
+        """(N,) µs that ``pixel`` (N,) spends in shadow between phases ``t0_us`` ≤ ``t1_us`` (N,), at
+        most one period apart (any times; reduced modulo the period, wrapping where needed)."""
+        pixel = np.asarray(pixel, dtype=np.int64)
+        t0 = np.asarray(t0_us, dtype=np.float64)
+        span = np.clip(np.asarray(t1_us, dtype=np.float64) - t0, 0.0, self.period_us)
+        a = np.mod(t0, self.period_us)
+        b = a + span
+        wraps = b > self.period_us
+        low = self._cumulative(self._key(pixel, a))
+        high = self._cumulative(self._key(pixel, np.minimum(b, self.period_us)))
+        wrapped = self._cumulative(self._key(pixel, np.where(wraps, b - self.period_us, 0.0))) - self._cumulative(self._key(pixel, np.zeros_like(a)))
+        return high - low + np.where(wraps, wrapped, 0.0)
+
+    def coverage(self, n_pixels: int) -> np.ndarray:
+        """(n_pixels,) share of the period each pixel spends in shadow."""
+        pixel = np.floor(self.start / (2.0 * self.period_us)).astype(np.int64)
+        return np.bincount(pixel, weights=self.end - self.start, minlength=n_pixels)[:n_pixels] / self.period_us
+
+    def intervals(self) -> ShadowIntervals:
+        """The merged intervals as a ``ShadowIntervals`` (none wraps)."""
+        stride = 2.0 * self.period_us
+        pixel = np.floor(self.start / stride).astype(np.int64)
+        return ShadowIntervals(pixel, self.start - pixel * stride, self.end - pixel * stride)
+
+
+def grid_times(period_us: float, steps: int) -> np.ndarray:
+    """(steps,) phases of a time grid over one period: bin centres (k + ½)·period/steps."""
+    return (np.arange(steps) + 0.5) * (float(period_us) / steps)
+
+
+def intervals_from_grid(shadowed: np.ndarray, period_us: float, pixels: np.ndarray | None = None) -> ShadowIntervals:
+    """Intervals of a (steps, P) bool map of the bins of ``grid_times`` (True: in shadow): each run
+    of bins k..j of a pixel becomes [k, j + 1]·period/steps. ``pixels`` (P,) names the columns (default
+    0..P−1)."""
+    steps, count = shadowed.shape
+    step_us = float(period_us) / steps
+    padded = np.zeros((count, steps + 2), dtype=np.int8)
+    padded[:, 1:-1] = shadowed.T
+    change = np.diff(padded, axis=1)
+    col, first = np.nonzero(change == 1)
+    _, after = np.nonzero(change == -1)
+    # both come row by row and in time order within a row, so the k-th start pairs with the k-th end
+    names = np.arange(count) if pixels is None else np.asarray(pixels, dtype=np.int64)
+    return ShadowIntervals(names[col], first * step_us, after * step_us)
+
+
+def rasterize(intervals: ShadowIntervals, n_pixels: int, period_us: float, steps: int) -> np.ndarray:
+    """(steps, n_pixels) bool: whether each pixel 0..n_pixels−1 is inside one of ``intervals`` at the
+    centre of each bin of ``grid_times(period_us, steps)`` (closed intervals, wrapping ones too)."""
+    step_us = float(period_us) / steps
+    t0 = np.mod(np.asarray(intervals.t0_us, dtype=np.float64), period_us)
+    t1 = np.mod(np.asarray(intervals.t1_us, dtype=np.float64), period_us)
+    # bins whose centre (k + ½)·step lies in [t0, t1]; a wrapping interval covers [t0, end) and [0, t1]
+    first = np.ceil(t0 / step_us - 0.5).astype(np.int64)
+    last = np.floor(t1 / step_us - 0.5).astype(np.int64)
+    wraps = t1 < t0
+    pixel = np.asarray(intervals.pixel, dtype=np.int64)
+    starts = np.concatenate([first, np.zeros(int(wraps.sum()), np.int64)])
+    stops = np.concatenate([np.where(wraps, steps - 1, last), last[wraps]])
+    owners = np.concatenate([pixel, pixel[wraps]])
+    valid = stops >= starts
+    change = np.zeros((steps + 1, n_pixels), dtype=np.int32)
+    np.add.at(change, (np.clip(starts[valid], 0, steps), owners[valid]), 1)
+    np.add.at(change, (np.clip(stops[valid] + 1, 0, steps), owners[valid]), -1)
+    return np.cumsum(change[:-1], axis=0) > 0
