@@ -46,6 +46,7 @@ from pstoolkit import simkernel
 from pstoolkit.brdf import GGX
 from pstoolkit.errors import UserError
 from pstoolkit.esim import simulate_events
+from pstoolkit.eventmodel import REFRACTORY_RULE, REFRACTORY_RULES
 from pstoolkit.layouts import RING, layout_light, layout_lights
 from pstoolkit.lights import RingLight, SampledLight
 from pstoolkit.options import parse_assignments
@@ -73,13 +74,15 @@ SHADOW_STEP_DEG = 1.0
 class CaptureTiming:
     """The sensor and timing options every synthetic hybrid capture shares (the simulator's and the
     DiLiGenT semi-real converter's): frame size (pixels, square), event pixels per frame pixel,
-    contrast threshold, refractory period, long exposures per light period, periods and their length,
-    the seed, and ``discrete_lights`` K > 0 for a frames-only capture of K instantaneous lights."""
+    contrast threshold, refractory period and rule (``eventmodel.REFRACTORY_RULES``), long exposures
+    per light period, periods and their length, the seed, and ``discrete_lights`` K > 0 for a
+    frames-only capture of K instantaneous lights."""
 
     size: int = 128
     event_scale: float = 0.5
     contrast: float = 0.15
     refractory_us: float = 2000.0
+    refractory_rule: str = REFRACTORY_RULE
     frames: int = 3
     periods: int = 1
     period_ms: float = 1000.0 / 30.0
@@ -102,11 +105,12 @@ class CaptureTiming:
 
     def event_rule(self) -> dict[str, Any]:
         """The event options both event engines (``simkernel.simulate_ring``, ``esim.simulate_events``)
-        take from the capture: symmetric contrast, refractory period, seed and shortest step."""
+        take from the capture: symmetric contrast, refractory period and rule, seed and shortest step."""
         return {
             "contrast_pos": self.contrast,
             "contrast_neg": self.contrast,
             "refractory_us": self.refractory_us,
+            "refractory_rule": self.refractory_rule,
             "seed": self.seed,
             "min_dt_us": self.min_step_us,
         }
@@ -124,6 +128,7 @@ class CaptureTiming:
             ("--periods", 1 <= self.periods <= 10000, "must be between 1 and 10000"),
             ("--contrast", 0.01 <= self.contrast <= 5, "must be between 0.01 and 5"),
             ("--refractory-us", 0 <= self.refractory_us <= self.period_us, "must be between 0 and the period"),
+            ("--refractory-rule", self.refractory_rule in REFRACTORY_RULES, f"must be {' or '.join(REFRACTORY_RULES)}"),
             ("--seed", 0 <= self.seed < 2**63, "must be a non-negative integer"),
         ]
         check_limits(self, [*shared, *limits])
@@ -325,6 +330,7 @@ def _simulate(config: SimulationConfig, path: str | os.PathLike[str], progress: 
                     contrast_pos=config.contrast,
                     contrast_neg=config.contrast,
                     refractory_us=config.refractory_us,
+                    refractory_rule=config.refractory_rule,
                 )
             )
         writer.set_lights(renderer.light.to_spec())
