@@ -15,7 +15,8 @@ also loads the compiled engine). Prints a table and writes ``benchmarks/results/
 
 Target: ≥ 5 M events/s.
 
-    python benchmarks/simulate.py [--size 256] [--scenes sphere blobs] [--device cpu] [--refractory-us 2000] [--repeat 3] [--no-keep]
+    python benchmarks/simulate.py [--size 256] [--scenes sphere blobs] [--device cpu] [--refractory-us 2000]
+                                  [--refractory-rule reset-at-end|rate-limited] [--repeat 3] [--no-keep]
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from results_io import write_results
 import psfmt
 from pstoolkit import simkernel
 from pstoolkit.allocator import keep_freed_memory
+from pstoolkit.eventmodel import REFRACTORY_RULES
 from pstoolkit.plugins import get_registries
 from pstoolkit.simulator import (
     SimulationConfig,
@@ -95,6 +97,7 @@ def main() -> None:
     parser.add_argument("--scenes", nargs="+", default=["sphere", "blobs", "relief"])
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--refractory-us", type=float, default=SimulationConfig.refractory_us)
+    parser.add_argument("--refractory-rule", default=SimulationConfig.refractory_rule, choices=REFRACTORY_RULES)
     parser.add_argument("--repeat", type=int, default=1, help="runs per scene; the fastest is kept")
     parser.add_argument("--no-keep", action="store_true",
                         help="leave glibc's allocator defaults (see pstoolkit.allocator)")
@@ -105,7 +108,7 @@ def main() -> None:
         for scene in args.scenes:
             config = SimulationConfig(
                 scene=scene, size=args.size, event_scale=0.5, frames=3, periods=1, contrast=0.15,
-                refractory_us=args.refractory_us, device=args.device,
+                refractory_us=args.refractory_us, refractory_rule=args.refractory_rule, device=args.device,
             )
             runs = [run_scene(config, Path(tmp)) for _ in range(max(1, args.repeat))]
             best = min(runs, key=lambda r: r["seconds"])
@@ -116,7 +119,7 @@ def main() -> None:
             rows.append(best)
     peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print(f"{args.size}×{args.size} frames, {args.size // 2}×{args.size // 2} events, one period, C = 0.15, "
-          f"refractory {args.refractory_us:g} µs, device {args.device}, {numba.get_num_threads()} numba threads, "
+          f"refractory {args.refractory_us:g} µs ({args.refractory_rule}), device {args.device}, {numba.get_num_threads()} numba threads, "
           f"freed memory {'kept' if kept else 'returned'}")
     print(f"{'scene':8s} {'events':>9s} {'total s':>8s} {'first s':>8s} {'CPU s':>7s} {'M ev/s':>7s} {'engine s':>9s} "
           f"{'engine M ev/s':>14s} {'traced MB':>10s} {'rate %':>7s}")
@@ -134,6 +137,7 @@ def main() -> None:
         "size": args.size,
         "event_size": args.size // 2,
         "refractory_us": args.refractory_us,
+        "refractory_rule": args.refractory_rule,
         "repeat": args.repeat,
         "freed_memory_kept": kept,
         "device": args.device,

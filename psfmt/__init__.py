@@ -18,6 +18,7 @@ from psfmt.datarate import DataRate, data_rate, target_size
 from psfmt.errors import FormatError
 from psfmt.events import EventArray, Events, Triggers
 from psfmt.model import (
+    REFRACTORY_RULES,
     Calibration,
     Capture,
     FrameStack,
@@ -36,6 +37,7 @@ from psfmt.writer import CaptureWriter, write
 __all__ = [
     "FORMAT_NAME",
     "FORMAT_VERSION_STR",
+    "REFRACTORY_RULES",
     "Calibration",
     "Capture",
     "CaptureWriter",

@@ -15,6 +15,6 @@ ROOT_ATTRS = ("format", "format_version", "creator", "creator_version", "created
 FRAME_ATTRS = ("color_order", "bit_depth", "saturation", "black_level", "response")
 FRAME_WINDOW = ("t_start_us", "t_end_us")
 FRAME_INSTANT = ("light_direction", "light_intensity")
-CALIBRATION_ATTRS = ("contrast_pos", "contrast_neg", "refractory_us", "camera_model")
+CALIBRATION_ATTRS = ("contrast_pos", "contrast_neg", "refractory_us", "refractory_rule", "camera_model")
 GT_MAPS = ("normal", "mask", "albedo", "depth")
 RESULT_ATTRS = ("solver", "options", "seconds", "version", "created")

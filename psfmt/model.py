@@ -17,6 +17,9 @@ import numpy as np
 from psfmt.events import Events, Triggers
 
 FRAME_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.float32))
+REFRACTORY_RULES = ("reset-at-end", "rate-limited")
+"""Values of ``Calibration.refractory_rule`` (spec §9): the reference resets to the level at the end of
+the refractory period, or moves one threshold per event while a persisting change fires every period."""
 COLOR_ORDERS = {"RGB": 3, "L": 1}
 
 
@@ -140,13 +143,16 @@ class Calibration:
     """How the two cameras and the sensor relate.
 
     ``event_to_frame`` maps event pixel centres (u_e, v_e, 1) to frame pixel coordinates (u_f, v_f);
-    contrast thresholds are in natural-log units; the refractory period in µs.
+    contrast thresholds are in natural-log units; the refractory period in µs, and what a pixel does
+    after it, ``refractory_rule`` (one of ``REFRACTORY_RULES``; None, when unknown, means
+    ``"reset-at-end"``, spec §9).
     """
 
     event_to_frame: np.ndarray | None = None
     contrast_pos: float | None = None
     contrast_neg: float | None = None
     refractory_us: float | None = None
+    refractory_rule: str | None = None
     camera_model: str = "orthographic"
     view_direction: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
 

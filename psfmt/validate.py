@@ -18,7 +18,7 @@ from psfmt import layout
 from psfmt.errors import FormatError
 from psfmt.files import damaged, open_hdf5
 from psfmt.events import EVENT_DTYPES, MsIndexBuilder, ms_index_length
-from psfmt.model import COLOR_ORDERS, FRAME_DTYPES
+from psfmt.model import COLOR_ORDERS, FRAME_DTYPES, REFRACTORY_RULES
 from psfmt.version import FORMAT_NAME, FORMAT_VERSION, FORMAT_VERSION_STR, parse_version
 
 UNIT_TOLERANCE = 1e-3
@@ -279,6 +279,9 @@ def _check_calibration(f: h5py.File, out: _Collector) -> None:
     refractory = _attr(g, "refractory_us")
     if refractory is not None and not (isinstance(refractory, (int, float)) and refractory >= 0):
         out.error(where, f"refractory_us must be non-negative, got {refractory!r}")
+    rule = _attr(g, "refractory_rule")
+    if rule is not None and rule not in REFRACTORY_RULES:
+        out.error(where, f"refractory_rule {rule!r} is not one of {', '.join(REFRACTORY_RULES)}")
     if layout.EVENTS in f and _attr(g, "contrast_pos") is None:
         out.warn(where, "contrast thresholds are unknown; solvers fall back to their defaults")
 

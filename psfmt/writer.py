@@ -278,6 +278,8 @@ class CaptureWriter:
             value = getattr(calibration, key)
             if value is not None:
                 group.attrs[key] = float(value)
+        if calibration.refractory_rule is not None:
+            group.attrs["refractory_rule"] = str(calibration.refractory_rule)
 
     def set_ground_truth(self, gt: GroundTruth) -> None:
         group = self._file.create_group(layout.GROUND_TRUTH)

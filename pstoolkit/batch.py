@@ -27,6 +27,7 @@ import psfmt
 from psfmt.atomic import temporary_sibling
 from pstoolkit.errors import UserError
 from pstoolkit.evaluation import RESULT_FILE
+from pstoolkit.folders import replace_folder
 from pstoolkit.outputs import result_summary, solve_capture, summary_json, write_result_folder
 from pstoolkit.plugins import get_registries
 from pstoolkit.solver import no_progress, Progress, resolve_device
@@ -160,16 +161,6 @@ def is_complete(pair: Pair) -> bool:
     )
 
 
-def _replace_folder(new: Path, folder: Path) -> None:
-    """Rename ``new`` to ``folder``; an outdated ``folder`` is moved aside first and then removed."""
-    old = temporary_sibling(folder) if folder.exists() else None
-    if old is not None:
-        os.replace(folder, old)
-    os.replace(new, folder)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
-
-
 def _failed(pair: Pair, error: str, trace: str | None = None) -> Outcome:
     return Outcome(pair.object, pair.solver, pair.capture, pair.folder, "failed", error=error, traceback=trace)
 
@@ -195,7 +186,7 @@ def run_pair(pair: Pair) -> Outcome:
             error_max_deg=pair.error_max_deg,
         )
         write_result_folder(partial, solved, summary)
-        _replace_folder(partial, Path(pair.folder))
+        replace_folder(partial, Path(pair.folder))
     except (UserError, psfmt.FormatError) as exc:
         return _failed(pair, str(exc))
     except Exception as exc:  # a broken solver must not stop the batch: record it with its traceback

@@ -25,9 +25,15 @@ each pixel sees ``L = ln(I + ε)`` and fires by the rule of ``pstoolkit.eventmod
   inside a step is emitted at its own exact time on that line (float64), then rounded half up to
   int64 µs. Positive events step the reference by ``C⁺``, negative by ``C⁻``; per-pixel thresholds
   are drawn once from ``N(C, σ)`` and clamped to ≥ 0.01.
-- **Refractory** (``eventmodel.REFRACTORY_RULE``, "reset-at-end"): after an event at ``t`` the pixel
-  cannot fire before ``t + R``; what happens in the dead time is not emitted, and at ``t + R`` the
-  reference is reset to ``L(t + R)``. So on a line of slope ``s`` a pixel fires every ``R + C / |s|``.
+- **Refractory** (``refractory_rule``, one of ``eventmodel.REFRACTORY_RULES``): after an event at
+  ``t`` the pixel cannot fire before ``t + R``. "reset-at-end" (the default): what happens in the
+  dead time is not emitted, and at ``t + R`` the reference is reset to ``L(t + R)``; on a line of
+  slope ``s`` a pixel fires every ``R + C / |s|``. "rate-limited": the reference moves by one
+  threshold per event and a level still beyond a threshold at ``t + R`` fires then, so a line
+  steeper than ``C / R`` fires every ``R`` while the reference lags behind (``_PacedPixels``: on
+  each line between samples the events are the closed form of ``pstoolkit.simkernel``'s
+  ``_fire_lanes_paced``). With ``R = 0`` the two are the same rule, ESIM's, and run as
+  "reset-at-end".
 - **Leak** (v2e-style, optional): each pixel's reference drifts down by ``leak_hz · C⁺`` per second,
   so a static pixel fires positive events at ``leak_hz``; the start reference is lowered by a uniform
   random fraction of ``C⁺`` (seeded) so that static pixels do not fire in lockstep.
@@ -50,7 +56,7 @@ import numpy as np
 
 from psfmt import EventArray
 from pstoolkit.errors import UserError
-from pstoolkit.eventmodel import LOG_EPS, log_irradiance
+from pstoolkit.eventmodel import LOG_EPS, REFRACTORY_RULE, REFRACTORY_RULES, check_rule, log_irradiance
 
 MIN_CONTRAST = 0.01
 Render = Callable[[np.ndarray], np.ndarray]
@@ -327,20 +333,27 @@ class _Pixels:
         between its firing levels, and which stays blind or sighted throughout, keeps its state.
         Stepping a small subset saves the per-step passes over the whole sensor where few pixels
         are active (around shadow edges, when the sampling is fine)."""
-        candidates = np.flatnonzero(
-            (block.max(axis=0) >= self.hi) | (block.min(axis=0) <= self.lo) | (self.blind_until_us <= times[-1])
-        )
+        candidates = np.flatnonzero(self._may_fire(m_prev, times, block))
         if 2 * candidates.size > block.shape[1]:
             return self._step_all(t_prev, m_prev, times, block)
         if candidates.size == 0:
             return np.empty(0, np.int64), np.empty(0), np.empty(0, np.int8)
         blind = int(np.count_nonzero(np.isfinite(self.blind_until_us[candidates])))
-        sub = _Pixels(self.c_pos[candidates], self.c_neg[candidates], self.hi[candidates], self.lo[candidates],
-                      self.blind_until_us[candidates], self.refractory_us, blind)
+        sub = type(self)(self.c_pos[candidates], self.c_neg[candidates], self.hi[candidates], self.lo[candidates],
+                         self.blind_until_us[candidates], self.refractory_us, blind)
         pix, t, pol = sub._step_all(t_prev, m_prev[candidates], times, block[:, candidates])
         self.hi[candidates], self.lo[candidates], self.blind_until_us[candidates] = sub.hi, sub.lo, sub.blind_until_us
         self.blind += sub.blind - blind
         return candidates[pix], t, pol
+
+    def _may_fire(self, m_prev: np.ndarray, times: np.ndarray, block: np.ndarray) -> np.ndarray:
+        """(pixels,) bool: whether a pixel can fire in the block (it reaches a firing level, or a
+        reset falls due in it)."""
+        return (block.max(axis=0) >= self.hi) | (block.min(axis=0) <= self.lo) | (self.blind_until_us <= times[-1])
+
+    def _firing(self, m0: np.ndarray, m1: np.ndarray) -> np.ndarray:
+        """The pixels that fire on the line from ``m0`` to ``m1`` (resets due on it done)."""
+        return np.flatnonzero((m1 >= self.hi) | (m1 <= self.lo))
 
     def _step_all(self, t_prev: float, m_prev: np.ndarray, times: np.ndarray, block: np.ndarray,
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -353,13 +366,20 @@ class _Pixels:
         for s, m1 in enumerate(block):
             if self.blind:
                 self.reset_due(bounds[s], bounds[s + 1], m0, m1)
-            index = np.flatnonzero((m1 >= self.hi) | (m1 <= self.lo))
+            index = self._firing(m0, m1)
             if index.size:
                 fired.append(self.fire(index, bounds[s], bounds[s + 1], m0, m1))
                 steps.append(s)
             m0 = m1
         if not fired:
             return np.empty(0, np.int64), np.empty(0), np.empty(0, np.int8)
+        return self._expand(fired, steps, t_all)
+
+    @staticmethod
+    def _expand(fired: list[tuple[np.ndarray, ...]], steps: list[int], t_all: np.ndarray,
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The events of a block from what ``fire`` returned at ``steps`` (sample times ``t_all``):
+        each firing level placed on its line."""
         sizes = [len(f[0]) for f in fired]
         index, sign, first, gap, count, a, b = (np.concatenate(c) for c in zip(*fired))
         step = np.repeat(np.array(steps), sizes)
@@ -370,6 +390,82 @@ class _Pixels:
         frac = np.clip((level - a) / np.maximum(b[owner] - a, _TINY), 0.0, 1.0)
         t = t_all[step] + frac * (t_all[step + 1] - t_all[step])
         return index[owner], t, sign[owner].astype(np.int8)
+
+
+class _PacedPixels(_Pixels):
+    """Per-pixel state of the "rate-limited" rule (R > 0): ``hi``/``lo`` are always the reference
+    ± C (float64: the reference moves by whole thresholds), ``blind_until_us`` the end of the blind
+    time (−inf before the first event); there is no reset to apply."""
+
+    def reset_due(self, ta: float, tb: float, m0: np.ndarray, m1: np.ndarray) -> None:
+        """Nothing: the reference does not move at the end of a blind time."""
+
+    def _may_fire(self, m_prev: np.ndarray, times: np.ndarray, block: np.ndarray) -> np.ndarray:
+        # a level beyond a firing level before the block (a lag still to fire) counts too
+        top = np.maximum(block.max(axis=0), m_prev)
+        bottom = np.minimum(block.min(axis=0), m_prev)
+        return (top >= self.hi) | (bottom <= self.lo)
+
+    def _firing(self, m0: np.ndarray, m1: np.ndarray) -> np.ndarray:
+        return np.flatnonzero((np.maximum(m0, m1) >= self.hi) | (np.minimum(m0, m1) <= self.lo))
+
+    def fire(self, index: np.ndarray, ta: float, tb: float, m0: np.ndarray, m1: np.ndarray,
+             ) -> tuple[np.ndarray, ...]:
+        """Update the pixels ``index`` over the line from ``m0`` (at ``ta``) to ``m1`` (at ``tb``)
+        and return their events as two runs each (``_expand``): first a lag left over from before,
+        firing against the line's sense every R from the end of the blind time while the level stays
+        beyond the moving threshold; then the line's own run, whose k-th event is at
+        max(t₁ + (k − 1)·R, t_c + (k − 1)·C/|s|), t_c the crossing of its first threshold (before
+        ``ta`` for a lag in the line's sense) and t₁ the first time the pixel may fire at or after
+        t_c. Returns pixel, and per run count, start t₁, crossing t_c, spacing C/|s| and sign."""
+        r = self.refractory_us
+        a, b = m0[index].astype(np.float64), m1[index].astype(np.float64)
+        hi, lo, blind = self.hi[index], self.lo[index], self.blind_until_us[index]
+        c_pos, c_neg = self.c_pos[index], self.c_neg[index]
+        slope = (b - a) / (tb - ta)
+        speed = np.abs(slope)
+        # the lag run: beyond a threshold when the pixel may first fire, against the line (or flat)
+        t1 = np.maximum(blind, ta)
+        level = a + slope * (t1 - ta)
+        up, down = (t1 <= tb) & (level >= hi), (t1 <= tb) & (level <= lo)
+        sign1 = np.where(up, 1.0, -1.0)
+        lag = (up | down) & (sign1 * slope <= 0)
+        c1 = np.where(up, c_pos, c_neg)
+        beyond = sign1 * level - np.where(up, hi, -lo)
+        n1 = np.minimum(np.floor(beyond / (c1 + speed * r)), np.floor((tb - t1) / r)) + 1
+        n1 = np.where(lag, n1, 0.0)
+        hi, lo = hi + sign1 * n1 * c1, lo + sign1 * n1 * c1
+        blind = np.where(n1 > 0, t1 + n1 * r, blind)
+        # the line's run
+        rising = slope > 0
+        sign2 = np.where(rising, 1.0, -1.0)
+        c2 = np.where(rising, c_pos, c_neg)
+        first = np.where(rising, hi, -lo)
+        inverse = 1.0 / np.maximum(speed, _TINY)
+        with np.errstate(over="ignore", invalid="ignore"):
+            crossing = ta + (first - sign2 * a) * inverse
+            t2 = np.maximum(np.maximum(blind, ta), crossing)
+            n2 = np.minimum(np.floor((sign2 * b - first) / c2), np.floor((tb - t2) / r)) + 1
+        n2 = np.where((slope != 0) & (t2 <= tb) & (sign2 * b >= first), n2, 0.0)
+        spacing = c2 * inverse
+        hi, lo = hi + sign2 * n2 * c2, lo + sign2 * n2 * c2
+        with np.errstate(over="ignore", invalid="ignore"):
+            last = np.maximum(t2 + (n2 - 1) * r, crossing + (n2 - 1) * spacing)
+        self.hi[index], self.lo[index] = hi, lo
+        self.blind_until_us[index] = np.where(n2 > 0, last + r, blind)
+        counts = np.stack([n1, n2]).astype(np.int64)
+        return index, counts, np.stack([t1, t2]), np.stack([t1, crossing]), np.stack([np.zeros_like(t1), spacing]), np.stack([sign1, sign2])
+
+    def _expand(self, fired: list[tuple[np.ndarray, ...]], steps: list[int], t_all: np.ndarray,  # type: ignore[override]
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The events of a block from ``fire``'s runs, step by step and within a step the lag run
+        first: the k-th (from 0) of a run at max(start + k·R, crossing + k·spacing)."""
+        pixel = np.concatenate([np.tile(f[0], 2) for f in fired])
+        count, start, crossing, spacing, sign = (np.concatenate([a.reshape(-1) for a in c]) for c in list(zip(*fired))[1:])
+        owner = np.repeat(np.arange(count.size), count)
+        k = np.arange(owner.size) - np.repeat(np.cumsum(count) - count, count)
+        t = np.maximum(start[owner] + k * self.refractory_us, crossing[owner] + k * spacing[owner])
+        return pixel[owner], t, sign[owner].astype(np.int8)
 
 
 def _shot_noise(rng: np.random.Generator, rate_hz: float, n_pixels: int, ta: float, tb: float,
@@ -410,12 +506,14 @@ def simulate_events(
     leak_hz: float = 0.0,
     render_pixels: RenderPixels | None = None,
     sample_times_us: np.ndarray | None = None,
+    refractory_rule: str = REFRACTORY_RULE,
 ) -> Iterator[EventArray]:
     """Events of a ``width``×``height`` sensor watching ``render`` from ``t0_us`` to ``t1_us`` (see the
     module docstring for the model). Yields non-empty ``EventArray`` chunks in time order.
 
     ``eps`` defaults to ``eventmodel.LOG_EPS`` (1e-3, for irradiance normalised to ≈ 1 when bright);
-    ``sigma`` is the per-pixel threshold spread, ``refractory_us`` the dead time, ``max_dlog`` the
+    ``sigma`` is the per-pixel threshold spread, ``refractory_us`` the dead time and
+    ``refractory_rule`` what happens in it (``eventmodel.REFRACTORY_RULES``), ``max_dlog`` the
     largest log change allowed between samples (default ``0.5·min(C⁺, C⁻)``), ``initial_dt_us`` the
     first sampling step, ``chunk_samples`` the most times rendered or held at once, ``min_dt_us`` the
     shortest interval that is still split (a jump in irradiance is resolved to this), ``leak_hz`` and
@@ -431,6 +529,7 @@ def simulate_events(
     check_options(t0_us, t1_us, width, height, {"contrast_pos": contrast_pos, "contrast_neg": contrast_neg},
                    sigma, refractory_us, eps, max_dlog, initial_dt_us, chunk_samples, min_dt_us,
                    {"shot_noise_hz": shot_noise_hz, "leak_hz": leak_hz})
+    check_rule(refractory_rule, "simulate_events")
     if sample_times_us is not None:
         sample_times_us = _check_sample_times(sample_times_us, float(t0_us), float(t1_us))
     n_pixels = width * height
@@ -447,8 +546,12 @@ def simulate_events(
     leak_per_us = leak_hz * 1e-6 * c_pos
     if leak_hz > 0:
         reference -= rng_leak.uniform(0.0, 1.0, n_pixels) * c_pos
-    pixels = _Pixels(c_pos, c_neg, (reference + c_pos).astype(np.float32), (reference - c_neg).astype(np.float32),
-                     np.full(n_pixels, np.inf), float(refractory_us))
+    if refractory_rule == REFRACTORY_RULES[1] and refractory_us > 0:
+        pixels: _Pixels = _PacedPixels(c_pos, c_neg, reference + c_pos, reference - c_neg, np.full(n_pixels, -np.inf),
+                                       float(refractory_us))
+    else:
+        pixels = _Pixels(c_pos, c_neg, (reference + c_pos).astype(np.float32), (reference - c_neg).astype(np.float32),
+                         np.full(n_pixels, np.inf), float(refractory_us))
 
     t_prev, m_prev = float(t0_us), l_start
     log_render_pixels = None if render_pixels is None else partial(_log_pixels, render_pixels, eps=eps)

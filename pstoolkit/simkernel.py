@@ -13,7 +13,8 @@ this one, up to ``max_dt_us`` (8° of the turn), and around the intervals of the
 which a cast shadow falls on the pixel while it is lit, up to one interval, so no sweep is stepped
 over; L may also leave the previous step's line by at most ``MAX_BEND``. ``I`` is the area average of the frame
 pixels under the event pixel, each shaded in closed form at the step's time; crossings are placed
-exactly on the line between samples, with the refractory rule "reset-at-end". Each frame pixel
+exactly on the line between samples, by either refractory rule of ``pstoolkit.eventmodel``
+("reset-at-end": ``_fire_lanes``; "rate-limited": ``_fire_lanes_paced``, R > 0). Each frame pixel
 belongs to the event pixel covering most of it, and its ∫ V·[n·l]₊ dt and ∫ V·[n·l]₊·ratio dt
 (``ratio`` the GGX specular factor) accumulate by the trapezoid rule on that pixel's samples, in
 its slot of the owner's footprint: the exposures come from the same shading as the events.
@@ -45,7 +46,7 @@ from psfmt import EventArray
 from pstoolkit.brdf import GGX
 from pstoolkit.errors import UserError
 from pstoolkit.esim import check_options, draw_thresholds, event_rngs
-from pstoolkit.eventmodel import GREY_WEIGHTS, LOG_EPS
+from pstoolkit.eventmodel import GREY_WEIGHTS, LOG_EPS, REFRACTORY_RULE, REFRACTORY_RULES, check_rule
 from pstoolkit.lights import US_PER_S, RingLight
 from pstoolkit.render import Renderer, event_shape
 from pstoolkit.worksharing import take_task
@@ -116,9 +117,10 @@ class Footprints:
 @dataclass
 class PixelState:
     """Where each event pixel stands at the start of a block (all at the same time): its level ``level``
-    (L at that time), firing levels ``hi``/``lo`` (±inf while blind), ``blind_until_us`` (inf unless a
-    reset is pending), next step ``step_us``, slope of L over the last step ``slope`` (per µs,
-    NaN before the first); and per slot of its footprint (the frame pixels under it, see
+    (L at that time), firing levels ``hi``/``lo`` and ``blind_until_us`` — for "reset-at-end" ±inf
+    while blind and inf unless a reset is pending, for "rate-limited" always the reference ± C and
+    the end of the blind time (−inf before the first event) —, next step ``step_us``, slope of L over
+    the last step ``slope`` (per µs, NaN before the first); and per slot of its footprint (the frame pixels under it, see
     ``Footprints``) the last V·[n·l]₊ and V·[n·l]₊·ratio (``shade``, (E, K, 2)) and the exposure
     sums of the current window (``sums``, (E, K, 2), µs)."""
 
@@ -357,6 +359,102 @@ def _emit(
     return n + count
 
 
+# Rows of ``_fire_lanes_paced``' output per lane, for each of its two runs (``PACED_ROWS`` apart):
+# events, the first time the pixel may fire, the crossing of the first threshold, the time between
+# thresholds on the line, and the sign; the k-th event (from 0) of a run is at
+# max(start + k·R, crossing + k·spacing).
+PACED_COUNT, PACED_START, PACED_CROSSING, PACED_SPACING, PACED_SIGN = range(5)
+PACED_ROWS = 5
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _fire_lanes_paced(
+    accepted: np.ndarray, ta: np.ndarray, la: np.ndarray, tb: np.ndarray, lb: np.ndarray, c_pos: np.ndarray,
+    c_neg: np.ndarray, refractory_us: float, hi: np.ndarray, lo: np.ndarray, blind_until: np.ndarray,
+    fire: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """The events of each ``accepted`` lane on the line from (``ta``, ``la``) to (``tb``, ``lb``) by
+    the "rate-limited" rule of ``pstoolkit.eventmodel`` (R = ``refractory_us`` > 0): its state
+    ``hi``/``lo`` (reference ± C) and ``blind_until`` (end of the blind time) updated, and in ``fire``
+    (2·``PACED_ROWS``, W) its two runs (rows ``PACED_*``; no events: counts of 0).
+
+    On a line of slope s, a lane first fires what lags from before against the line (or on a flat
+    one): if at t₁ = max(blind_until, ta) the level is beyond a threshold on the side the line moves
+    away from, it fires there every R while the level, falling at |s| towards the threshold that
+    moves C per event, stays beyond it: n₁ = ⌊(beyond at t₁)/(C + |s|·R)⌋ + 1 events, at most as many
+    as fit before ``tb``. Then the line's own run: with t_c the (unclipped) time the line crosses the
+    first threshold in its sense — before ``ta`` for a lag in that sense — and t₂ = max(blind_until,
+    ta, t_c), the k-th event is at max(t₂ + (k − 1)·R, t_c + (k − 1)·C/|s|) (the later of the next
+    time the pixel may fire and the k-th crossing; by induction on k, as both are arithmetic), as
+    long as that is before ``tb``. Both runs fall in one step only if it is longer than R and moves
+    the level by C or more, which the step control (``max_dlog`` = C/2) allows only at ``min_dt``
+    (a jump, when R is shorter); both are kept. Every lane takes the same arithmetic, its branches
+    as selects (SIMD)."""
+    r = refractory_us
+    for k in range(accepted.size):
+        acc = accepted[k]
+        slope = (lb[k] - la[k]) / (tb[k] - ta[k])
+        speed = abs(slope)
+        t1 = max(blind_until[k], ta[k])
+        level = la[k] + slope * (t1 - ta[k])
+        open_ = acc and t1 <= tb[k]
+        up = open_ and level >= hi[k]
+        down = open_ and level <= lo[k]
+        sign1 = 1.0 if up else -1.0
+        c1 = c_pos[k] if up else c_neg[k]
+        beyond = sign1 * level - (hi[k] if up else -lo[k])
+        n1 = min(math.floor(beyond / (c1 + speed * r)), math.floor((tb[k] - t1) / r)) + 1.0
+        n1 = n1 if (up or down) and sign1 * slope <= 0.0 else 0.0
+        shift = sign1 * n1 * c1
+        h, l = hi[k] + shift, lo[k] + shift
+        blind = t1 + n1 * r if n1 > 0.0 else blind_until[k]
+        rising = slope > 0.0
+        sign2 = 1.0 if rising else -1.0
+        c2 = c_pos[k] if rising else c_neg[k]
+        first = h if rising else -l
+        inverse = 1.0 / max(speed, _TINY)
+        crossing = ta[k] + (first - sign2 * la[k]) * inverse
+        t2 = max(max(blind, ta[k]), crossing)
+        n2 = min(math.floor((sign2 * lb[k] - first) / c2), math.floor((tb[k] - t2) / r)) + 1.0
+        n2 = n2 if acc and slope != 0.0 and t2 <= tb[k] and sign2 * lb[k] >= first else 0.0
+        spacing = c2 * inverse
+        shift = sign2 * n2 * c2
+        last = max(t2 + (n2 - 1.0) * r, crossing + (n2 - 1.0) * spacing)
+        hi[k] = h + shift if acc else hi[k]
+        lo[k] = l + shift if acc else lo[k]
+        blind_until[k] = (last + r if n2 > 0.0 else blind) if acc else blind_until[k]
+        fire[PACED_COUNT, k] = n1
+        fire[PACED_START, k] = t1
+        fire[PACED_CROSSING, k] = t1
+        fire[PACED_SPACING, k] = 0.0
+        fire[PACED_SIGN, k] = sign1
+        fire[PACED_ROWS + PACED_COUNT, k] = n2
+        fire[PACED_ROWS + PACED_START, k] = t2
+        fire[PACED_ROWS + PACED_CROSSING, k] = crossing
+        fire[PACED_ROWS + PACED_SPACING, k] = spacing
+        fire[PACED_ROWS + PACED_SIGN, k] = sign2
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _emit_paced(
+    fire: np.ndarray, k: int, refractory_us: float, out_t: np.ndarray, out_p: np.ndarray, n: int,
+) -> int:  # pragma: no cover - compiled
+    """Lane ``k``'s events from ``_fire_lanes_paced``, its two runs in order, stored in the rows
+    ``out_t`` (whole µs, rounded half up)/``out_p`` after the ``n`` there as far as they have room;
+    returns the pixel's event count."""
+    for run in range(2):
+        row = run * PACED_ROWS
+        count = np.int64(fire[row + PACED_COUNT, k])
+        start, crossing, spacing = fire[row + PACED_START, k], fire[row + PACED_CROSSING, k], fire[row + PACED_SPACING, k]
+        sign = np.int8(fire[row + PACED_SIGN, k])
+        for i in range(min(count, max(out_t.shape[0] - n, 0))):
+            t = max(start + i * refractory_us, crossing + i * spacing)
+            out_t[n + i] = np.int64(math.floor(t + 0.5))
+            out_p[n + i] = sign
+        n += count
+    return n
+
+
 _TINY = np.finfo(np.float64).tiny
 
 
@@ -442,14 +540,15 @@ def _advance_pixels(
     order: np.ndarray, first: int, last: int, ta: float, tb: float, values: np.ndarray, weight: np.ndarray,
     pixel: np.ndarray, index: np.ndarray, index_t: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray,
     column_major: np.ndarray, grid: tuple, reach: np.ndarray, c_pos: np.ndarray, c_neg: np.ndarray,
-    refractory_us: float, eps: float, max_dlog: float, min_dt: float, max_dt: float, grid_dt: float,
+    refractory_us: float, paced: bool, eps: float, max_dlog: float, min_dt: float, max_dt: float, grid_dt: float,
     level: np.ndarray, hi: np.ndarray, lo: np.ndarray, blind_until: np.ndarray, step: np.ndarray, slope: np.ndarray,
     shade: np.ndarray, sums: np.ndarray, out_t: np.ndarray, out_p: np.ndarray, count: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
     """Event pixels ``order[first:last]`` from ``ta`` to ``tb``, ``LANES`` at a time: each lane
     steps its own pixel, and a lane's state sits at its index of arrays across the lanes, so the
     shading, the log, the step control and the firing rule of all lanes run as SIMD loops; only the
-    lanes that store events, finish or have cast shadows near take scalar turns."""
+    lanes that store events, finish or have cast shadows near take scalar turns. The firing rule
+    is "rate-limited" when ``paced`` (``_fire_lanes_paced``), else "reset-at-end" (``_fire_lanes``)."""
     taps = pixel.shape[1]
     w = LANES
     omega, t0, phase = ring[3], ring[4], ring[2]
@@ -469,7 +568,7 @@ def _advance_pixels(
     now = np.zeros((2, taps, w))
     exponent, mantissa = np.empty(w, np.int64), np.empty(w, np.int64)
     dt, grown = np.empty(w), np.empty(w)
-    accepted, fire = np.zeros(w, np.bool_), np.zeros((6, w))
+    accepted, fire = np.zeros(w, np.bool_), np.zeros((2 * PACED_ROWS, w))
     taken = first
     while True:
         # idle lanes take the next pixels with frame pixels (those without fire nothing)
@@ -524,11 +623,18 @@ def _advance_pixels(
             h_try[k] = max(min_dt, h_try[k] * max(0.2, shrink)) if rejected else h_try[k]
             accepted[k] = active[k] and not rejected
         # events: the firing rule in SIMD, then each firing lane's events stored
-        _fire_lanes(accepted, t, l0, t1, l1, l_pos, l_neg, refractory_us, l_hi, l_lo, l_blind, fire)
-        for k in range(w):
-            if fire[FIRE_COUNT, k] > 0:
-                p = lane[k]
-                n[k] = _emit(fire, k, t[k], t1[k], out_t[p], out_p[p], n[k])
+        if paced:
+            _fire_lanes_paced(accepted, t, l0, t1, l1, l_pos, l_neg, refractory_us, l_hi, l_lo, l_blind, fire)
+            for k in range(w):
+                if fire[PACED_COUNT, k] > 0 or fire[PACED_ROWS + PACED_COUNT, k] > 0:
+                    p = lane[k]
+                    n[k] = _emit_paced(fire, k, refractory_us, out_t[p], out_p[p], n[k])
+        else:
+            _fire_lanes(accepted, t, l0, t1, l1, l_pos, l_neg, refractory_us, l_hi, l_lo, l_blind, fire)
+            for k in range(w):
+                if fire[FIRE_COUNT, k] > 0:
+                    p = lane[k]
+                    n[k] = _emit(fire, k, t[k], t1[k], out_t[p], out_p[p], n[k])
         # accepted samples: exposure sums by the trapezoid rule, the next step
         for q in range(taps):
             for k in range(w):
@@ -572,7 +678,7 @@ def _advance(
     order: np.ndarray, ta: float, tb: float, values: np.ndarray, weight: np.ndarray, pixel: np.ndarray,
     index: np.ndarray, index_t: np.ndarray, specular: bool, ring: tuple, openness: np.ndarray,
     column_major: np.ndarray, grid: tuple, reach: np.ndarray, c_pos: np.ndarray, c_neg: np.ndarray,
-    refractory_us: float, eps: float, max_dlog: float, min_dt: float, max_dt: float, grid_dt: float,
+    refractory_us: float, paced: bool, eps: float, max_dlog: float, min_dt: float, max_dt: float, grid_dt: float,
     level: np.ndarray, hi: np.ndarray, lo: np.ndarray, blind_until: np.ndarray,
     step: np.ndarray, slope: np.ndarray, shade: np.ndarray, sums: np.ndarray, out_t: np.ndarray, out_p: np.ndarray,
     count: np.ndarray, threads: int,
@@ -593,7 +699,7 @@ def _advance(
             first = task * PIXELS_PER_TASK
             _advance_pixels(order, first, min(first + PIXELS_PER_TASK, order.shape[0]), ta, tb, values, weight, pixel,
                             index, index_t, specular, ring, openness, column_major, grid, reach, c_pos, c_neg,
-                            refractory_us, eps, max_dlog, min_dt, max_dt, grid_dt, level, hi, lo, blind_until, step,
+                            refractory_us, paced, eps, max_dlog, min_dt, max_dt, grid_dt, level, hi, lo, blind_until, step,
                             slope, shade, sums, out_t, out_p, count)
 
 
@@ -849,6 +955,7 @@ def simulate_ring(
     eps: float = LOG_EPS,
     block_us: float | None = None,
     capacity: int | None = None,
+    refractory_rule: str = REFRACTORY_RULE,
 ) -> Iterator[Block]:
     """Events of the event sensor at ``event_scale`` over [0, ``t1_us``] and the exposure sums of the
     windows ending at ``window_ends_us`` (increasing, inside (0, t1_us]), block by block in time
@@ -858,8 +965,9 @@ def simulate_ring(
     ``MAX_STEP_TURNS`` of the turn, ``block_us`` to ``BLOCK_GRID_STEPS`` shadow-grid intervals (at
     most ``TABLE_ROWS`` − 3);
     ``capacity`` is the first room for events per pixel and block (grown as needed; by default
-    ``FIRST_ROOM`` within ``ROOM_BYTES``). Thresholds are drawn as ``pstoolkit.esim`` draws them for
-    ``seed``."""
+    ``FIRST_ROOM`` within ``ROOM_BYTES``); ``refractory_rule`` is one of
+    ``eventmodel.REFRACTORY_RULES`` (with R = 0 both are ESIM's rule, run as "reset-at-end").
+    Thresholds are drawn as ``pstoolkit.esim`` draws them for ``seed``."""
     if not supported(renderer):
         raise UserError("simulate_ring needs a ring light, the ggx or lambertian BRDF, the CPU and a shadow grid")
     light = renderer.light
@@ -869,6 +977,7 @@ def simulate_ring(
     height, width = event_shape(renderer.maps.height, renderer.maps.width, event_scale)
     check_options(0.0, t1_us, width, height, {"contrast_pos": contrast_pos, "contrast_neg": contrast_neg}, sigma,
                   refractory_us, eps, max_dlog, 1.0, 2, min_dt_us, {}, caller="simulate_ring")
+    paced = check_rule(refractory_rule, "simulate_ring") == REFRACTORY_RULES[1] and refractory_us > 0
     ends = sorted({float(t) for t in window_ends_us} | {float(t1_us)})
     if ends[0] <= 0 or ends[-1] > t1_us:
         raise UserError(f"simulate_ring: window ends must lie in (0, t1_us = {t1_us}]")
@@ -891,7 +1000,7 @@ def simulate_ring(
     reach = np.zeros(openness.shape[1], np.uint64)
     state = PixelState(
         level=np.empty(n_events), hi=np.empty(n_events), lo=np.empty(n_events),
-        blind_until_us=np.full(n_events, np.inf), step_us=np.full(n_events, max_dt_us / 4.0),
+        blind_until_us=np.full(n_events, -np.inf if paced else np.inf), step_us=np.full(n_events, max_dt_us / 4.0),
         slope=np.full(n_events, np.nan), shade=np.zeros((*feet.pixel.shape, 2)), sums=np.zeros((*feet.pixel.shape, 2)),
     )
     _start(0.0, constants.values, feet.weight, feet.pixel, renderer.index, index_t, constants.specular, ring, openness,
@@ -915,7 +1024,7 @@ def simulate_ring(
         while True:
             _advance(order, ta, tb, constants.values, feet.weight, feet.pixel, renderer.index, index_t,
                      constants.specular, ring, openness, column_major, grid, reach, c_pos, c_neg,
-                     float(refractory_us), float(eps), float(max_dlog), float(min_dt_us), float(max_dt_us),
+                     float(refractory_us), paced, float(eps), float(max_dlog), float(min_dt_us), float(max_dt_us),
                      grid_dt_us, state.level, state.hi, state.lo, state.blind_until_us, state.step_us,
                      state.slope, state.shade, state.sums, out_t, out_p, count, numba.get_num_threads())
             order = np.flatnonzero(count > capacity)

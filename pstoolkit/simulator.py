@@ -3,8 +3,10 @@
 A hybrid capture (the default) holds ``frames`` long exposures per light period, each integrating the
 irradiance over a third (for 3) of the turn, and the events of a sensor at ``event_scale`` event pixels
 per frame pixel over the same time; a classic capture (``discrete_lights=N``) holds N frames under
-instantaneous lights spread evenly over one period and no events. Both carry the light model and the
-ground truth (normal, mask, albedo, depth in frame pixels, F0, roughness, metallic).
+instantaneous lights spread evenly over one period and no events, or — with ``lights`` ``grid`` or a
+light-table file (``pstoolkit.layouts``) — one frame under each light of that layout, cast shadows
+swept exactly for every light. Both carry the light model and the ground truth (normal, mask, albedo,
+depth in frame pixels, F0, roughness, metallic).
 
 Speed: with the built-in BRDFs on the CPU the compiled engine ``pstoolkit.simkernel`` renders each
 event pixel at its own adaptive times and integrates the frames on the same samples, in parallel
@@ -16,7 +18,8 @@ Both follow the event rule of ``pstoolkit.eventmodel``. Memory stays bounded: ti
 blocks.
 
 Frames: exposure (irradiance × seconds) times a gain that puts the brightest diffuse value of any
-frame at ``DIFFUSE_LEVEL`` of saturation, so specular highlights may clip as in an LDR camera; optional
+frame at ``DIFFUSE_LEVEL`` of saturation, so specular highlights may clip as in an LDR camera
+(``auto_gain="peak"`` puts the brightest value of all there instead, so nothing clips); optional
 shot and read noise; quantised to 8, 12 or 16 bits. The same configuration and seed give the same data.
 
     config = SimulationConfig(scene="blobs", size=128, seed=0)
@@ -43,7 +46,9 @@ from pstoolkit import simkernel
 from pstoolkit.brdf import GGX
 from pstoolkit.errors import UserError
 from pstoolkit.esim import simulate_events
-from pstoolkit.lights import RingLight
+from pstoolkit.eventmodel import REFRACTORY_RULE, REFRACTORY_RULES
+from pstoolkit.layouts import RING, layout_light, layout_lights
+from pstoolkit.lights import RingLight, SampledLight
 from pstoolkit.options import parse_assignments
 from pstoolkit.plugins import get_registries
 from pstoolkit.render import Renderer, event_shape, exposure_plan, exposure_samples
@@ -57,6 +62,9 @@ DIFFUSE_LEVEL = 0.8
 # on the interpolated log-irradiance.
 EVENT_MIN_STEP_TURNS = 0.25 / 360.0
 BIT_DEPTHS = {8: np.uint8, 12: np.uint16, 16: np.uint16}
+AUTO_GAINS = ("diffuse", "peak")
+"""What the automatic gain puts at ``DIFFUSE_LEVEL`` of saturation: the brightest diffuse value of any
+frame (highlights may clip) or the brightest value of all (nothing clips)."""
 # Step of the light (degrees of its path) between the cast-shadow sweeps, interpolated in between
 # (``Renderer(shadow_step_us=…)``): one sweep serves all frame and event samples near it.
 SHADOW_STEP_DEG = 1.0
@@ -66,13 +74,15 @@ SHADOW_STEP_DEG = 1.0
 class CaptureTiming:
     """The sensor and timing options every synthetic hybrid capture shares (the simulator's and the
     DiLiGenT semi-real converter's): frame size (pixels, square), event pixels per frame pixel,
-    contrast threshold, refractory period, long exposures per light period, periods and their length,
-    the seed, and ``discrete_lights`` K > 0 for a frames-only capture of K instantaneous lights."""
+    contrast threshold, refractory period and rule (``eventmodel.REFRACTORY_RULES``), long exposures
+    per light period, periods and their length, the seed, and ``discrete_lights`` K > 0 for a
+    frames-only capture of K instantaneous lights."""
 
     size: int = 128
     event_scale: float = 0.5
     contrast: float = 0.15
     refractory_us: float = 2000.0
+    refractory_rule: str = REFRACTORY_RULE
     frames: int = 3
     periods: int = 1
     period_ms: float = 1000.0 / 30.0
@@ -95,11 +105,12 @@ class CaptureTiming:
 
     def event_rule(self) -> dict[str, Any]:
         """The event options both event engines (``simkernel.simulate_ring``, ``esim.simulate_events``)
-        take from the capture: symmetric contrast, refractory period, seed and shortest step."""
+        take from the capture: symmetric contrast, refractory period and rule, seed and shortest step."""
         return {
             "contrast_pos": self.contrast,
             "contrast_neg": self.contrast,
             "refractory_us": self.refractory_us,
+            "refractory_rule": self.refractory_rule,
             "seed": self.seed,
             "min_dt_us": self.min_step_us,
         }
@@ -117,6 +128,7 @@ class CaptureTiming:
             ("--periods", 1 <= self.periods <= 10000, "must be between 1 and 10000"),
             ("--contrast", 0.01 <= self.contrast <= 5, "must be between 0.01 and 5"),
             ("--refractory-us", 0 <= self.refractory_us <= self.period_us, "must be between 0 and the period"),
+            ("--refractory-rule", self.refractory_rule in REFRACTORY_RULES, f"must be {' or '.join(REFRACTORY_RULES)}"),
             ("--seed", 0 <= self.seed < 2**63, "must be a non-negative integer"),
         ]
         check_limits(self, [*shared, *limits])
@@ -127,18 +139,23 @@ class CaptureTiming:
 class SimulationConfig(CaptureTiming):
     """Everything that decides a simulated capture (``CaptureTiming`` and the scene, light, sensor and
     renderer). ``scene_options`` are ``key=value`` strings checked against the scene's typed options;
-    ``noise`` is the read-noise standard deviation as a fraction of saturation, with Poisson shot
-    noise of a full well of 1/noise² electrons (0 = none); ``exposure_gain`` (pixel units per
-    irradiance·second) overrides the automatic gain."""
+    ``lights`` is the layout of a classic capture (``pstoolkit.layouts``: ``ring``, ``grid`` or a
+    light-table path; anything but ``ring`` writes a classic capture of all its K lights, and
+    ``discrete_lights`` must then be K or 0); ``noise`` is the read-noise standard deviation as a
+    fraction of saturation, with Poisson shot noise of a full well of 1/noise² electrons (0 = none);
+    ``exposure_gain`` (pixel units per irradiance·second) overrides the automatic gain, which
+    ``auto_gain`` (``AUTO_GAINS``) sets from the brightest diffuse or the brightest value."""
 
     scene: str = "sphere"
     scene_options: list[str] = field(default_factory=list)
+    lights: str = RING
     elevation_deg: float = 45.0
     contrast_sigma: float = 0.0
     noise: float = 0.0
     brdf: str = "ggx"
     bit_depth: int = 8
     exposure_gain: float | None = None
+    auto_gain: str = AUTO_GAINS[0]
     shadows: bool = True
     device: str = "cpu"
 
@@ -146,8 +163,13 @@ class SimulationConfig(CaptureTiming):
         """``CaptureTiming.event_rule`` with the per-pixel contrast mismatch."""
         return {**super().event_rule(), "sigma": self.contrast_sigma}
 
+    @property
+    def discrete(self) -> bool:
+        """Whether the capture is a classic one (instantaneous lights, no events)."""
+        return self.discrete_lights > 0 or self.lights != RING
+
     def check(self) -> None:
-        """Raise UserError naming the first option out of range."""
+        """Raise UserError naming the first option out of range (a light-table file is read)."""
         limits: list[tuple[str, bool, str]] = [
             ("--frames", 1 <= self.frames <= 1000, "must be between 1 and 1000"),
             ("--discrete-lights", 0 <= self.discrete_lights <= 10000, "must be between 0 (hybrid capture) and 10000"),
@@ -156,7 +178,13 @@ class SimulationConfig(CaptureTiming):
             ("--contrast-sigma", 0 <= self.contrast_sigma <= 1, "must be between 0 and 1"),
             ("--noise", 0 <= self.noise <= 0.5, "must be between 0 and 0.5"),
             ("--bit-depth", self.bit_depth in BIT_DEPTHS, "must be 8, 12 or 16"),
+            ("--auto-gain", self.auto_gain in AUTO_GAINS, f"must be {' or '.join(AUTO_GAINS)}"),
         ]
+        layout = layout_lights(self.lights)
+        if layout is not None:
+            k = len(layout[0])
+            limits.append(("--lights", k <= 10000, f"holds {k} lights, more than the 10000 of a capture"))
+            limits.append(("--discrete-lights", self.discrete_lights in (0, k), f"must be {k} or 0 (all of them) with --lights {self.lights}"))
         if self.exposure_gain is not None:
             limits.append(("--exposure-gain", self.exposure_gain > 0, "must be positive"))
         self.check_with(limits)
@@ -197,7 +225,11 @@ def build_scene(config: SimulationConfig) -> SceneMaps:
 
 
 def build_renderer(config: SimulationConfig, maps: SceneMaps, brdf: Any) -> Renderer:
-    """The scene under the configured ring light, with cast shadows on the simulator's shadow grid."""
+    """The scene under the configured ring light, with cast shadows on the simulator's shadow grid, or
+    under the lights of a grid or file layout, with cast shadows swept exactly for each of them."""
+    layout = layout_lights(config.lights)
+    if layout is not None:
+        return Renderer(maps, layout_light(*layout), brdf, shadows=config.shadows, device=config.device)
     light = RingLight(elevation_deg=config.elevation_deg, period_us=config.period_us)
     shadow_step_us = config.period_us / exposure_samples(light, 0, config.period_us, SHADOW_STEP_DEG)
     return Renderer(maps, light, brdf, shadows=config.shadows, device=config.device, shadow_step_us=shadow_step_us)
@@ -226,10 +258,18 @@ def quantise(exposure: np.ndarray, gain: float, bit_depth: int, noise: float, rn
     return np.clip(np.rint(value), 0.0, saturation).astype(BIT_DEPTHS[bit_depth])
 
 
-def _auto_gain(diffuse_peak: float, bit_depth: int) -> float:
-    if not diffuse_peak > 0:
-        raise UserError("the scene receives no light (every frame is black); check --elevation-deg")
-    return DIFFUSE_LEVEL * float(2**bit_depth - 1) / diffuse_peak
+def _auto_gain(peak: float, bit_depth: int) -> float:
+    """The gain that puts ``peak`` (the brightest value the gain is set by) at ``DIFFUSE_LEVEL``."""
+    if not peak > 0:
+        raise UserError("the scene receives no light (every frame is black); check --elevation-deg or --lights")
+    return DIFFUSE_LEVEL * float(2**bit_depth - 1) / peak
+
+
+def _gain_brdfs(config: SimulationConfig, renderer: Renderer, diffuse: Any) -> list[Any]:
+    """The BRDFs the frames are shaded with: the renderer's, then the diffuse one when the automatic
+    gain is set by the diffuse part; the gain is set by the last one's values."""
+    fixed = config.exposure_gain is not None or config.auto_gain == "peak"
+    return [renderer.brdf] if fixed else [renderer.brdf, diffuse]
 
 
 def _description(config: SimulationConfig) -> str:
@@ -279,20 +319,21 @@ def _simulate(config: SimulationConfig, path: str | os.PathLike[str], progress: 
         )
         dtype = BIT_DEPTHS[config.bit_depth]
         writer.begin_frames(config.size, config.size, 3, dtype, bit_depth=config.bit_depth)
-        if config.discrete_lights:
-            _write_discrete(config, renderer, diffuse, writer, noise_rng, report)
+        if config.discrete:
+            n_frames = _write_discrete(config, renderer, diffuse, writer, noise_rng, report)
         else:
             n_events, event_size = _write_hybrid(config, renderer, diffuse, writer, noise_rng, report)
+            n_frames = config.frames * config.periods
             writer.set_calibration(
                 psfmt.Calibration(
                     event_to_frame=psfmt.scale_affine(config.event_scale),
                     contrast_pos=config.contrast,
                     contrast_neg=config.contrast,
                     refractory_us=config.refractory_us,
+                    refractory_rule=config.refractory_rule,
                 )
             )
         writer.set_lights(renderer.light.to_spec())
-    n_frames = config.discrete_lights or config.frames * config.periods
     return SimulationSummary(path, n_frames, n_events, event_size, time.perf_counter() - started)
 
 
@@ -362,7 +403,7 @@ def _write_hybrid(
     report: Progress,
 ) -> tuple[int, tuple[int, int]]:
     """Events and long exposures tiling each period, in one pass over time."""
-    brdfs = [renderer.brdf] if config.exposure_gain is not None else [renderer.brdf, diffuse]
+    brdfs = _gain_brdfs(config, renderer, diffuse)
     event_size = event_shape(config.size, config.size, config.event_scale)
     period = config.period_us
     bounds = config.exposure_bounds_us()
@@ -415,20 +456,24 @@ def _write_discrete(
     writer: psfmt.CaptureWriter,
     rng: np.random.Generator,
     report: Progress,
-) -> None:
-    """One frame per instantaneous light, the lights evenly spaced over the first period."""
-    n = config.discrete_lights
-    t_us = np.arange(n, dtype=np.float64) * config.period_us / n
-    full, lambert = renderer.shade(t_us, [renderer.brdf, diffuse])
-    images = renderer.scatter(full).cpu().numpy()
+) -> int:
+    """One frame per instantaneous light: each light of a grid or file layout (at its sample time),
+    or ``discrete_lights`` ring lights evenly spaced over the first period. Returns the frame count."""
+    if isinstance(renderer.light, SampledLight):
+        t_us = renderer.light.times_us
+    else:
+        t_us = np.arange(config.discrete_lights, dtype=np.float64) * config.period_us / config.discrete_lights
+    shaded = renderer.shade(t_us, _gain_brdfs(config, renderer, diffuse))
+    images = renderer.scatter(shaded[0]).cpu().numpy()
     report(1.0, "frames")
-    gain = config.exposure_gain or _auto_gain(float(lambert.max()), config.bit_depth)
+    gain = config.exposure_gain or _auto_gain(float(shaded[-1].max()), config.bit_depth)
     direction, intensity = renderer.light.evaluate(t_us)
     writer.append_frames(
         quantise(images, gain, config.bit_depth, config.noise, rng),
         light_direction=direction,
         light_intensity=intensity,
     )
+    return len(t_us)
 
 
 def _write_events(

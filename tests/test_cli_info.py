@@ -43,7 +43,7 @@ def test_info_json_numbers_of_a_hybrid_capture(tmp_path: Path, capsys: pytest.Ca
     psfmt.write(known_capture(), path)
     d = info_json(path, capsys)
     assert (d["file"], d["kind"], d["format_version"], d["creator"], d["created"]) == (
-        str(path), "hybrid", "1.0", "tests 9.9", CREATED)
+        str(path), "hybrid", "1.1", "tests 9.9", CREATED)
     assert d["frames"] == {"count": 3, "width": 64, "height": 64, "channels": 3, "dtype": "uint8", "bit_depth": 8,
                            "saturation": 255.0, "exposure_ms": [10.0, 10.0, 10.0]}
     last = (N_EVENTS - 1) * EVENT_STEP_US
@@ -51,6 +51,8 @@ def test_info_json_numbers_of_a_hybrid_capture(tmp_path: Path, capsys: pytest.Ca
     assert d["events"] == {"count": N_EVENTS, "width": 32, "height": 32, "t_first_us": 0, "t_last_us": last,
                            "duration_s": pytest.approx(duration_s, rel=1e-12),
                            "rate_ev_per_s": pytest.approx(N_EVENTS / duration_s, rel=1e-12)}
+    assert d["event_sensor"] == {"contrast_pos": 0.15, "contrast_neg": 0.2, "refractory_us": 500.0,
+                                 "refractory_rule": "rate-limited", "refractory_rule_recorded": True}
     assert d["lights"] == {"model": "ring", "params": {"elevation_deg": 43.0, "period_us": PERIOD_US,
                                                        "phase_deg": 90.0, "sense": -1, "t0_us": 0}}
     assert d["ground_truth"] == ["normal", "mask", "albedo", "depth", "f0", "roughness"]
@@ -71,10 +73,11 @@ def test_info_text_of_a_hybrid_capture(tmp_path: Path, capsys: pytest.CaptureFix
     total = 100 * (3 * 64 * 64 * 3 + 2 * N_EVENTS) / REFERENCE_BYTES
     assert err == ""
     assert out.splitlines() == [
-        f"{path}: hybrid capture, format 1.0, by tests 9.9 at {CREATED}",
+        f"{path}: hybrid capture, format 1.1, by tests 9.9 at {CREATED}",
         "  description: hybrid sample, seed 0",
         "  frames: 3 × 64×64×3 uint8 (8-bit, saturation 255), exposure 10, 10, 10 ms",
         "  events: 4,000 at 32×32, 27.994 ms, 0.143 M events/s",
+        "  event sensor: contrast +0.15/−0.2, refractory 500 µs, rate-limited",
         "  lights: ring (elevation_deg=43.0, period_us=30000, phase_deg=90.0, sense=-1, t0_us=0)",
         "  ground truth: normal, mask, albedo, depth, f0, roughness",
         "  results: eventps (eventps, 1.25 s)",
@@ -121,3 +124,16 @@ def test_info_lists_a_result_written_later(tmp_path: Path, capsys: pytest.Captur
         "dualres": {"solver": "dualres", "seconds": 61.5},
         "eventps": {"solver": "eventps", "seconds": 1.25},
     }
+
+
+def test_a_capture_that_records_no_refractory_rule_has_the_default(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    capture = known_capture()
+    capture.calibration.refractory_rule = None
+    capture.calibration.contrast_neg = None
+    path = tmp_path / "older.h5"
+    psfmt.write(capture, path)
+    sensor = info_json(path, capsys)["event_sensor"]
+    assert (sensor["refractory_rule"], sensor["refractory_rule_recorded"], sensor["contrast_neg"]) == ("reset-at-end", False, None)
+    assert main(["info", str(path)]) == 0
+    assert "  event sensor: contrast +0.15/−unknown, refractory 500 µs, reset-at-end (not recorded: the format's default)" in (
+        capsys.readouterr().out.splitlines())

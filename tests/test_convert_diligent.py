@@ -270,8 +270,8 @@ def test_diligent_pi_with_and_without_ground_truth(tmp_path: Path, capsys: pytes
     ("args", "message"),
     [
         (["--semi-reel"], ("converter 'diligent' has no option --semi-reel (options: --all, --contrast, --discrete-lights, "
-                           "--event-scale, --frames, --object, --period-ms, --periods, --refractory-us, --seed, --semi-real, --size; "
-                           "see `pstoolkit convert NAME --help`)")),
+                           "--event-scale, --frames, --object, --period-ms, --periods, --refractory-rule, --refractory-us, "
+                           "--seed, --semi-real, --size; see `pstoolkit convert NAME --help`)")),
         (["--size"], "--size needs a value (int)"),
         (["--size", "big"], "option size: expected int, got 'big'"),
         (["--contrast", "0.2"], "--contrast: only with --semi-real or --discrete-lights"),

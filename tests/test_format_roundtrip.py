@@ -72,6 +72,7 @@ def sample_capture(kind: str, seed: int = 0, *, n_events: int = 5000, dtype: Any
         contrast_pos=0.15,
         contrast_neg=0.2,
         refractory_us=500.0,
+        refractory_rule="rate-limited",
     )
     if kind == "frames":
         k = 6
@@ -138,7 +139,7 @@ def assert_captures_equal(a: psfmt.Capture, b: psfmt.Capture) -> None:
         assert b.lights.model == a.lights.model
         assert_params_equal(a.lights.params, b.lights.params)
     ca, cb = a.calibration, b.calibration
-    for key in ("contrast_pos", "contrast_neg", "refractory_us", "camera_model"):
+    for key in ("contrast_pos", "contrast_neg", "refractory_us", "refractory_rule", "camera_model"):
         assert getattr(cb, key) == getattr(ca, key), key
     np.testing.assert_array_equal(cb.view_direction, ca.view_direction)
     assert (ca.event_to_frame is None) == (cb.event_to_frame is None)
@@ -167,7 +168,7 @@ def test_every_field_survives_write_and_load(tmp_path: Path, kind: str) -> None:
     capture = sample_capture(kind, seed=3)
     psfmt.write(capture, tmp_path / "c.h5")
     loaded = psfmt.load(tmp_path / "c.h5")
-    assert loaded.format_version == psfmt.FORMAT_VERSION_STR == "1.0"
+    assert loaded.format_version == psfmt.FORMAT_VERSION_STR == "1.1"
     assert loaded.kind == kind
     assert_captures_equal(capture, loaded)
     report = psfmt.validate(tmp_path / "c.h5")
@@ -256,7 +257,7 @@ def test_same_capture_gives_the_same_bytes(tmp_path: Path) -> None:
 def test_layout_on_disk_matches_the_spec(tmp_path: Path) -> None:
     psfmt.write(sample_capture("hybrid", seed=0), tmp_path / "c.h5")
     with h5py.File(tmp_path / "c.h5", "r") as f:
-        assert f.attrs["format"] == "hybrid-capture" and f.attrs["format_version"] == "1.0"
+        assert f.attrs["format"] == "hybrid-capture" and f.attrs["format_version"] == "1.1"
         assert set(f) == {"frames", "events", "triggers", "lights", "calibration", "ground_truth", "results"}
         dtypes = {c: f["events"][c].dtype.str for c in "xytp"}
         assert dtypes == {"x": "<u2", "y": "<u2", "t": "<i8", "p": "|i1"}

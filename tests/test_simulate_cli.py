@@ -11,7 +11,9 @@ import pytest
 import psfmt
 from pstoolkit.cli import main
 from pstoolkit.demo import demo_capture_path, demo_key
+from pstoolkit.layouts import grid_directions
 from pstoolkit.options import defaults
+from pstoolkit.render import shadow_margin, visibility_from_margin
 from pstoolkit.scenes import Sphere
 from pstoolkit.simulator import DIFFUSE_LEVEL, SimulationConfig
 
@@ -86,10 +88,71 @@ def test_bit_depth_12_is_stored_in_uint16_below_4096(tmp_path: Path) -> None:
         assert 2000 < int(frames.data[()].max()) <= 4095
 
 
+def test_grid_lights_write_96_frames_with_cast_shadows_under_every_light(tmp_path: Path) -> None:
+    frames = {}
+    for shadows in ("--shadows", "--no-shadows"):
+        out = tmp_path / f"grid{shadows}.h5"
+        # a fixed gain, so the two captures share their scale whatever their brightest pixel
+        args = ["--lights", "grid", "--brdf", "lambertian", "--exposure-gain", "200", shadows]
+        assert main(["simulate", "blobs", "-o", str(out), *args, *FAST]) == 0
+        assert psfmt.validate(out).valid
+        with psfmt.read(out) as capture:
+            assert capture.kind == "frames" and capture.events is None and capture.frames.count == 96
+            np.testing.assert_allclose(capture.frames.light_direction, grid_directions(), atol=1e-12)
+            np.testing.assert_array_equal(capture.frames.light_intensity, np.ones((96, 3)))
+            assert capture.lights.model == "sampled" and not capture.lights.params["periodic"]
+            np.testing.assert_array_equal(capture.lights.params["times_us"], np.arange(96))
+            frames[shadows] = np.asarray(capture.frames.data, dtype=np.float64)
+            gt = capture.ground_truth
+    visible = visibility_from_margin(shadow_margin(gt.depth, gt.mask, grid_directions()))
+    facing = np.einsum("hwc,kc->khw", gt.normal, grid_directions()) > 0.2
+    shadowed, lit = (visible < 0.5) & facing & gt.mask, (visible == 1.0) & gt.mask
+    assert (shadowed.sum(axis=(1, 2)) > 0).sum() >= 10  # the grid's outer lights cast shadows on blobs
+    for k in np.flatnonzero(shadowed.any(axis=(1, 2))):
+        dark, bright = frames["--shadows"][k][shadowed[k]], frames["--no-shadows"][k][shadowed[k]]
+        assert dark.mean() < 0.5 * bright.mean(), k
+        np.testing.assert_array_equal(frames["--shadows"][k][lit[k]], frames["--no-shadows"][k][lit[k]])
+
+
+def test_a_light_file_sets_directions_and_rgb_intensities(tmp_path: Path) -> None:
+    (tmp_path / "light_directions.txt").write_text("0 0 1\n0 0 1\n0.3 0.2 1\n")
+    (tmp_path / "light_intensities.txt").write_text("1 1 1\n2 0.5 1\n1 1 1\n")
+    out = tmp_path / "file.h5"
+    args = ["--lights", str(tmp_path / "light_directions.txt"), "--brdf", "lambertian", "--bit-depth", "16"]
+    assert main(["simulate", "sphere", "-o", str(out), *args, *FAST]) == 0
+    with psfmt.read(out) as capture:
+        frames = capture.frames
+        assert frames.count == 3 and not frames.has_windows
+        np.testing.assert_allclose(frames.light_direction[2], np.array([0.3, 0.2, 1.0]) / np.linalg.norm([0.3, 0.2, 1.0]), atol=1e-15)
+        np.testing.assert_allclose(frames.light_intensity, [[1, 1, 1], [2, 0.5, 1], [1, 1, 1]])
+        data = np.asarray(frames.data, dtype=np.float64)
+        bright = data[0].min(axis=-1) > 1000
+        # the same light at other RGB intensities: each channel scales by its intensity
+        np.testing.assert_allclose(data[1][bright] / data[0][bright], np.broadcast_to([2, 0.5, 1], (bright.sum(), 3)), rtol=2e-3)
+        # the gain puts the brightest diffuse value (frame 1's red) at 80 % of 16 bit
+        assert abs(data.max() - DIFFUSE_LEVEL * 65535) <= 1
+
+
+def test_peak_auto_gain_keeps_highlights_below_saturation(tmp_path: Path) -> None:
+    shiny = ["--set", "f0=0.6", "--set", "roughness=0.1", "--set", "albedo=white", "--discrete-lights", "8"]
+    peaks = {}
+    for gain in ("diffuse", "peak"):
+        out = tmp_path / f"{gain}.h5"
+        assert main(["simulate", "sphere", "-o", str(out), "--auto-gain", gain, *shiny, *FAST]) == 0
+        with psfmt.read(out) as capture:
+            data = np.asarray(capture.frames.data)
+            peaks[gain] = (int(data.max()), int((data == 255).sum()))
+    assert peaks["diffuse"][0] == 255 and peaks["diffuse"][1] > 8  # a highlight on each frame clips
+    assert peaks["peak"] == (round(DIFFUSE_LEVEL * 255), 0)
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
         (["sphere", "--size", "4"], "--size 4 must be between 8 and 8192 pixels"),
+        (["sphere", "--lights", "grid", "--discrete-lights", "12"], "--discrete-lights 12 must be 96 or 0 (all of them) with --lights grid"),
+        (["sphere", "--lights", "gird"], "--lights 'gird' is neither ring, grid nor an existing light_directions.txt file"),
+        (["sphere", "--auto-gain", "max"], "--auto-gain 'max' must be diffuse or peak"),
         (["sphere", "--event-scale", "2"], "--event-scale 2.0 must be in (0, 1]"),
         (["sphere", "--bit-depth", "10"], "--bit-depth 10 must be 8, 12 or 16"),
         (["sphere", "--size", "33"], "is not a whole number of event pixels"),

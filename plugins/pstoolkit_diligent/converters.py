@@ -26,6 +26,7 @@ import psfmt
 import pstoolkit
 from pstoolkit.converter import Converter
 from pstoolkit.errors import UserError
+from pstoolkit.eventmodel import REFRACTORY_RULES
 from pstoolkit.options import Option
 from pstoolkit.solver import Progress
 from pstoolkit_diligent.folder import FILENAMES, ObjectFolder, scan_object
@@ -171,6 +172,7 @@ class DiLiGenT(_Folders):
         Option("event_scale", float, _SEMI.event_scale, "semi-real: event pixels per frame pixel", minimum=0.0, maximum=1.0),
         Option("contrast", float, _SEMI.contrast, "semi-real: event contrast threshold C (log units)", minimum=0.01, maximum=5.0),
         Option("refractory_us", float, _SEMI.refractory_us, "semi-real: event refractory period, µs", minimum=0.0),
+        Option("refractory_rule", str, _SEMI.refractory_rule, "semi-real: what an event pixel does after its refractory period (docs/sensors.md)", choices=REFRACTORY_RULES),
         Option("frames", int, _SEMI.frames, "semi-real: long-exposure frames per light period", minimum=1, maximum=36),
         Option("periods", int, _SEMI.periods, "semi-real: light periods to record", minimum=1, maximum=1000),
         Option("period_ms", float, _SEMI.period_ms, "semi-real: one loop of the 36 boundary lights, ms", minimum=0.0),
@@ -209,6 +211,7 @@ class DiLiGenT(_Folders):
             event_scale=options["event_scale"],
             contrast=options["contrast"],
             refractory_us=options["refractory_us"],
+            refractory_rule=options["refractory_rule"],
             frames=options["frames"],
             periods=options["periods"],
             period_ms=options["period_ms"],

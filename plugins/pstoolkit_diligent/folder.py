@@ -18,15 +18,20 @@ from pathlib import Path
 import numpy as np
 import scipy.io
 
+from pstoolkit.diligentlayout import (
+    DIRECTIONS,
+    FILENAMES,
+    INTENSITIES,
+    MASK,
+    NORMAL,
+    NORMAL_VARIABLE,
+    read_directions,
+    read_intensities,
+    require_file,
+    text_lines,
+)
 from pstoolkit.errors import UserError
 from pstoolkit_diligent.png import check_png, decode
-
-FILENAMES = "filenames.txt"
-DIRECTIONS = "light_directions.txt"
-INTENSITIES = "light_intensities.txt"
-MASK = "mask.png"
-NORMAL = "Normal_gt.mat"
-NORMAL_VARIABLE = "Normal_gt"
 
 
 @dataclass
@@ -57,51 +62,6 @@ class ObjectFolder:
         if image.dtype != np.uint16 or image.shape != (self.height, self.width, 3):
             raise UserError(f"{path}: decoded as {image.dtype} {image.shape}, expected uint16 ({self.height}, {self.width}, 3)")
         return image[..., ::-1]
-
-
-def _require(path: Path) -> Path:
-    if not path.is_file():
-        raise UserError(f"{path}: file does not exist")
-    return path
-
-
-def _lines(path: Path) -> list[str]:
-    try:
-        text = _require(path).read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise UserError(f"{path}: not a text file") from None
-    return [line.strip() for line in text.splitlines() if line.strip()]
-
-
-def _table(path: Path) -> np.ndarray:
-    """A text file of lines with three numbers → (K, 3) float64."""
-    rows = []
-    for number, line in enumerate(_lines(path), start=1):
-        fields = line.replace(",", " ").split()
-        try:
-            values = [float(f) for f in fields]
-        except ValueError:
-            raise UserError(f"{path}: line {number}: expected three numbers, got {line!r}") from None
-        if len(values) != 3 or not all(np.isfinite(values)):
-            raise UserError(f"{path}: line {number}: expected three finite numbers, got {line!r}")
-        rows.append(values)
-    return np.array(rows, dtype=np.float64).reshape(-1, 3)
-
-
-def _directions(path: Path) -> np.ndarray:
-    table = _table(path)
-    norm = np.linalg.norm(table, axis=1, keepdims=True)
-    if np.any(norm == 0):
-        raise UserError(f"{path}: line {int(np.flatnonzero(norm[:, 0] == 0)[0]) + 1}: a light direction is the zero vector")
-    return table / norm
-
-
-def _intensities(path: Path) -> np.ndarray:
-    table = _table(path)
-    bad = np.flatnonzero(np.any(table <= 0, axis=1))
-    if bad.size:
-        raise UserError(f"{path}: line {int(bad[0]) + 1}: light intensities must be positive")
-    return table
 
 
 def _mask(path: Path, height: int, width: int) -> np.ndarray:
@@ -139,14 +99,14 @@ def scan_object(folder: Path, require_normal: bool) -> ObjectFolder:
     naming the file and the problem; ``Normal_gt.mat`` may be absent unless ``require_normal``."""
     if not folder.is_dir():
         raise UserError(f"{folder}: folder does not exist")
-    names = _lines(folder / FILENAMES)
+    names = text_lines(folder / FILENAMES)
     for path in (folder / DIRECTIONS, folder / INTENSITIES, folder / MASK):
-        _require(path)
+        require_file(path)
     normal_path = folder / NORMAL
     if require_normal:
-        _require(normal_path)
-    directions = _directions(folder / DIRECTIONS)
-    intensities = _intensities(folder / INTENSITIES)
+        require_file(normal_path)
+    directions = read_directions(folder / DIRECTIONS)
+    intensities = read_intensities(folder / INTENSITIES)
     counts = {FILENAMES: len(names), DIRECTIONS: len(directions), INTENSITIES: len(intensities)}
     if len(set(counts.values())) != 1:
         listed = ", ".join(f"{name} has {count}" for name, count in counts.items())

@@ -12,7 +12,7 @@ lights each pixel's log-irradiance ``ln(I + ε)`` runs linearly in time, which d
   rounded and clamped to 8 bit: an LDR camera whose white is the 99th-percentile irradiance;
 - **events**: grey = 0.299 R + 0.587 G + 0.114 B area-averaged to the event grid
   (``size·event_scale`` pixels a side), log-interpolated the same way and fed to the ESIM-style
-  generator (no threshold noise);
+  generator (no threshold noise) under the configured refractory period and rule;
 - **discrete lights** (the frame-based comparison): K of the 36 key images, evenly spread over the
   loop, as instantaneous 8-bit frames of the same scale.
 
@@ -210,6 +210,7 @@ def _write_events(
             contrast_pos=config.contrast,
             contrast_neg=config.contrast,
             refractory_us=config.refractory_us,
+            refractory_rule=config.refractory_rule,
         )
     )
     return count

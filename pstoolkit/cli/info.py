@@ -52,6 +52,15 @@ def describe(capture: psfmt.Capture) -> dict[str, Any]:
             "duration_s": duration_s,
             "rate_ev_per_s": n / duration_s if duration_s > 0 else 0.0,
         }
+        calibration = capture.calibration
+        out["event_sensor"] = {
+            "contrast_pos": calibration.contrast_pos,
+            "contrast_neg": calibration.contrast_neg,
+            "refractory_us": calibration.refractory_us,
+            # a capture that records no rule has the format's default (spec §9)
+            "refractory_rule": calibration.refractory_rule or psfmt.REFRACTORY_RULES[0],
+            "refractory_rule_recorded": calibration.refractory_rule is not None,
+        }
     if capture.lights is not None:
         out["lights"] = {
             "model": capture.lights.model,
@@ -112,6 +121,17 @@ def _text(d: dict[str, Any]) -> str:
             f"  events: {e['count']:,} at {e['width']}×{e['height']}, {e['duration_s'] * 1000:.3f} ms, "
             f"{e['rate_ev_per_s'] / 1e6:.3f} M events/s"
         )
+    if "event_sensor" in d:
+        s = d["event_sensor"]
+
+        def number(key: str, unit: str = "") -> str:
+            return "unknown" if s[key] is None else f"{s[key]:g}{unit}"
+
+        rule = s["refractory_rule"] + ("" if s["refractory_rule_recorded"] else " (not recorded: the format's default)")
+        lines.append(
+            f"  event sensor: contrast +{number('contrast_pos')}/−{number('contrast_neg')}, "
+            f"refractory {number('refractory_us', ' µs')}, {rule}"
+        )
     if "lights" in d:
         params = ", ".join(f"{k}={v}" for k, v in d["lights"]["params"].items())
         lines.append(f"  lights: {d['lights']['model']}" + (f" ({params})" if params else ""))
@@ -142,8 +162,9 @@ def info(
     file: Path = typer.Argument(..., help="A hybrid-capture HDF5 file."),
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
 ) -> None:
-    """Show what a capture holds: resolution, frames and exposure, events and rate, lights, ground
-    truth, stored results, and the data rate against 24 RGB 8-bit frames."""
+    """Show what a capture holds: resolution, frames and exposure, events and rate, the event
+    sensor's thresholds and refractory period and rule, lights, ground truth, stored results, and the
+    data rate against 24 RGB 8-bit frames."""
     with psfmt.read(file, verify=True) as capture:
         summary = describe(capture)
     typer.echo(json.dumps(summary, indent=2) if as_json else _text(summary))
