@@ -31,6 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from pstoolkit.eventmodel import GREY_WEIGHTS
 from pstoolkit.options import Option
 
 MIN_ROUGHNESS = 0.02
@@ -159,7 +160,7 @@ def pbr_from_specular(albedo: np.ndarray, f0: np.ndarray) -> tuple[np.ndarray, n
     KHR_materials_pbrSpecularGlossiness, DualResPS supplement §4.2)."""
 
     def brightness(c: np.ndarray) -> np.ndarray:
-        return np.sqrt(np.tensordot(c * c, np.array((0.299, 0.587, 0.114)), axes=([-1], [0])))
+        return np.sqrt(np.tensordot(c * c, np.array(GREY_WEIGHTS), axes=([-1], [0])))
 
     diffuse = np.clip(albedo, 0.0, 1.0)
     specular = np.clip(f0, 0.0, 1.0)

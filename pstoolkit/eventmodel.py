@@ -47,11 +47,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-GREY_WEIGHTS = (0.299, 0.587, 0.114)
-"""Rec. 601 luma: the grey an event sensor (and a grey solve) sees of linear RGB (facts §3)."""
-
 from psfmt import REFRACTORY_RULES, EventArray
 from pstoolkit.errors import UserError
+
+GREY_WEIGHTS = (0.299, 0.587, 0.114)
+"""Rec. 601 luma: the grey an event sensor (and a grey solve) sees of linear RGB."""
 
 LOG_EPS = 1e-3
 REFRACTORY_RULE = REFRACTORY_RULES[0]

@@ -16,3 +16,11 @@ def sphere_48(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("sphere_48") / "sphere.h5"
     simulate(SimulationConfig(scene="sphere", size=48, seed=0), path)
     return path
+
+
+@pytest.fixture(scope="session")
+def blobs_48(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The default GGX blobs at 48 px (cast shadows; refractory 2 ms, reset-at-end)."""
+    path = tmp_path_factory.mktemp("blobs_48") / "blobs.h5"
+    simulate(SimulationConfig(scene="blobs", size=48, seed=0), path)
+    return path

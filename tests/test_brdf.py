@@ -1,4 +1,6 @@
-"""BRDFs: Lambertian shading, GGX against an independent float64 numpy evaluation, reciprocity, gradients."""
+"""BRDFs: Lambertian shading, GGX against an independent float64 numpy evaluation, reciprocity,
+gradients; the ablation models (spherical Gaussians, learned bases, metallic) against their
+definitions; every registered model's fit specification; the specular → metal-roughness conversion."""
 
 from __future__ import annotations
 
@@ -6,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from pstoolkit.brdf import GGX, MIN_ROUGHNESS, Lambertian
+from pstoolkit.brdf import GGX, MIN_ROUGHNESS, SG_SHARPNESS, Lambertian, MetallicGGX, MLPBases, SphericalGaussians, pbr_from_specular
+from pstoolkit.plugins import get_registries
 
 
 def _unit(a: np.ndarray) -> np.ndarray:
@@ -136,3 +139,56 @@ def test_ggx_on_cuda_matches_cpu() -> None:
     cpu = GGX().shade(n, l, v, **maps)
     gpu = GGX().shade(n.cuda(), l.cuda(), v.cuda(), **{k: m.cuda() for k, m in maps.items()})
     np.testing.assert_allclose(gpu.cpu().numpy(), cpu.numpy(), rtol=1e-10)
+
+
+def test_every_registered_brdf_says_how_it_is_fitted() -> None:
+    registry = get_registries().brdfs
+    assert registry.names() == ["ggx", "lambertian", "metallic", "mlp-bases", "sg"]
+    for name in registry.names():
+        brdf = registry.get(name).obj
+        assert tuple(p.name for p in brdf.fit) == brdf.params, name
+        for p in brdf.fit:
+            assert p.channels >= 1 and (p.high is None or p.high > p.low) and p.low <= p.init
+            assert p.high is None or p.init <= p.high
+        # one per-pixel RGB reflectance carries the frames' colour
+        assert sum(1 for p in brdf.fit if not p.smooth and p.radiometric and p.channels == 3) == 1, name
+
+
+def test_the_ablation_models_follow_their_definitions() -> None:
+    rng = np.random.default_rng(2)
+    n = torch.as_tensor(_upper_hemisphere(rng, 64))
+    l = torch.as_tensor(_upper_hemisphere(rng, 64))
+    v = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    albedo = torch.as_tensor(rng.random((64, 3)))
+    weights = torch.as_tensor(rng.random((64, 9)))
+    tint = torch.as_tensor(rng.random((64, 3)))
+    nl = np.clip(np.sum(n.numpy() * l.numpy(), axis=-1, keepdims=True), 0.0, None)
+    nh = np.sum(n.numpy() * _unit(l.numpy() + v.numpy()), axis=-1, keepdims=True)
+    bases = np.exp(np.asarray(SG_SHARPNESS) * (nh - 1.0))
+    expected = (albedo.numpy() + tint.numpy() * np.sum(weights.numpy() * bases, axis=-1, keepdims=True)) * nl
+    out = SphericalGaussians().shade(n, l, v, albedo=albedo, basis_weights=weights, specular_tint=tint)
+    # the half vector's guard ε (1e-12) moves the sharpest lobe (λ = 1000) by parts in 1e10
+    np.testing.assert_allclose(out.numpy(), expected, rtol=1e-8)
+    # metallic m mixes the diffuse (1 − m)·b and F0 = (1 − m)·0.04 + m·b into GGX
+    base, metal, rough = torch.as_tensor(rng.random((64, 3))), torch.as_tensor(rng.random((64, 1))), torch.full((64, 1), 0.4, dtype=torch.float64)
+    mixed = MetallicGGX().shade(n, l, v, base_color=base, metallic=metal, roughness=rough)
+    ggx = GGX().shade(n, l, v, albedo=(1 - metal) * base, f0=(1 - metal) * 0.04 + metal * base, roughness=rough)
+    torch.testing.assert_close(mixed, ggx)
+    implied = MetallicGGX().derived_maps({"base_color": base.numpy(), "metallic": metal.numpy()})
+    np.testing.assert_allclose(implied["albedo"], ((1 - metal) * base).numpy())
+    # the learned bases are non-negative and carry gradients to their network
+    torch.manual_seed(0)
+    learned = MLPBases()
+    out = learned.shade(n.float(), l.float(), v.float(), albedo=albedo.float(), basis_weights=weights.float(), specular_tint=tint.float())
+    assert torch.all(out >= 0)
+    out.sum().backward()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in learned.parameters())
+
+
+def test_pbr_conversion_of_a_dielectric_and_a_metal() -> None:
+    metallic, base = pbr_from_specular(np.array([[0.5, 0.3, 0.2], [0.0, 0.0, 0.0]]), np.array([[0.04] * 3, [0.9, 0.6, 0.3]]))
+    assert metallic[0] == pytest.approx(0.0, abs=1e-6) and metallic[1] == pytest.approx(1.0)
+    assert np.allclose(base[0], [0.5, 0.3, 0.2], atol=0.02)
+    assert np.allclose(base[1], [0.9, 0.6, 0.3], atol=1e-6)
+    derived = GGX().derived_maps({"albedo": np.array([[0.5, 0.3, 0.2]]), "f0": np.array([[0.04] * 3]), "roughness": np.array([[0.5]])})
+    assert set(derived) == {"metallic", "base_color"}

@@ -24,11 +24,9 @@ def sphere(sphere_48: Path) -> tuple[psfmt.Capture, Preprocessed]:
 
 
 def _super_normals(pre: Preprocessed) -> tuple[np.ndarray, np.ndarray]:
-    return event_normals(
-        pre.event_pixel, pre.event_t_ref_us, pre.event_t_us, pre.event_polarity, pre.event_alpha, pre.event_weight,
-        pre.light, contrast_pos=pre.contrast_pos, contrast_neg=pre.contrast_neg,
-        n_pixels=pre.event_height * pre.event_width,
-    )
+    events = pre.events
+    return event_normals(events.pixel, events.t_ref_us, events.t_us, events.target, events.weight, pre.light,
+                         n_pixels=pre.event_height * pre.event_width)
 
 
 def test_super_pixel_normals_from_events(sphere: tuple[psfmt.Capture, Preprocessed]) -> None:
@@ -50,23 +48,22 @@ def test_two_light_pixels_take_their_free_direction_from_the_super_pixels(sphere
     gt = capture.ground_truth
     normal, known = _super_normals(pre)
     interpolated = to_frames(normal, known, pre.event_to_frame, pre.height, pre.width, pre.event_height, pre.event_width)[0]
-    per_window = np.stack([pre.frames[pre.frame_window == j].mean(axis=0) for j in range(len(pre.windows_us))])
     options = PreprocessOptions()
 
     def init(super_normal: np.ndarray | None) -> np.ndarray:
-        return closed_form(per_window, pre.windows_us + pre.t0_us, pre.mask, pre.light, visibility=None,
+        return closed_form(pre.per_window, pre.windows_us + pre.t0_us, pre.mask, pre.light, visibility=None,
                            iterations=options.init_iterations, n_samples=options.light_samples,
                            super_normal=super_normal).normal
 
     with_events = init(interpolated.reshape(pre.height, pre.width, 3))
-    np.testing.assert_array_equal(with_events, pre.init_normal)  # what preprocessing does
+    np.testing.assert_array_equal(with_events, pre.init.normal)  # what preprocessing does: the same code path
     frames_only = init(None)
-    two = gt.mask & (pre.effective_lights == 2)
+    two = gt.mask & (pre.init.effective == 2)
     assert two.sum() > 30  # measured 49 rim pixels
     err_events = angular_error_deg(with_events, gt.normal, gt.mask)[two].mean()
     err_frames = angular_error_deg(frames_only, gt.normal, gt.mask)[two].mean()
     assert err_events < 0.5 * err_frames  # measured 2.91° vs 7.65°
-    three = gt.mask & (pre.effective_lights == 3)
+    three = gt.mask & (pre.init.effective == 3)
     np.testing.assert_array_equal(with_events[three], frames_only[three])
 
 

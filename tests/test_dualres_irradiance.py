@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from pstoolkit_dualres.irradiance import Irradiance, approximate
 from pstoolkit_dualres.preprocess import PreprocessOptions, preprocess
-from pstoolkit_dualres.profile import interval_profile
 
 import psfmt
 from pstoolkit.errors import UserError
+from pstoolkit.shadows import interval_profile
 from pstoolkit.simulator import SimulationConfig, simulate
 
 T = 33_333.0
@@ -44,7 +44,7 @@ def _approximate(rule: str, threshold: float = 5000.0) -> tuple[Irradiance, np.n
     profile = interval_profile(STREAM, 1, t0_us=0.0, period_us=T, contrast_pos=C, contrast_neg=C)
     irradiance = approximate(
         profile.pixel, profile.t_us, profile.p, profile.first, profile.count, n_pixels=1, period_us=T,
-        contrast_pos=C, contrast_neg=C, refractory_us=0.0, bounds_us=BOUNDS, frame_values=FRAMES, shadows=None,
+        contrast_pos=C, contrast_neg=C, refractory_us=0.0, bounds_us=BOUNDS, frame_values=FRAMES,
         f=profile.f if rule == "spikes" else None, threshold_per_s=threshold,
     )
     return irradiance, profile.f
@@ -100,6 +100,6 @@ def test_the_rule_is_an_option_of_preprocessing(tmp_path: Path) -> None:
     windows = preprocess(capture, PreprocessOptions())
     spikes = preprocess(capture, PreprocessOptions(scale_rule="spikes"))
     # Î sets the importance samples (eq. 23) and the events' confidence, not which pairs are used
-    assert windows.frame_sample_t_us.size != spikes.frame_sample_t_us.size
-    np.testing.assert_array_equal(windows.event_t_us, spikes.event_t_us)
-    assert not np.array_equal(windows.event_weight, spikes.event_weight)
+    assert windows.samples.phase_us.size != spikes.samples.phase_us.size
+    np.testing.assert_array_equal(windows.events.t_us, spikes.events.t_us)
+    assert not np.array_equal(windows.events.weight, spikes.events.weight)

@@ -2,9 +2,10 @@
 differs by a known amount, with a confidence weight.
 
 The capture's refractory rule (``pstoolkit.eventmodel``) decides the pairs, so that the relation is
-exact rather than compensated after the fact (the paper's α): with "reset-at-end" each event k is
-paired with the reference level taken at t_{k−1} + R, ln I(t_k) − ln I(t_{k−1} + R) = p_k·C^{p_k}.
-Pairs longer than ``max_pair_share`` of the period are dropped (a pixel that was dark that long
+exact rather than compensated after the fact (the paper's α = 1): with "reset-at-end" each event k
+is paired with the reference level taken at t_{k−1} + R, ln I(t_k) − ln I(t_{k−1} + R) = p_k·C^{p_k};
+with "rate-limited" consecutive events that fired at a crossing are paired with the sum of the
+thresholds of the events between them (``eventmodel.exact_pairs``). Pairs longer than ``max_pair_share`` of the period are dropped (a pixel that was dark that long
 carries no shading). The weight is min(1, Î/(dark_level·Î₉₉)) with Î the approximated irradiance at
 the pair's darker end (Î₉₉ its 99th percentile over all pairs): events in dark regions are sensitive
 to noise and unmodelled inter-reflections (main §3.3).
@@ -17,11 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 
 import psfmt
-from pstoolkit.errors import UserError
-from pstoolkit.eventmodel import REFRACTORY_RULE, consecutive_pairs, reference_time_us
+from pstoolkit.eventmodel import REFRACTORY_RULE, check_rule, exact_pairs
 from pstoolkit_dualres.irradiance import Irradiance
-
-SUPPORTED_RULES = (REFRACTORY_RULE,)
 
 
 @dataclass
@@ -37,11 +35,8 @@ class EventSamples:
 
 
 def refractory_rule(calibration: psfmt.Calibration, where: str) -> str:
-    """The capture's refractory rule (absent: the format's default), or a UserError if unsupported."""
-    rule = getattr(calibration, "refractory_rule", None) or REFRACTORY_RULE
-    if rule not in SUPPORTED_RULES:
-        raise UserError(f"dualres: {where}: refractory rule {rule!r} is not one of {', '.join(SUPPORTED_RULES)}")
-    return rule
+    """The capture's refractory rule (absent: the format's default), or a UserError if unknown."""
+    return check_rule(calibration.refractory_rule or REFRACTORY_RULE, f"dualres: {where}")
 
 
 def event_samples(
@@ -49,6 +44,7 @@ def event_samples(
     width: int,
     irradiance: Irradiance,
     *,
+    rule: str,
     refractory_us: float,
     contrast_pos: float,
     contrast_neg: float,
@@ -59,12 +55,10 @@ def event_samples(
     max_pair_share: float,
 ) -> EventSamples:
     """The pairs of a time-sorted stream of a sensor ``width`` pixels wide (see the module docstring)."""
-    pairs = consecutive_pairs(events, width)
-    t_ref = reference_time_us(pairs.t_prev_us, refractory_us)
+    pairs = exact_pairs(events, width, rule, refractory_us, contrast_pos, contrast_neg)
     t = pairs.t_us.astype(np.float64)
-    keep = t - pairs.t_prev_us <= max_pair_share * period_us
-    pixel, t_ref, t, p = pairs.pixel[keep], t_ref[keep], t[keep], pairs.p[keep]
-    target = np.where(p > 0, contrast_pos, -contrast_neg)
+    keep = t - pairs.t_ref_us <= max_pair_share * period_us
+    pixel, t_ref, t, target = pairs.pixel[keep], pairs.t_ref_us[keep], t[keep], pairs.delta_log[keep]
     if confidence == "linear":
         darker = np.minimum(irradiance.value(pixel, t_ref - t0_us), irradiance.value(pixel, t - t0_us))
         bright = float(np.percentile(darker, 99)) if darker.size else 0.0

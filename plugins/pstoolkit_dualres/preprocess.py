@@ -273,7 +273,7 @@ def preprocess(capture: psfmt.Capture, options: PreprocessOptions, progress: Pro
         irradiance, profile.pixel, profile.t_us, n_pixels=n_events_px, sigma=options.sigma,
         max_step_us=period * options.max_step_deg / 360.0,
     )
-    pairs = event_samples(events, event_width, irradiance, refractory_us=refractory, contrast_pos=c_pos,
+    pairs = event_samples(events, event_width, irradiance, rule=rule, refractory_us=refractory, contrast_pos=c_pos,
                           contrast_neg=c_neg, t0_us=t0, period_us=period, confidence=options.confidence,
                           dark_level=options.dark_level, max_pair_share=options.max_pair_share)
     seconds["sampling"] = time.perf_counter() - tick

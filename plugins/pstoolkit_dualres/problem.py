@@ -95,13 +95,13 @@ class Problem:
             lit = 1.0 - shadows.shadowed_us(p, np.tile(t - half, pixels.size), np.tile(t + half, pixels.size)) / np.tile(2.0 * half, pixels.size)
             visible = np.clip(lit, 0.0, 1.0).reshape(pixels.size, t.size)
             self.shared_visible = self._tensor(visible) if len(shadows) else None
-            lit_s = visible @ (2.0 * half) / US_PER_S
+            shadowed_s = (1.0 - visible) @ (2.0 * half) / US_PER_S
         else:
             lit = ~shadows.contains(pixels[src["sample_pixel"]], src["sample_t"])
             self.sample_weight = self._tensor(src["sample_weight"] * lit[:, None])
-            lit_s = np.bincount(src["sample_pixel"], weights=src["sample_dt_s"] * lit, minlength=pixels.size)
+            shadowed_s = np.bincount(src["sample_pixel"], weights=src["sample_dt_s"] * ~lit, minlength=pixels.size)
         self.shadow_fraction = np.zeros(self.height * self.width)
-        self.shadow_fraction[pixels] = np.clip(1.0 - lit_s / src["exposure_s"], 0.0, 1.0)
+        self.shadow_fraction[pixels] = np.clip(shadowed_s / src["exposure_s"], 0.0, 1.0)
         self.shadow_fraction = self.shadow_fraction.reshape(self.height, self.width)
 
         taps, area, t_now, t_ref = src["event_frame_taps"], src["event_area"], src["event_t"], src["event_t_ref"]

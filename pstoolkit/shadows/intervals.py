@@ -19,7 +19,8 @@ import numpy as np
 @dataclass
 class ShadowIntervals:
     """Shadow intervals: flat ``pixel`` (S,) (event or frame pixel, as the producer says), phases
-    ``t0_us``, ``t1_us`` (S,) in µs (float64); t1 < t0 wraps past the period's end."""
+    ``t0_us``, ``t1_us`` (S,) in µs (float64); t1 < t0 wraps past the period's end, and t1 − t0 of a
+    whole period or more covers all of it."""
 
     pixel: np.ndarray
     t0_us: np.ndarray
@@ -48,8 +49,7 @@ class ShadowTable:
     @classmethod
     def build(cls, shadows: ShadowIntervals, period_us: float) -> ShadowTable:
         period = float(period_us)
-        t0 = np.mod(shadows.t0_us, period)
-        t1 = np.mod(shadows.t1_us, period)
+        t0, t1 = _phases(shadows, period)
         wraps = t1 < t0
         base = np.asarray(shadows.pixel, dtype=np.float64) * (2.0 * period)
         # a wrapping interval is split into [t0, period) and [0, t1]
@@ -119,6 +119,14 @@ class ShadowTable:
         return ShadowIntervals(pixel, self.start - pixel * stride, self.end - pixel * stride)
 
 
+def _phases(shadows: ShadowIntervals, period: float) -> tuple[np.ndarray, np.ndarray]:
+    """Start and end phases in [0, period]; an interval a whole period long (or longer) is [0, period]."""
+    t0 = np.asarray(shadows.t0_us, dtype=np.float64)
+    t1 = np.asarray(shadows.t1_us, dtype=np.float64)
+    whole = t1 - t0 >= period
+    return np.where(whole, 0.0, np.mod(t0, period)), np.where(whole, period, np.mod(t1, period))
+
+
 def grid_times(period_us: float, steps: int) -> np.ndarray:
     """(steps,) phases of a time grid over one period: bin centres (k + ½)·period/steps."""
     return (np.arange(steps) + 0.5) * (float(period_us) / steps)
@@ -144,8 +152,7 @@ def rasterize(intervals: ShadowIntervals, n_pixels: int, period_us: float, steps
     """(steps, n_pixels) bool: whether each pixel 0..n_pixels−1 is inside one of ``intervals`` at the
     centre of each bin of ``grid_times(period_us, steps)`` (closed intervals, wrapping ones too)."""
     step_us = float(period_us) / steps
-    t0 = np.mod(np.asarray(intervals.t0_us, dtype=np.float64), period_us)
-    t1 = np.mod(np.asarray(intervals.t1_us, dtype=np.float64), period_us)
+    t0, t1 = _phases(intervals, float(period_us))
     # bins whose centre (k + ½)·step lies in [t0, t1]; a wrapping interval covers [t0, end) and [0, t1]
     first = np.ceil(t0 / step_us - 0.5).astype(np.int64)
     last = np.floor(t1 / step_us - 0.5).astype(np.int64)
