@@ -129,6 +129,19 @@ def test_windows_split_the_pairs_by_the_later_event() -> None:
     assert np.count_nonzero(np.linalg.norm(sequence[1], axis=-1)) == 1
 
 
+def test_too_many_windows_is_one_clear_error() -> None:
+    """10 µs windows over the 40 ms stream: 4 001 maps of 2×3 pixels fit; at 16 384² they would not."""
+    capture = hand_built_capture()
+    assert _solve(capture, "window_us=10", "fill=false").maps["normal_sequence"].shape == (4001, 2, 3, 3)
+    capture.ground_truth = psfmt.GroundTruth(normal=np.broadcast_to(np.float32(0.0), (16384, 16384, 3)))
+    message = (
+        r"^eventps: window_us=10 gives 4001 windows, 12003\.0 GiB of normal maps \(at most 4 GiB\); "
+        r"use longer windows, or pstoolkit\.eventps\.stream to take them one at a time$"
+    )
+    with pytest.raises(UserError, match=message):
+        _solve(capture, "window_us=10")
+
+
 def test_interval_filter() -> None:
     """Every pair is 10 ms apart: a 9 ms maximum drops them all, a 10 ms minimum keeps them."""
     capture = hand_built_capture()

@@ -16,6 +16,7 @@ Runs on the CPU (numpy and numba) whatever ``--device`` says. The light model mu
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -29,6 +30,8 @@ from pstoolkit_eventps.resample import Resampler, event_to_frame_affine
 
 WINDOW_CHUNK_EVENTS = 1 << 18
 """Events handed to the stream at a time in windowed mode."""
+MAX_SEQUENCE_BYTES = 4 << 30
+"""Largest ``normal_sequence`` the solver builds in memory; longer sequences belong to the stream API."""
 
 
 def _contrasts(capture: psfmt.Capture, contrast: float, where: str) -> tuple[float, float]:
@@ -38,6 +41,17 @@ def _contrasts(capture: psfmt.Capture, contrast: float, where: str) -> tuple[flo
     if cal.contrast_pos is None or cal.contrast_neg is None:
         raise UserError(f"eventps: {where} has no contrast threshold in its calibration; set one with --set contrast=C")
     return float(cal.contrast_pos), float(cal.contrast_neg)
+
+
+def _check_sequence_size(stream: psfmt.EventArray, window_us: float, target: tuple[int, int]) -> None:
+    """UserError when the windows' normal maps would not fit in ``MAX_SEQUENCE_BYTES``."""
+    count = math.floor(int(stream.t[-1]) / window_us) - math.floor(int(stream.t[0]) / window_us) + 1
+    size = count * target[0] * target[1] * 3 * 4
+    if size > MAX_SEQUENCE_BYTES:
+        raise UserError(
+            f"eventps: window_us={window_us:g} gives {count} windows, {size / 2**30:.1f} GiB of normal maps "
+            f"(at most {MAX_SEQUENCE_BYTES / 2**30:g} GiB); use longer windows, or pstoolkit.eventps.stream to take them one at a time"
+        )
 
 
 class EventPS(Solver):
@@ -82,10 +96,12 @@ class EventPS(Solver):
             fill=options["fill"],
         )
         stream = events.read()
+        target = psfmt.target_size(capture)
+        if options["window_us"] > 0 and len(stream):
+            _check_sequence_size(stream, options["window_us"], target)
         progress(0.2, "events read")
         (whole,) = eventps.stream([stream], light, events.width, events.height, params)
         progress(0.6, "normals")
-        target = psfmt.target_size(capture)
         resample = Resampler(event_to_frame_affine(capture, target), (events.height, events.width), target)
         out_normal, out_mask = resample.normals(whole.normal, whole.confidence > 0)
         maps: dict[str, np.ndarray] = {"confidence": np.where(out_mask, resample.nearest(whole.confidence), 0.0)}
