@@ -12,7 +12,9 @@ event pixel, for the whole stream or for each time window as the events arrive.
 
 ``stream`` keeps each pixel's last event between chunks and windows, so a pair whose events straddle a
 chunk or window boundary counts, in the window of its later event; it holds one window's events at a
-time (the whole stream when ``window_us`` is None).
+time (the whole stream when ``window_us`` is None), and ``threads=2`` fits windows on two cores while
+the caller's thread pairs the next. ``solve`` gives the whole stream's map and its windows' maps from
+one pass (the ``eventps`` solver's windowed mode).
 
 Per window: consecutive events k−1, k of a pixel give n·v = 0 with v = e^{C⁺} l(t_ref) − l(t_k) for
 p_k = +1 and v = l(t_ref) − e^{C⁻} l(t_k) for p_k = −1 (facts of the paper; l the grey light,
@@ -48,7 +50,9 @@ Where this departs from the paper and its public code, and why:
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -124,6 +128,23 @@ class NormalWindow:
         return {name: int(np.count_nonzero(self.confidence == level)) for name, level in eventfill.SOURCES.items()}
 
 
+@dataclass
+class PairedWindow:
+    """A window after pairing (``WindowSolver.pair``): its span and turns of the light, its events,
+    pairs, constraints (flat pixel (m,), unit v (m, 3)), and per pixel the events fired (P,) and the
+    sum of p·m(t) (P, 2) for the swing."""
+
+    start_us: int
+    end_us: int
+    turns: float
+    events: int
+    pairs: int
+    constraint_pixel: np.ndarray
+    u: np.ndarray
+    fired: np.ndarray
+    swing: np.ndarray
+
+
 class LightPath:
     """The light as the method needs it at event times: the grey light l(t) (``eventnormals.grey_light``)
     at each event and at the end of its refractory period, and the unit direction of the light's motion
@@ -181,7 +202,8 @@ def _motion(direction: np.ndarray) -> np.ndarray:
 
 
 class WindowSolver:
-    """Solves windows of one event stream in time order, keeping each pixel's last event between them."""
+    """Solves windows of one event stream: pairs them in time order, keeping each pixel's last event
+    between them, and fits each paired window on its own."""
 
     def __init__(self, light: LightModel, width: int, height: int, params: Params) -> None:
         self.path = LightPath(light, params.refractory_us)
@@ -196,9 +218,10 @@ class WindowSolver:
         """Turns of the light in ``span_us`` (0 for an aperiodic light)."""
         return span_us / self.path.period_us if self.path.period_us else 0.0
 
-    def solve(self, events: EventArray, start_us: int, end_us: int, turns: float) -> NormalWindow:
-        """The window [start_us, end_us) holding ``events`` (time-ordered), over which the light made
-        ``turns`` turns; the swing argument applies from one turn of a light circling the axis."""
+    def pair(self, events: EventArray, start_us: int, end_us: int, turns: float) -> PairedWindow:
+        """The constraints of the window [start_us, end_us) holding ``events`` (time-ordered), over which
+        the light made ``turns`` turns; windows must come in time order, as each pixel's last event
+        carries over to the next."""
         params = self.params
         pixels = self.width * self.height
         light, motion, period = self.path.rows(events.t)
@@ -209,17 +232,27 @@ class WindowSolver:
             self.last_t, self.last_light, float(self.min_interval_us), float(self.max_interval_us),
             math.exp(params.contrast_pos), math.exp(params.contrast_neg), fired, swing,
         )
+        return PairedWindow(int(start_us), int(end_us), turns, len(events), int(pairs), constraint_pixel, u, fired, swing)
+
+    def finish(self, paired: PairedWindow) -> NormalWindow:
+        """The normals of a paired window: each pixel's own fit, and for the others the swing of the
+        ring (from one turn of a light circling the axis) or their neighbours. Touches no state, so
+        windows may be finished in parallel."""
+        params = self.params
+        pixels = self.width * self.height
         normal, values, sums, count = robust_fit(
-            constraint_pixel, u, pixels, params.min_pairs, params.reweight, params.residual_scale, ADJUGATE_STEPS
+            paired.constraint_pixel, paired.u, pixels, params.min_pairs, params.reweight, params.residual_scale, ADJUGATE_STEPS
         )
         fit = (count >= params.min_pairs) & (values[:, 1] > MIN_RANK_RATIO * values[:, 2])
         normal[~fit] = 0.0
         confidence = np.where(fit, eventfill.FIT, 0.0)
         rest = ~fit
         if params.fill and rest.any():
-            if self.path.circles_axis and turns >= SWING_MIN_TURNS:
+            if self.path.circles_axis and paired.turns >= SWING_MIN_TURNS:
                 contrast = 0.5 * (params.contrast_pos + params.contrast_neg)
-                normal[rest] = eventfill.swing_normals(fired[rest], swing[rest], turns, contrast, self.path.tan_zenith)
+                normal[rest] = eventfill.swing_normals(
+                    paired.fired[rest], paired.swing[rest], paired.turns, contrast, self.path.tan_zenith
+                )
                 confidence[rest] = eventfill.SWING
             else:
                 filled, found = eventfill.neighbour_normals(sums, count, rest, (self.height, self.width), params.min_pairs)
@@ -229,13 +262,13 @@ class WindowSolver:
                 confidence[rest & ~found] = eventfill.SWING
         shape = (self.height, self.width)
         return NormalWindow(
-            start_us=int(start_us),
-            end_us=int(end_us),
+            start_us=paired.start_us,
+            end_us=paired.end_us,
             normal=normal.reshape(shape + (3,)).astype(np.float32),
             confidence=confidence.reshape(shape).astype(np.float32),
-            events=len(events),
-            pairs=int(pairs),
-            constraints=len(constraint_pixel),
+            events=paired.events,
+            pairs=paired.pairs,
+            constraints=len(paired.constraint_pixel),
         )
 
 
@@ -247,12 +280,15 @@ def stream(
     params: Params,
     *,
     window_us: float | None = None,
+    threads: int = 1,
 ) -> Iterator[NormalWindow]:
     """Normal maps from time-ordered chunks of events of a ``width`` × ``height`` sensor under
     ``light``: one per window [k·window_us, (k + 1)·window_us) from the first event's window to the last
-    one's (empty windows included), each yielded once the events have passed its end; or, with
-    ``window_us`` None, one for the whole stream, from its first event to its last, taken to cover
-    the whole number of light turns nearest to that span. A chunk that goes back in time is a
+    one's (empty windows included), each yielded in order once the events have passed its end; or,
+    with ``window_us`` None, one for the whole stream, from its first event to its last, taken to
+    cover the whole number of light turns nearest to that span. With ``threads`` > 1 the pairing
+    stays in the caller's thread and up to ``threads`` windows are fitted at once in a pool (the
+    compiled loops release the GIL): the same maps, sooner. A chunk that goes back in time is a
     UserError."""
     solver = WindowSolver(light, width, height, params)
     if window_us is None:
@@ -260,35 +296,120 @@ def stream(
         _check_sorted(events.t, None)
         first, last = (events.t_first_us or 0), (events.t_last_us or 0)
         # a recording under a periodic light covers whole turns; its first and last events lie inside them
-        yield solver.solve(events, first, last + 1, float(round(solver.turns(last - first))))
+        yield solver.finish(solver.pair(events, first, last + 1, float(round(solver.turns(last - first)))))
         return
     if not window_us > 0:
         raise ValueError(f"window_us must be positive, got {window_us}")
+    windows = (solver.pair(*window) for window in _windows(chunks, window_us, solver))
+    if threads <= 1:
+        yield from map(solver.finish, windows)
+        return
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        pending: deque[Future[NormalWindow]] = deque()
+        for paired in windows:
+            pending.append(pool.submit(solver.finish, paired))
+            if len(pending) > threads:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+
+
+def solve(
+    chunks: Iterable[EventArray],
+    light: LightModel,
+    width: int,
+    height: int,
+    params: Params,
+    *,
+    window_us: float,
+    threads: int = 1,
+) -> tuple[NormalWindow, list[NormalWindow]]:
+    """The map of the whole stream and the maps of its windows (as ``stream`` gives them) from one
+    pairing pass: the whole stream's pairs are its windows' pairs, so its map is the one ``stream``
+    gives with ``window_us`` None. Up to ``threads`` maps are fitted at once; holds every constraint."""
+    if not window_us > 0:
+        raise ValueError(f"window_us must be positive, got {window_us}")
+    solver = WindowSolver(light, width, height, params)
+    pixels = solver.width * solver.height
+    fired, swing = np.zeros(pixels, dtype=np.int64), np.zeros((pixels, 2))
+    constraints: list[tuple[np.ndarray, np.ndarray]] = []
+    first: int | None = None
+    last = events_seen = pairs = 0
+    with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+        futures = []
+        for events, start_us, end_us, turns in _windows(chunks, window_us, solver):
+            if len(events):
+                first = events.t_first_us if first is None else first
+                last = int(events.t[-1])
+            paired = solver.pair(events, start_us, end_us, turns)
+            futures.append(pool.submit(solver.finish, paired))
+            fired += paired.fired
+            swing += paired.swing
+            constraints.append((paired.constraint_pixel, paired.u))
+            events_seen, pairs = events_seen + paired.events, pairs + paired.pairs
+        first = first or 0
+        whole = PairedWindow(
+            first,
+            last + 1,
+            float(round(solver.turns(last - first))),
+            events_seen,
+            pairs,
+            np.concatenate([c for c, _ in constraints]) if constraints else np.empty(0, np.int64),
+            np.concatenate([u for _, u in constraints]) if constraints else np.empty((0, 3)),
+            fired,
+            swing,
+        )
+        joined = pool.submit(solver.finish, whole)
+        return joined.result(), [future.result() for future in futures]
+
+
+def _windows(chunks: Iterable[EventArray], window_us: float, solver: WindowSolver) -> Iterator[tuple[EventArray, int, int, float]]:
+    """(events, start_us, end_us, turns) of each window of the grid, in time order, once complete."""
     pending: list[EventArray] = []
     current: int | None = None
     last_t: int | None = None
+
+    def window(k: int) -> tuple[EventArray, int, int, float]:
+        events = pending[0] if len(pending) == 1 else EventArray.concatenate(pending)
+        return events, round(k * window_us), round((k + 1) * window_us), solver.turns(window_us)
+
     for chunk in chunks:
         if not len(chunk):
             continue
         _check_sorted(chunk.t, last_t)
         last_t = int(chunk.t[-1])
-        index = np.floor(chunk.t / window_us).astype(np.int64)
-        cuts = np.flatnonzero(np.diff(index)) + 1
-        for lo, hi in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [len(chunk)]])):
-            k = int(index[lo])
+        for k, lo, hi in _runs(chunk.t, window_us):
             if current is None:
                 current = k
             while k > current:
-                yield _window(solver, pending, current, window_us)
+                yield window(current)
                 pending, current = [], current + 1
             pending.append(chunk[lo:hi])
     if current is not None:
-        yield _window(solver, pending, current, window_us)
+        yield window(current)
 
 
-def _window(solver: WindowSolver, parts: list[EventArray], k: int, window_us: float) -> NormalWindow:
-    events = parts[0] if len(parts) == 1 else EventArray.concatenate(parts)
-    return solver.solve(events, round(k * window_us), round((k + 1) * window_us), solver.turns(window_us))
+def _window_index(t_us: np.ndarray | int, window_us: float) -> np.ndarray:
+    """The window ⌊t / window_us⌋ of each time."""
+    return np.floor(np.asarray(t_us) / window_us).astype(np.int64)
+
+
+def _runs(t_us: np.ndarray, window_us: float) -> list[tuple[int, int, int]]:
+    """(window, lo, hi) of the runs of sorted times ``t_us[lo:hi]`` in one window each, found by
+    bisection on the window of each time (so exactly as ``_window_index`` assigns them)."""
+    first, last = (int(k) for k in _window_index(t_us[[0, -1]], window_us))
+    bounds = [0]
+    for k in range(first + 1, last + 1):
+        lo, hi = bounds[-1], len(t_us)
+        while lo < hi:  # the first time in window k or later
+            mid = (lo + hi) // 2
+            if _window_index(int(t_us[mid]), window_us) >= k:
+                hi = mid
+            else:
+                lo = mid + 1
+        bounds.append(lo)
+    bounds.append(len(t_us))
+    return [(first + i, bounds[i], bounds[i + 1]) for i in range(len(bounds) - 1) if bounds[i + 1] > bounds[i]]
 
 
 def _check_sorted(t_us: np.ndarray, previous: int | None) -> None:

@@ -273,18 +273,28 @@ def test_flat_regions_facing_the_camera_get_their_normal(blobs: psfmt.Capture) -
 
 def test_chunking_does_not_change_the_windows(sphere: psfmt.Capture) -> None:
     """Pairs straddle chunk and window boundaries: the stream keeps each pixel's last event, so any
-    chunking gives the same windows as one chunk; a chunk that goes back in time is refused."""
+    chunking, and fitting windows in threads, gives the same windows as one chunk, and ``solve``
+    the same whole-stream map from the windows' pairs; a chunk that goes back in time is refused."""
     light = build_light_model(sphere.lights)
     events = sphere.events.read()
     params = eventps.Params(contrast_pos=0.15, contrast_neg=0.15, refractory_us=2000)
     window_us = light.period_us / 3
     whole = list(eventps.stream([events], light, 32, 32, params, window_us=window_us))
     pieces = list(eventps.stream(events.chunks(777), light, 32, 32, params, window_us=window_us))
+    threaded = list(eventps.stream(events.chunks(5000), light, 32, 32, params, window_us=window_us, threads=3))
     assert [w.start_us for w in whole] == [w.start_us for w in pieces] == [round(k * window_us) for k in range(6)]
-    for a, b in zip(whole, pieces, strict=True):
+    for a, b, c in zip(whole, pieces, threaded, strict=True):
+        for other in (b, c):
+            np.testing.assert_array_equal(a.normal, other.normal)
+            np.testing.assert_array_equal(a.confidence, other.confidence)
+            assert (a.start_us, a.events, a.pairs, a.constraints) == (other.start_us, other.events, other.pairs, other.constraints)
+    # the whole stream's map from its windows' pairs is the one of the stream taken whole
+    (alone,) = eventps.stream([events], light, 32, 32, params)
+    joined, windows = eventps.solve(events.chunks(4096), light, 32, 32, params, window_us=window_us, threads=2)
+    for a, b in [(alone, joined), *zip(whole, windows, strict=True)]:
         np.testing.assert_array_equal(a.normal, b.normal)
         np.testing.assert_array_equal(a.confidence, b.confidence)
-        assert (a.events, a.pairs, a.constraints) == (b.events, b.pairs, b.constraints)
+        assert (a.start_us, a.end_us, a.events, a.pairs, a.constraints) == (b.start_us, b.end_us, b.events, b.pairs, b.constraints)
     assert sum(w.events for w in whole) == len(events)
     assert sum(w.pairs for w in whole) == len(events) - len(np.unique(events.y.astype(int) * 32 + events.x))
     backwards = [events[len(events) // 2 :], events[: len(events) // 2]]

@@ -40,7 +40,7 @@ class Resampler:
     def normals(self, normal: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Normals (He, We, 3) and mask (He, We) at the target: the masked normals interpolated
         bilinearly and renormalised; a target pixel is in the mask when the bilinear share of masked
-        event pixels is at least one half."""
+        event pixels is at least one half, and its normal is zero outside it."""
         if self.identity:
             return normal, mask
         if mask.all():

@@ -23,6 +23,7 @@ import numpy as np
 
 import psfmt
 from pstoolkit import Option, Solver, SolverResult, eventps
+from pstoolkit.batch import available_cpus
 from pstoolkit.errors import UserError
 from pstoolkit.lights import build_light_model
 from pstoolkit.solver import Progress
@@ -75,6 +76,7 @@ class EventPS(Solver):
             "also solve one normal map per window of this many µs (maps['normal_sequence']); 0 = off",
             minimum=0.0,
         ),
+        Option("threads", int, 0, "maps fitted at once with window_us (0 = the cores this process may use)", minimum=0),
     )
     needs = frozenset({"events", "lights"})
 
@@ -97,11 +99,19 @@ class EventPS(Solver):
         )
         stream = events.read()
         target = psfmt.target_size(capture)
-        if options["window_us"] > 0 and len(stream):
+        windowed = options["window_us"] > 0 and len(stream) > 0
+        if windowed:
             _check_sequence_size(stream, options["window_us"], target)
         progress(0.2, "events read")
-        (whole,) = eventps.stream([stream], light, events.width, events.height, params)
-        progress(0.6, "normals")
+        windows: list[eventps.NormalWindow] = []
+        if windowed:
+            whole, windows = eventps.solve(
+                stream.chunks(WINDOW_CHUNK_EVENTS), light, events.width, events.height, params,
+                window_us=options["window_us"], threads=options["threads"] or available_cpus(),
+            )
+        else:
+            (whole,) = eventps.stream([stream], light, events.width, events.height, params)
+        progress(0.7, "normals")
         resample = Resampler(event_to_frame_affine(capture, target), (events.height, events.width), target)
         out_normal, out_mask = resample.normals(whole.normal, whole.confidence > 0)
         maps: dict[str, np.ndarray] = {"confidence": np.where(out_mask, resample.nearest(whole.confidence), 0.0)}
@@ -119,12 +129,11 @@ class EventPS(Solver):
             "sources": whole.sources(),
             "mask_pixels": int(np.count_nonzero(out_mask)),
         }
-        if options["window_us"] > 0 and len(stream):
-            windows = list(
-                eventps.stream(stream.chunks(WINDOW_CHUNK_EVENTS), light, events.width, events.height, params, window_us=options["window_us"])
-            )
-            sequence = [resample.normals(w.normal, w.confidence > 0) for w in windows]
-            maps["normal_sequence"] = np.stack([np.where(m[..., None], n, 0.0) for n, m in sequence]).astype(np.float32)
+        if windowed:
+            sequence = np.empty((len(windows),) + target + (3,), dtype=np.float32)
+            for i, window in enumerate(windows):
+                sequence[i] = resample.normals(window.normal, window.confidence > 0)[0]
+            maps["normal_sequence"] = sequence
             diagnostics["window_us"] = options["window_us"]
             diagnostics["window_start_us"] = [w.start_us for w in windows]
         progress(1.0, "done")
