@@ -37,6 +37,9 @@ Where this departs from the paper and its public code, and why:
   adjugate with a small bias towards the camera axis, started at the axis) returns the axis for them.
   Here the swing or the neighbours give them a normal, marked in ``confidence``; ``fill=False`` leaves
   them at zero.
+- A pixel's first event. The code's per-pixel timestamps start at zero, so a first event within the
+  longest interval pairs with the light at the start of the recording; here it only sets the
+  reference, as a real sensor's level before the recording began is unknown.
 - Windows. The code keeps exponentially decaying sums per pixel for its live view; here windows are
   disjoint spans of ``window_us`` on the grid of its multiples, each solved from its own pairs.
 - Both polarities may have their own threshold (C⁺, C⁻); the code uses one.
@@ -284,7 +287,8 @@ def stream(
 ) -> Iterator[NormalWindow]:
     """Normal maps from time-ordered chunks of events of a ``width`` × ``height`` sensor under
     ``light``: one per window [k·window_us, (k + 1)·window_us) from the first event's window to the last
-    one's (empty windows included), each yielded in order once the events have passed its end; or,
+    one's (empty windows included), each yielded in order once the events have passed its end (with
+    ``threads`` > 1, up to ``threads`` windows later); or,
     with ``window_us`` None, one for the whole stream, from its first event to its last, taken to
     cover the whole number of light turns nearest to that span. With ``threads`` > 1 the pairing
     stays in the caller's thread and up to ``threads`` windows are fitted at once in a pool (the
