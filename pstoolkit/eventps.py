@@ -72,10 +72,11 @@ MAX_INTERVAL_PERIODS = 0.5
 about once per half turn (its only pairs), while pairs that span a long attached shadow are dropped."""
 SWING_MIN_TURNS = 0.99
 """The swing argument needs a window of a full turn of the light (up to rounding its length to µs)."""
-MAX_TABLE_US = 10_000_000
-"""Longest light period (µs) whose light values are tabulated per µs (8 MB a second of period)."""
+MAX_TABLE_US = 1_000_000
+"""Longest light period (µs) whose light values are tabulated per µs (40 MB a second of period)."""
 ADJUGATE_STEPS = 2
-"""Power steps on the adjugate that move a pixel's normal after each reweighting (``eventkernel``)."""
+"""Power steps on the adjugate that refine a pixel's first normal and move it after each reweighting
+(``eventkernel``)."""
 GEOMETRY_SAMPLES = 3600
 """Samples of one light period to measure its zenith and whether it circles the axis."""
 
