@@ -29,8 +29,6 @@ from pstoolkit.lights import build_light_model
 from pstoolkit.solver import Progress
 from pstoolkit_eventps.resample import Resampler, event_to_frame_affine
 
-WINDOW_CHUNK_EVENTS = 1 << 18
-"""Events handed to the stream at a time in windowed mode."""
 MAX_SEQUENCE_BYTES = 4 << 30
 """Largest ``normal_sequence`` the solver builds in memory; longer sequences belong to the stream API."""
 
@@ -106,7 +104,7 @@ class EventPS(Solver):
         windows: list[eventps.NormalWindow] = []
         if windowed:
             whole, windows = eventps.solve(
-                stream.chunks(WINDOW_CHUNK_EVENTS), light, events.width, events.height, params,
+                [stream], light, events.width, events.height, params,
                 window_us=options["window_us"], threads=options["threads"] or available_cpus(),
             )
         else:
