@@ -225,9 +225,11 @@ class WindowSolver:
     def pair(self, events: EventArray, start_us: int, end_us: int, turns: float) -> PairedWindow:
         """The constraints of the window [start_us, end_us) holding ``events`` (time-ordered), over which
         the light made ``turns`` turns; windows must come in time order, as each pixel's last event
-        carries over to the next."""
+        carries over to the next. An event outside the sensor is a UserError."""
         params = self.params
         pixels = self.width * self.height
+        if len(events) and (int(events.x.max()) >= self.width or int(events.y.max()) >= self.height):
+            raise UserError(f"eventps: an event lies outside the {self.width}×{self.height} sensor")
         light, motion, period = self.path.rows(events.t)
         fired = np.zeros(pixels, dtype=np.int64)
         swing = np.zeros((pixels, 2))

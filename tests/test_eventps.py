@@ -274,7 +274,8 @@ def test_flat_regions_facing_the_camera_get_their_normal(blobs: psfmt.Capture) -
 def test_chunking_does_not_change_the_windows(sphere: psfmt.Capture) -> None:
     """Pairs straddle chunk and window boundaries: the stream keeps each pixel's last event, so any
     chunking, and fitting windows in threads, gives the same windows as one chunk, and ``solve``
-    the same whole-stream map from the windows' pairs; a chunk that goes back in time is refused."""
+    the same whole-stream map from the windows' pairs; a chunk that goes back in time, or an event
+    outside the sensor, is refused."""
     light = build_light_model(sphere.lights)
     events = sphere.events.read()
     params = eventps.Params(contrast_pos=0.15, contrast_neg=0.15, refractory_us=2000)
@@ -300,6 +301,8 @@ def test_chunking_does_not_change_the_windows(sphere: psfmt.Capture) -> None:
     backwards = [events[len(events) // 2 :], events[: len(events) // 2]]
     with pytest.raises(UserError, match=r"^eventps: the events are not in time order$"):
         list(eventps.stream(backwards, light, 32, 32, params, window_us=window_us))
+    with pytest.raises(UserError, match=r"^eventps: an event lies outside the 20×32 sensor$"):
+        list(eventps.stream([events], light, 20, 32, params))
 
 
 def test_missing_calibration_is_one_clear_error() -> None:
