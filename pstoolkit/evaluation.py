@@ -20,39 +20,54 @@ import numpy as np
 
 import psfmt
 from pstoolkit.errors import UserError
-from pstoolkit.metrics import angular_error_deg, error_stats
+from pstoolkit.metrics import SHARE_KEYS, THRESHOLDS_DEG, angular_error_deg, error_stats
 
 MISSING = "–"
 RESULT_FILE = "result.json"
-METRICS = ("mae_deg", "median_deg", "data_rate", "seconds")
+METRICS = ("mae_deg", "mae_solved_deg", "median_deg", "coverage", *SHARE_KEYS, "data_rate", "seconds")
 TITLES = {
     "mae_deg": "Mean angular error (degrees)",
+    "mae_solved_deg": "Mean angular error of the solved pixels (degrees)",
     "median_deg": "Median angular error (degrees)",
+    "coverage": "Coverage (% of mask pixels solved)",
+    **{key: f"Pixels under {threshold:g}° (% of the mask)" for key, threshold in zip(SHARE_KEYS, THRESHOLDS_DEG)},
     "data_rate": "Data rate (% of 24 RGB frames)",
     "seconds": "Solver time (seconds)",
 }
+PERCENT_METRICS = frozenset({"coverage", *SHARE_KEYS, "data_rate"})
+"""Metrics stored as shares 0..1 and shown in percent."""
+GROUND_TRUTH_METRICS = frozenset(METRICS) - {"data_rate", "seconds"}
+"""Metrics that need ground truth."""
 CSV_COLUMNS = ("object", "solver", *METRICS)
 
 
 @dataclass(frozen=True)
 class Score:
     """Angular error of a normal map: ``error_deg`` (H, W) float32 degrees, NaN outside the
-    ground-truth mask, and its summary ``stats`` (``metrics.error_stats``)."""
+    ground-truth mask (90° where the solver left a pixel out), ``solved`` (H, W) the pixels the solver
+    estimated (a non-zero normal), and the summary ``stats`` (``metrics.error_stats``)."""
 
     error_deg: np.ndarray
+    solved: np.ndarray
     stats: dict[str, Any]
 
 
 @dataclass(frozen=True)
 class Record:
     """One scored result: ``object`` (capture stem, ``demo`` for the demo capture), ``solver`` (the
-    result's name: the solver's, or the one given to ``run --name``), metrics (None where unknown:
-    no ground truth), and ``source``, the folder or capture it was read from."""
+    result's name: the solver's, or the one given to ``run --name``), the ``METRICS`` (None where
+    unknown: no ground truth, or a result.json written before the metric existed), and ``source``,
+    the folder or capture it was read from."""
 
     object: str
     solver: str
     mae_deg: float | None
+    mae_solved_deg: float | None
     median_deg: float | None
+    coverage: float | None
+    below_11_25: float | None
+    below_22_5: float | None
+    below_30: float | None
     data_rate: float | None
     seconds: float | None
     source: str
@@ -61,12 +76,13 @@ class Record:
 def score(normal: np.ndarray, gt: psfmt.GroundTruth | None) -> Score | None:
     """Error of ``normal`` over the ground-truth mask (non-zero ground-truth normals when the capture
     stores no mask); None without ground-truth normals. A pixel the solver left out (zero normal)
-    counts as 90° off."""
+    counts as 90° off and as not solved."""
     if gt is None or gt.normal is None:
         return None
     mask = gt.mask if gt.mask is not None else np.linalg.norm(gt.normal, axis=-1) > 0
     errors = angular_error_deg(normal, gt.normal, mask)
-    return Score(errors.astype(np.float32), error_stats(errors))
+    solved = np.any(np.asarray(normal) != 0, axis=-1)
+    return Score(errors.astype(np.float32), solved, error_stats(errors, solved))
 
 
 def _number(data: dict[str, Any], key: str, where: Path) -> float | None:
@@ -113,14 +129,13 @@ def read_capture_results(path: Path) -> list[Record]:
             stats = scored.stats if scored is not None else {}
             records.append(
                 Record(
-                    path.stem,
-                    name,
-                    stats.get("mae_deg"),
-                    stats.get("median_deg"),
+                    object=path.stem,
+                    solver=name,
+                    **{metric: stats.get(metric) for metric in GROUND_TRUTH_METRICS},
                     # a result stored without its data rate counts the whole capture
-                    result.data_rate if result.data_rate is not None else whole,
-                    result.seconds,
-                    str(path),
+                    data_rate=result.data_rate if result.data_rate is not None else whole,
+                    seconds=result.seconds,
+                    source=str(path),
                 )
             )
     return records
@@ -165,10 +180,11 @@ def averages(records: list[Record]) -> dict[str, dict[str, float | None]]:
 
 
 def format_value(metric: str, value: float | None) -> str:
-    """A table cell: degrees to 2 decimals, seconds to 3, the data rate in percent to 1, ``–`` when unknown."""
+    """A table cell: degrees to 2 decimals, seconds to 3, shares (``PERCENT_METRICS``) in percent to 1,
+    ``–`` when unknown."""
     if value is None:
         return MISSING
-    if metric == "data_rate":
+    if metric in PERCENT_METRICS:
         return f"{100 * value:.1f} %"
     return f"{value:.3f}" if metric == "seconds" else f"{value:.2f}"
 
@@ -187,13 +203,13 @@ def markdown_table(records: list[Record], metric: str) -> str:
 
 
 def markdown(records: list[Record]) -> str:
-    """A titled markdown table for each metric: MAE, median error, data rate and solver time."""
+    """A titled markdown table for each of the ``METRICS``: MAE (all pixels, solved pixels), median
+    error, coverage, the shares under 11.25°, 22.5° and 30°, data rate and solver time."""
     return "\n\n".join(f"### {TITLES[metric]}\n\n{markdown_table(records, metric)}" for metric in METRICS) + "\n"
 
 
 def csv_text(records: list[Record]) -> str:
-    """Long format, one row per result: object, solver, mae_deg, median_deg, data_rate, seconds
-    (empty where unknown)."""
+    """Long format, one row per result: object, solver and the ``METRICS`` (empty where unknown)."""
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(CSV_COLUMNS)

@@ -1,6 +1,9 @@
 """Accuracy of normal maps: per-pixel angular error and the summary statistics papers report.
 
 MAE is the mean of the per-pixel angles (DiLiGenT's definition), not the arccos of the mean cosine.
+A pixel a solver leaves unsolved (a zero normal) counts as 90° in the MAE, the median and the shares
+under 11.25°, 22.5° and 30° (the thresholds normal-estimation papers quote); the coverage (share of
+pixels solved) and the MAE over the solved pixels say how much of the error that is.
 """
 
 from __future__ import annotations
@@ -11,7 +14,9 @@ import numpy as np
 
 from pstoolkit.errors import UserError
 
-THRESHOLDS_DEG = (10, 20, 30)
+THRESHOLDS_DEG = (11.25, 22.5, 30.0)
+SHARE_KEYS = tuple(f"below_{threshold:g}".replace(".", "_") for threshold in THRESHOLDS_DEG)
+"""The statistics' names of the shares under each threshold: below_11_25, below_22_5, below_30."""
 
 
 def _unit(normal: np.ndarray) -> np.ndarray:
@@ -37,16 +42,24 @@ def angular_error_deg(normal: np.ndarray, normal_gt: np.ndarray, mask: np.ndarra
     return errors
 
 
-def error_stats(errors: np.ndarray) -> dict[str, Any]:
-    """Summary of angular errors in degrees (NaN entries, i.e. pixels outside the mask, are skipped):
-    ``mae_deg``, ``median_deg``, ``below_10``/``below_20``/``below_30`` (shares 0..1 of pixels with an
-    error under that many degrees) and ``n_pixels``."""
+def error_stats(errors: np.ndarray, solved: np.ndarray | None = None) -> dict[str, Any]:
+    """Summary of angular errors in degrees over the pixels that are not NaN (NaN: outside the mask):
+    ``mae_deg``, ``median_deg``, the shares (0..1) of pixels with an error under each of
+    ``THRESHOLDS_DEG`` (``SHARE_KEYS``), ``n_pixels``, ``coverage`` (share of them in ``solved``, a
+    bool map of the shape of ``errors``; all when None) and ``mae_solved_deg`` (MAE over those; None
+    when there are none)."""
     values = np.asarray(errors, dtype=np.float64).ravel()
-    values = values[~np.isnan(values)]
-    if values.size == 0:
+    inside = ~np.isnan(values)
+    if not inside.any():
         raise UserError("no pixels to evaluate: the mask is empty")
+    done = np.ones(values.size, dtype=bool) if solved is None else np.asarray(solved, dtype=bool).ravel()
+    if done.size != values.size:
+        raise UserError(f"solved map of {done.size} pixels does not fit an error map of {values.size}")
+    values, done = values[inside], done[inside]
     stats: dict[str, Any] = {"mae_deg": float(values.mean()), "median_deg": float(np.median(values))}
-    for threshold in THRESHOLDS_DEG:
-        stats[f"below_{threshold}"] = float(np.count_nonzero(values < threshold) / values.size)
+    for threshold, key in zip(THRESHOLDS_DEG, SHARE_KEYS):
+        stats[key] = float(np.count_nonzero(values < threshold) / values.size)
     stats["n_pixels"] = int(values.size)
+    stats["coverage"] = float(np.count_nonzero(done) / values.size)
+    stats["mae_solved_deg"] = float(values[done].mean()) if done.any() else None
     return stats

@@ -13,7 +13,9 @@ per-frame ``normal_sequence`` (N, H, W, 3), only as ``.npy``.
 
 ``error.png`` shows the angular error from 0 to ``error_max_deg`` degrees through OpenCV's Turbo
 colormap (dark blue at 0°, through cyan, green and yellow, to dark red at ``error_max_deg`` and above),
-8-bit RGB, black outside the ground-truth mask.
+8-bit RGB, black outside the ground-truth mask and neutral grey (``UNSOLVED_RGB``) where the solver
+left a pixel unsolved: its 90° counts in ``mae_deg`` (and ``error.npy``) but is not an error the
+solver made, so it is not drawn as one.
 """
 
 from __future__ import annotations
@@ -30,12 +32,15 @@ import numpy as np
 import psfmt
 from pstoolkit import __version__
 from pstoolkit.evaluation import RESULT_FILE, Score, score
+from pstoolkit.metrics import SHARE_KEYS
 from pstoolkit.normalmap import write_normal_npy, write_normal_png, write_npy, write_png
 from pstoolkit.registry import Entry, PluginError
 from pstoolkit.solver import input_data_rate, no_progress, Progress, run_solver
 
 ROBUST_PERCENTILE = 99.0
 PNG_TOP = 65535
+UNSOLVED_RGB = (128, 128, 128)
+"""``error.png``'s colour of a pixel the solver left unsolved."""
 RESERVED_MAPS = frozenset({"normal", "mask", "error"})
 """Names ``run`` uses itself (``normal.png``, the stored mask, ``error.png``), not open to solver maps."""
 _MAP_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]*")
@@ -108,12 +113,15 @@ def prepare_maps(maps: dict[str, np.ndarray], mask: np.ndarray, blame: str) -> l
     return outputs
 
 
-def error_to_rgb(error_deg: np.ndarray, error_max_deg: float) -> np.ndarray:
+def error_to_rgb(error_deg: np.ndarray, error_max_deg: float, solved: np.ndarray | None = None) -> np.ndarray:
     """8-bit RGB (H, W, 3) of an angular-error map through the Turbo colormap over 0…``error_max_deg``
-    degrees (larger errors saturate); NaN pixels (outside the mask) are black."""
+    degrees (larger errors saturate); NaN pixels (outside the mask) are black, pixels outside
+    ``solved`` (H, W) bool (None: all solved) ``UNSOLVED_RGB``."""
     inside = np.isfinite(error_deg)
     level = np.clip(np.where(inside, error_deg, 0.0) / error_max_deg * 255.0 + 0.5, 0, 255).astype(np.uint8)
     rgb = cv2.applyColorMap(level, cv2.COLORMAP_TURBO)[..., ::-1].copy()
+    if solved is not None:
+        rgb[inside & ~solved] = UNSOLVED_RGB
     rgb[~inside] = 0
     return rgb
 
@@ -126,10 +134,11 @@ def write_maps(folder: Path, outputs: list[MapOutput]) -> None:
             write_png(folder / f"{output.name}.png", output.image)
 
 
-def write_error_map(folder: Path, error_deg: np.ndarray, error_max_deg: float) -> None:
-    """``error.npy`` (float32 degrees, NaN outside the mask) and ``error.png`` (Turbo, see the module)."""
-    write_npy(folder / "error.npy", error_deg.astype(np.float32))
-    write_png(folder / "error.png", error_to_rgb(error_deg, error_max_deg))
+def write_error_map(folder: Path, scored: Score, error_max_deg: float) -> None:
+    """``error.npy`` (float32 degrees, NaN outside the mask, 90 where unsolved) and ``error.png``
+    (Turbo, grey where unsolved: see the module)."""
+    write_npy(folder / "error.npy", scored.error_deg.astype(np.float32))
+    write_png(folder / "error.png", error_to_rgb(scored.error_deg, error_max_deg, scored.solved))
 
 
 @dataclass
@@ -174,8 +183,9 @@ def result_summary(
     error_max_deg: float,
     stored: bool = False,
 ) -> dict[str, Any]:
-    """The content of ``result.json``: what ran on what, the error statistics in degrees (None
-    without ground truth), the data rate, the options and the files of the further maps."""
+    """The content of ``result.json``: what ran on what, the error statistics in degrees and the
+    coverage (``metrics.error_stats``; None without ground truth), the data rate, the options and the
+    files of the further maps."""
     stats = solved.scored.stats if solved.scored is not None else {}
     return {
         "name": name,
@@ -186,9 +196,7 @@ def result_summary(
         "capture_kind": solved.capture_kind,
         "size": list(solved.normal.shape[:2]),
         "seconds": solved.seconds,
-        "mae_deg": stats.get("mae_deg"),
-        "median_deg": stats.get("median_deg"),
-        **{key: stats.get(key) for key in ("below_10", "below_20", "below_30", "n_pixels")},
+        **{key: stats.get(key) for key in ("mae_deg", "mae_solved_deg", "median_deg", "coverage", *SHARE_KEYS, "n_pixels")},
         "data_rate": solved.data_rate,
         "device": device,
         "options": options,
@@ -222,7 +230,7 @@ def write_result_folder(folder: Path, solved: SolvedCapture, summary: dict[str, 
     write_normal_png(folder / "normal.png", solved.normal, solved.mask)
     write_maps(folder, solved.maps)
     if solved.scored is not None:
-        write_error_map(folder, solved.scored.error_deg, summary["error_max_deg"])
+        write_error_map(folder, solved.scored, summary["error_max_deg"])
     # Last, so a folder with result.json holds every file it lists.
     with psfmt.atomic_path(folder / RESULT_FILE) as tmp:
         tmp.write_text(text + "\n")

@@ -1,9 +1,11 @@
 """The evaluation report of result folders (``pstoolkit report``): markdown and HTML with figures.
 
-The report holds the tables of ``pstoolkit eval`` (object × solver: mean and median angular error,
-data rate, solver time, with average rows), a plot of the mean angular error against the data rate
-per solver (every object faint, the solver's average bold), and per object one figure with each
-solver's normal map above its error map, plus the pairs a batch failed on (from ``batch.json``).
+The report holds the tables of ``pstoolkit eval`` (object × solver: mean angular error, of the solved
+pixels too, median error, coverage, shares under 11.25°/22.5°/30°, data rate, solver time, with
+average rows), a plot of the mean angular error against the data rate per solver (every object
+faint, the solver's average bold), and per object one figure with each solver's normal map (titled
+with its MAE and coverage) above its error map (unsolved pixels grey), plus the pairs a batch failed
+on (from ``batch.json``).
 Without ground truth the error tables, the plot and the error maps are left out. Figures are PNGs
 beside the report, named ``<report stem>-…png``, drawn with matplotlib's Agg canvas (no pyplot, so
 no global backend state).
@@ -23,7 +25,7 @@ from matplotlib.figure import Figure
 import psfmt
 from pstoolkit.batch import read_failures
 from pstoolkit.errors import UserError
-from pstoolkit.evaluation import averages, collect, markdown_table, METRICS, Record, RESULT_FILE, TITLES
+from pstoolkit.evaluation import averages, collect, GROUND_TRUTH_METRICS, markdown_table, METRICS, Record, RESULT_FILE, TITLES
 from pstoolkit.normalmap import normal_to_rgb, read_normal_npy
 from pstoolkit.outputs import error_to_rgb
 
@@ -32,7 +34,6 @@ PANEL_PX = (240, 260)
 """Width and height in pixels of one panel of a maps figure (a map and its title)."""
 PLOT_PX = (640, 480)
 """Width and height in pixels of the MAE-against-data-rate plot."""
-ERROR_METRICS = ("mae_deg", "median_deg")
 
 
 @dataclass(frozen=True)
@@ -88,8 +89,9 @@ def _error_map(folder: Path) -> tuple[np.ndarray, float] | None:
 
 
 def plot_maps(records: list[Record], path: Path) -> None:
-    """One object's figure: a column per solver with its normal map (titled with its MAE) above its
-    error map (Turbo, 0 to the folder's error scale); one row of normals when no result has ground truth."""
+    """One object's figure: a column per solver with its normal map (titled with its MAE and coverage)
+    above its error map (Turbo, 0 to the folder's error scale, grey where the solver left a pixel
+    unsolved: a zero normal); one row of normals when no result has ground truth."""
     errors = [_error_map(Path(r.source)) for r in records]
     rows = 2 if any(e is not None for e in errors) else 1
     fig = Figure(figsize=(len(records) * PANEL_PX[0] / DPI, rows * PANEL_PX[1] / DPI), dpi=DPI, layout="constrained")
@@ -97,14 +99,18 @@ def plot_maps(records: list[Record], path: Path) -> None:
     for column, (record, error) in enumerate(zip(records, errors)):
         normal = read_normal_npy(Path(record.source) / "normal.npy")
         score = f"MAE {record.mae_deg:.2f}°" if record.mae_deg is not None else "no ground truth"
+        if record.coverage is not None:
+            score += f", {100 * record.coverage:.1f} % solved"
         axes[0, column].imshow(normal_to_rgb(normal, bits=8), interpolation="nearest")
         axes[0, column].set_title(f"{record.solver}\n{score}", fontsize="small")
         if rows == 2:
             if error is None:
                 axes[1, column].text(0.5, 0.5, "no ground truth", ha="center", va="center", transform=axes[1, column].transAxes)
             else:
-                axes[1, column].imshow(error_to_rgb(error[0], error[1]), interpolation="nearest")
-                axes[1, column].set_title(f"error 0–{error[1]:g}°", fontsize="small")
+                solved = np.any(normal != 0, axis=-1)
+                axes[1, column].imshow(error_to_rgb(error[0], error[1], solved), interpolation="nearest")
+                grey = ", grey: unsolved" if np.any(np.isfinite(error[0]) & ~solved) else ""
+                axes[1, column].set_title(f"error 0–{error[1]:g}°{grey}", fontsize="small")
         for ax in axes[:, column]:
             ax.set_axis_off()
     fig.suptitle(records[0].object)
@@ -125,7 +131,7 @@ def report_markdown(records: list[Record], failures: list[str], plot: str | None
     if not has_error:
         parts.append("No result has ground truth: the error tables, the plot and the error maps are left out.")
     for metric in METRICS:
-        if metric in ERROR_METRICS and not has_error:
+        if metric in GROUND_TRUTH_METRICS and not has_error:
             continue
         parts += [f"## {TITLES[metric]}", markdown_table(records, metric)]
     if plot is not None:

@@ -135,7 +135,7 @@ def test_batch_gives_the_numbers_of_serial_runs(
         serial = tmp_path / "serial" / Path(pair.folder).name
         assert main(["run", pair.capture, "--solver", pair.solver, "-o", str(serial), "--device", "cpu"]) == 0
         mine, theirs = _result(pair.folder), _result(serial)
-        for key in ("mae_deg", "median_deg", "below_10", "n_pixels", "data_rate", "options", "object", "capture", "maps"):
+        for key in ("mae_deg", "mae_solved_deg", "median_deg", "coverage", "below_11_25", "n_pixels", "data_rate", "options", "object", "capture", "maps"):
             assert mine[key] == theirs[key], (pair.folder, key)
         for name in ("normal.npy", "error.npy", "normal.png", "error.png"):
             assert (Path(pair.folder) / name).read_bytes() == (serial / name).read_bytes(), (pair.folder, name)

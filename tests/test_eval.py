@@ -56,11 +56,26 @@ def test_capture_results_are_scored_against_its_ground_truth(runs: Runs) -> None
         stored = capture.results["lsq"]
         errors = angular_error_deg(stored.maps["normal"], capture.ground_truth.normal, capture.ground_truth.mask)
         rate = psfmt.data_rate(capture).rate
-    inside = errors[~np.isnan(errors)]
-    assert record == Record("ball", "lsq", float(inside.mean()), float(np.median(inside)), rate, stored.seconds, str(runs.ball))
+    mask = ~np.isnan(errors)
+    solved = mask & np.any(stored.maps["normal"] != 0, axis=-1)
+    inside = errors[mask]
+    assert record == Record(
+        object="ball",
+        solver="lsq",
+        mae_deg=float(inside.mean()),
+        mae_solved_deg=float(errors[solved].mean()),
+        median_deg=float(np.median(inside)),
+        coverage=float(solved.sum() / mask.sum()),
+        below_11_25=float(np.mean(inside < 11.25)),
+        below_22_5=float(np.mean(inside < 22.5)),
+        below_30=float(np.mean(inside < 30)),
+        data_rate=rate,
+        seconds=stored.seconds,
+        source=str(runs.ball),
+    )
     ran = folder(runs.root / "ball-lsq")  # what `run` reported for the same maps
-    assert (record.mae_deg, record.median_deg) == pytest.approx((ran["mae_deg"], ran["median_deg"]), abs=1e-9)
-    assert record.seconds == ran["seconds"]
+    for metric in ("mae_deg", "mae_solved_deg", "median_deg", "coverage", "below_11_25", "below_22_5", "below_30", "seconds"):
+        assert getattr(record, metric) == pytest.approx(ran[metric], abs=1e-9)
 
 
 def test_markdown_tables_over_folders_and_a_capture(runs: Runs, capsys: pytest.CaptureFixture[str]) -> None:
@@ -78,8 +93,23 @@ def test_markdown_tables_over_folders_and_a_capture(runs: Runs, capsys: pytest.C
         "| nogt | – | – |\n"
         f"| sphere | {lsq['mae_deg']:.2f} | {hi['mae_deg']:.2f} |\n"
         f"| **average** | {mean:.2f} | {hi['mae_deg']:.2f} |\n\n"
-        "### Median angular error (degrees)\n\n"
+        "### Mean angular error of the solved pixels (degrees)\n\n"
     )
+    # the pixels lsq-hi leaves out count 90° in its MAE; the coverage table says how many there are
+    assert hi["coverage"] < lsq["coverage"] == 1.0 and hi["mae_solved_deg"] < hi["mae_deg"]
+    cover = f"{100 * lsq['coverage']:.1f} % | {100 * hi['coverage']:.1f} %"
+    assert (
+        "### Coverage (% of mask pixels solved)\n\n"
+        "| object | lsq | lsq-hi |\n"
+        "|:--|--:|--:|\n"
+        f"| ball | {100 * ball.coverage:.1f} % | – |\n"
+        "| nogt | – | – |\n"
+        f"| sphere | {cover} |\n"
+    ) in text
+    for key, title in (("below_11_25", "11.25"), ("below_22_5", "22.5"), ("below_30", "30")):
+        assert f"### Pixels under {title}° (% of the mask)\n\n" in text
+        assert f"| sphere | {100 * lsq[key]:.1f} % | {100 * hi[key]:.1f} % |\n" in text
+    assert f"| sphere | {lsq['mae_solved_deg']:.2f} | {hi['mae_solved_deg']:.2f} |\n" in text
     rate = f"{100 * 8 / 24:.1f} %"
     assert (
         "### Data rate (% of 24 RGB frames)\n\n"
@@ -98,11 +128,12 @@ def test_csv_and_json_agree_with_the_records(runs: Runs, capsys: pytest.CaptureF
     records = collect([runs.out / "sphere-lsq", runs.out / "nogt-lsq", runs.ball])
     assert main(["eval", str(runs.out / "sphere-lsq"), str(runs.out / "nogt-lsq"), str(runs.ball), "--csv"]) == 0
     rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
-    assert [list(row) for row in rows[:1]] == [["object", "solver", "mae_deg", "median_deg", "data_rate", "seconds"]]
+    metrics = ["mae_deg", "mae_solved_deg", "median_deg", "coverage", "below_11_25", "below_22_5", "below_30", "data_rate", "seconds"]
+    assert [list(row) for row in rows[:1]] == [["object", "solver", *metrics]]
     assert [(row["object"], row["solver"]) for row in rows] == [("ball", "lsq"), ("nogt", "lsq"), ("sphere", "lsq")]
-    assert rows[1]["mae_deg"] == rows[1]["median_deg"] == ""
+    assert all(rows[1][key] == "" for key in metrics[:-2])
     for row, record in zip(rows, records, strict=True):
-        for key in ("mae_deg", "median_deg", "data_rate", "seconds"):
+        for key in metrics:
             value = getattr(record, key)
             assert row[key] == ("" if value is None else repr(value))
     assert main(["eval", str(runs.out / "sphere-lsq"), str(runs.out / "nogt-lsq"), str(runs.ball), "--json"]) == 0
@@ -110,8 +141,7 @@ def test_csv_and_json_agree_with_the_records(runs: Runs, capsys: pytest.CaptureF
     assert data["results"] == [dataclasses.asdict(r) for r in records]
     assert data["average"] == {
         "lsq": {
-            "mae_deg": pytest.approx((records[0].mae_deg + records[2].mae_deg) / 2),
-            "median_deg": pytest.approx((records[0].median_deg + records[2].median_deg) / 2),
+            **{key: pytest.approx((getattr(records[0], key) + getattr(records[2], key)) / 2) for key in metrics[:-2]},
             "data_rate": pytest.approx(8 / 24),
             "seconds": pytest.approx(sum(r.seconds for r in records) / 3),
         }
@@ -126,7 +156,12 @@ def test_output_file_is_written_instead_of_printed(runs: Runs, tmp_path: Path, c
         f"### {title}\n\n{markdown_table(collect([runs.out]), metric)}"
         for metric, title in (
             ("mae_deg", "Mean angular error (degrees)"),
+            ("mae_solved_deg", "Mean angular error of the solved pixels (degrees)"),
             ("median_deg", "Median angular error (degrees)"),
+            ("coverage", "Coverage (% of mask pixels solved)"),
+            ("below_11_25", "Pixels under 11.25° (% of the mask)"),
+            ("below_22_5", "Pixels under 22.5° (% of the mask)"),
+            ("below_30", "Pixels under 30° (% of the mask)"),
             ("data_rate", "Data rate (% of 24 RGB frames)"),
             ("seconds", "Solver time (seconds)"),
         )

@@ -105,7 +105,7 @@ def test_flat_solver_runs_through_the_cli_with_known_error(
     np.testing.assert_array_equal(png[mask], np.tile([65535, 32768, 32768], (int(mask.sum()), 1)))  # BGR: z, y, x
     assert not png[~mask].any()
     line = capsys.readouterr().out
-    assert line == f"flat on {capture}: MAE {result['mae_deg']:.2f}°, median {result['median_deg']:.2f}°, " + (
+    assert line == f"flat on {capture}: MAE {result['mae_deg']:.2f}°, median {result['median_deg']:.2f}°, coverage 100.0 %, " + (
         f"{result['seconds']:.2f} s, data rate 4.2 % → {out}\n"
     )
 

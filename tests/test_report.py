@@ -55,12 +55,25 @@ def test_report_tables_figures_and_html(batch_dir: Path, tmp_path: Path, capsys:
     text = report.read_text()
     results = {(r["object"], r["solver"]): r for r in (json.loads(p.read_text()) for p in batch_dir.glob("*/result.json"))}
     assert len(results) == 6
-    mae, median, rate = (_table(text, t) for t in ("Mean angular error (degrees)", "Median angular error (degrees)", "Data rate (% of 24 RGB frames)"))
-    for table, key, fmt in ((mae, "mae_deg", "{:.2f}"), (median, "median_deg", "{:.2f}"), (rate, "data_rate", "{:.1f} %")):
+    tables = {
+        "mae_deg": ("Mean angular error (degrees)", "{:.2f}"),
+        "mae_solved_deg": ("Mean angular error of the solved pixels (degrees)", "{:.2f}"),
+        "median_deg": ("Median angular error (degrees)", "{:.2f}"),
+        "coverage": ("Coverage (% of mask pixels solved)", "{:.1f} %"),
+        "below_11_25": ("Pixels under 11.25° (% of the mask)", "{:.1f} %"),
+        "below_22_5": ("Pixels under 22.5° (% of the mask)", "{:.1f} %"),
+        "below_30": ("Pixels under 30° (% of the mask)", "{:.1f} %"),
+        "data_rate": ("Data rate (% of 24 RGB frames)", "{:.1f} %"),
+    }
+    for key, (title, fmt) in tables.items():
+        table = _table(text, title)
         assert sorted(table) == ["**average**", "ball", "blobs", "relief"]
         for (obj, solver), result in results.items():
-            value = result[key] * (100 if key == "data_rate" else 1)
+            value = result[key] * (1 if key.endswith("_deg") else 100)
             assert table[obj][["eventps", "frameps"].index(solver)] == fmt.format(value)
+    mae = _table(text, "Mean angular error (degrees)")
+    # eventps gives every pixel a normal
+    assert _table(text, "Coverage (% of mask pixels solved)")["**average**"][0] == "100.0 %"
     assert mae["ball"][1] != "–" and float(mae["ball"][1]) < 10.0
     plot = report.parent / "summary-mae-vs-data-rate.png"
     maps = [report.parent / f"summary-maps-{i:03d}-{obj}.png" for i, obj in enumerate(("ball", "blobs", "relief"))]
@@ -71,7 +84,7 @@ def test_report_tables_figures_and_html(batch_dir: Path, tmp_path: Path, capsys:
     assert all(f"![{obj}]({path.name})" in text for obj, path in zip(("ball", "blobs", "relief"), maps))
     assert text.rstrip().endswith("## Failed pairs\n\n- broken × frameps: broken.h5: not an HDF5 file")
     page = report.with_suffix(".html").read_text()
-    assert page.count("<table>") == 4 and page.count("<img ") == 4
+    assert page.count("<table>") == 9 and page.count("<img ") == 4
     assert all(f'<img src="{path.name}"' in page for path in (plot, *maps))
     for obj, cells in mae.items():
         row = re.sub(r"\*\*(.+)\*\*", r"<strong>\1</strong>", obj)
@@ -89,6 +102,7 @@ def test_results_without_ground_truth_report_everything_but_the_errors(batch_dir
     assert main(["report", str(tmp_path / "batch"), "-o", str(report)]) == 0
     text = report.read_text()
     assert "Mean angular error" not in text and "Median" not in text and "## Failed pairs" not in text
+    assert "Coverage" not in text and "Pixels under" not in text
     assert "No result has ground truth: the error tables, the plot and the error maps are left out." in text
     assert "| blind | 12.5 % |" in text and "## Normal maps\n\n![blind](blind-maps-000-blind.png)" in text
     assert sorted(p.name for p in tmp_path.iterdir() if p.suffix == ".png") == ["blind-maps-000-blind.png"]

@@ -152,10 +152,11 @@ def test_run_writes_every_map_and_a_consistent_error_map(
     np.testing.assert_allclose(error[inside], expected[inside], rtol=0, atol=1e-4)
     assert result["mae_deg"] == pytest.approx(float(np.mean(expected[inside])), abs=1e-9)
     assert result["median_deg"] == pytest.approx(float(np.median(expected[inside])), abs=1e-9)
-    for threshold in (10, 20, 30):
+    for threshold, key in ((11.25, "below_11_25"), (22.5, "below_22_5"), (30, "below_30")):
         share = np.count_nonzero(expected[inside] < threshold) / inside.sum()
-        assert result[f"below_{threshold}"] == pytest.approx(share)
+        assert result[key] == pytest.approx(share)
     assert result["n_pixels"] == int(inside.sum())
+    assert result["coverage"] == 1.0 and result["mae_solved_deg"] == pytest.approx(result["mae_deg"])
     # Least squares is exact where all 8 lights see a pixel; the rim (attached shadows) drags the mean.
     assert result["median_deg"] < 1.0 and 3.0 < result["mae_deg"] < 8.0
 
@@ -207,11 +208,33 @@ def test_run_writes_every_map_and_a_consistent_error_map(
     )
     captured = capsys.readouterr()
     assert captured.out == (
-        f"lsq on {sphere}: MAE {result['mae_deg']:.2f}°, median {result['median_deg']:.2f}°, "
+        f"lsq on {sphere}: MAE {result['mae_deg']:.2f}°, median {result['median_deg']:.2f}°, coverage 100.0 %, "
         f"{result['seconds']:.2f} s, data rate 33.3 % → {out}\n"
     )
     assert captured.err == ""
 
+
+
+def test_unsolved_pixels_count_90_degrees_but_are_drawn_grey(sphere: Path, tmp_path: Path) -> None:
+    """With a high mask threshold the solver leaves the dim rim out: those pixels count 90° in mae_deg
+    and error.npy, the coverage and mae_solved_deg say so, and error.png draws them neutral grey."""
+    out = tmp_path / "hi"
+    assert run(sphere, out, "--set", "threshold=0.5") == 0
+    result = json.loads((out / "result.json").read_text())
+    with psfmt.read(sphere) as capture:
+        gt = capture.ground_truth
+    normal, error = np.load(out / "normal.npy"), np.load(out / "error.npy")
+    unsolved = gt.mask & ~np.any(normal != 0, axis=-1)
+    assert 0.1 < unsolved.sum() / gt.mask.sum() < 0.9
+    np.testing.assert_array_equal(error[unsolved], 90.0)
+    assert result["coverage"] == pytest.approx(1.0 - unsolved.sum() / gt.mask.sum())
+    assert result["mae_deg"] == pytest.approx(float(np.mean(error[gt.mask])), abs=1e-4)
+    assert result["mae_solved_deg"] == pytest.approx(float(np.mean(error[gt.mask & ~unsolved])), abs=1e-4)
+    rgb = cv2.imread(str(out / "error.png"))[..., ::-1]
+    np.testing.assert_array_equal(rgb[unsolved], np.tile([128, 128, 128], (int(unsolved.sum()), 1)))
+    np.testing.assert_array_equal(rgb[~gt.mask], 0)
+    solved = gt.mask & ~unsolved
+    assert not np.any(np.all(rgb[solved] == 128, axis=-1))  # Turbo has no neutral grey
 
 def test_error_max_sets_the_top_of_the_colour_scale(sphere: Path, tmp_path: Path) -> None:
     assert run(sphere, tmp_path / "out", "--error-max", "5") == 0

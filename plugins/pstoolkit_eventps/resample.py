@@ -18,31 +18,44 @@ def event_to_frame_affine(capture: psfmt.Capture, target: tuple[int, int]) -> np
     return psfmt.scale_affine(events.width / target[1])
 
 
-def to_target(normal: np.ndarray, mask: np.ndarray, affine: np.ndarray, target: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Resample event-grid normals (..., He, We, 3) and mask (..., He, We) to ``target`` (H, W):
-    each target pixel is mapped back through the inverse affine and the masked normals are
-    interpolated bilinearly and renormalised; a target pixel is in the mask when the bilinear
-    share of masked event pixels is at least one half."""
-    h, w = target
-    he, we = mask.shape[-2:]
-    if (he, we) == (h, w) and np.allclose(affine, np.eye(2, 3)):
-        return normal, mask
-    inverse = np.linalg.inv(affine[:, :2])
-    u = (np.arange(w, dtype=np.float64) - affine[0, 2])[None, :]
-    v = (np.arange(h, dtype=np.float64) - affine[1, 2])[:, None]
-    map_u = (inverse[0, 0] * u + inverse[0, 1] * v).astype(np.float32)
-    map_v = (inverse[1, 0] * u + inverse[1, 1] * v).astype(np.float32)
-    flat_normal = normal.reshape(-1, he, we, 3)
-    flat_mask = mask.reshape(-1, he, we)
-    out_normal = np.zeros((len(flat_mask), h, w, 3), dtype=np.float32)
-    out_mask = np.zeros((len(flat_mask), h, w), dtype=bool)
-    for i in range(len(flat_mask)):
-        weight = flat_mask[i].astype(np.float32)
-        source = np.concatenate([flat_normal[i] * weight[..., None], weight[..., None]], axis=-1).astype(np.float32)
-        sampled = cv2.remap(source, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        vector = sampled[..., :3]
+class Resampler:
+    """Event-grid maps of shape ``event_shape`` (He, We) to ``target`` (H, W): each target pixel is
+    mapped back through the inverse of the event→target ``affine``; the maps are computed once."""
+
+    def __init__(self, affine: np.ndarray, event_shape: tuple[int, int], target: tuple[int, int]) -> None:
+        self.target = target
+        self.identity = event_shape == target and np.allclose(affine, np.eye(2, 3))
+        h, w = target
+        inverse = np.linalg.inv(affine[:, :2])
+        u = (np.arange(w, dtype=np.float64) - affine[0, 2])[None, :]
+        v = (np.arange(h, dtype=np.float64) - affine[1, 2])[:, None]
+        self.map_u = (inverse[0, 0] * u + inverse[0, 1] * v).astype(np.float32)
+        self.map_v = (inverse[1, 0] * u + inverse[1, 1] * v).astype(np.float32)
+        self.covered = self._remap(np.ones(event_shape, np.float32), cv2.INTER_LINEAR) >= 0.5
+        """Target pixels whose bilinear share of the sensor's pixels is at least one half."""
+
+    def _remap(self, image: np.ndarray, interpolation: int) -> np.ndarray:
+        return cv2.remap(image, self.map_u, self.map_v, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+    def normals(self, normal: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Normals (He, We, 3) and mask (He, We) at the target: the masked normals interpolated
+        bilinearly and renormalised; a target pixel is in the mask when the bilinear share of masked
+        event pixels is at least one half, and its normal is zero outside it."""
+        if self.identity:
+            return normal, mask
+        if mask.all():
+            vector, inside = self._remap(np.asarray(normal, np.float32), cv2.INTER_LINEAR), self.covered.copy()
+        else:
+            weight = mask.astype(np.float32)
+            source = np.concatenate([normal * weight[..., None], weight[..., None]], axis=-1).astype(np.float32)
+            sampled = self._remap(source, cv2.INTER_LINEAR)
+            vector, inside = np.ascontiguousarray(sampled[..., :3]), sampled[..., 3] >= 0.5
         length = np.sqrt(np.einsum("hwc,hwc->hw", vector, vector))
-        inside = (sampled[..., 3] >= 0.5) & (length > 0)
-        np.divide(vector, length[..., None], out=out_normal[i], where=inside[..., None])
-        out_mask[i] = inside
-    return out_normal.reshape(normal.shape[:-3] + (h, w, 3)), out_mask.reshape(mask.shape[:-2] + (h, w))
+        inside &= length > 0
+        vector *= (np.where(inside, 1.0, 0.0) / np.where(inside, length, 1.0)).astype(np.float32)[..., None]
+        return vector, inside
+
+    def nearest(self, values: np.ndarray) -> np.ndarray:
+        """An event-grid map (He, We) float32 at the target: each target pixel takes the event pixel its
+        centre maps back to (0 outside the sensor), so levels such as a confidence stay levels."""
+        return values if self.identity else self._remap(values, cv2.INTER_NEAREST)

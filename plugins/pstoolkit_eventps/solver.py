@@ -1,15 +1,17 @@
-"""The ``eventps`` solver: EventPS's optimisation method (facts §5) over a whole event stream, or
-one normal map per time window for real-time use.
+"""The ``eventps`` solver: EventPS's optimisation method (``pstoolkit.eventps``, which states where it
+departs from the paper and its public code) over a whole event stream, and optionally one normal map
+per time window.
 
-Steps, all vectorised: one stable argsort groups the events by pixel in time order; consecutive
-pairs give unit constraints v (``constraints.pair_constraints``); the six unique entries of Σ v vᵀ
-are accumulated per pixel (and window) with ``np.bincount``; one batched ``np.linalg.eigh`` gives
-each pixel's smallest eigenvector, flipped so n_z > 0. Pixels with fewer than ``min_pairs``
-constraints, or constraints of rank < 2, are masked out. When the target grid (frames or ground
-truth) differs from the event sensor, normals are resampled through the calibration's
-event→frame affine (``resample.to_target``).
+Every event pixel gets a normal: from its own pairs (a full rank-2 fit), or, for a pixel with too few
+pairs, from the swing of the ring light over a turn (silence: the camera axis) or from its
+neighbours' constraints (``pstoolkit.eventfill``). The ``confidence`` map says which, at the target
+resolution: ``1`` fit, ``0.5`` neighbours, ``0.25`` swing, ``0`` outside the event sensor's view. Events
+cannot tell a dark background from a surface facing the camera, so a background that fires nothing
+gets the axis too; the mask is the sensor's view. When the target grid (frames or ground truth) differs
+from the event sensor, normals are resampled through the calibration's event→frame affine
+(``resample``), the confidence by nearest event pixel.
 
-Runs in numpy on the CPU whatever ``--device`` says. The light model must be directional.
+Runs on the CPU (numpy and numba) whatever ``--device`` says. The light model must be directional.
 """
 
 from __future__ import annotations
@@ -20,22 +22,15 @@ from typing import Any
 import numpy as np
 
 import psfmt
-from pstoolkit import Option, Solver, SolverResult
+from pstoolkit import Option, Solver, SolverResult, eventps
+from pstoolkit.batch import available_cpus
 from pstoolkit.errors import UserError
-from pstoolkit.eventnormals import Constraints, accumulate, smallest_eigenvectors
-from pstoolkit.lights import LightModel, build_light_model
+from pstoolkit.lights import build_light_model
 from pstoolkit.solver import Progress
-from pstoolkit_eventps.constraints import pair_constraints
-from pstoolkit_eventps.resample import event_to_frame_affine, to_target
+from pstoolkit_eventps.resample import Resampler, event_to_frame_affine
 
-# Pixel bins (windows × pixels) accumulated at once in windowed mode: 2²⁰ bins hold 72 MiB of sums.
-WINDOW_BINS = 1 << 20
-MAX_INTERVAL_PERIODS = 0.5
-"""Default longest pair interval, as a share of the light period: a pixel near the ring's axis
-fires about once per half turn (its only pairs), while pairs that span a long attached shadow are
-dropped. On a simulated Lambertian sphere (128 px events, one turn) 0.25 loses most pixels with
-|n_xy| < 0.3 (MAE 10.4° with them counted as 90°) and no limit lets shadow-spanning pairs bias the
-rim (0.55° → 0.74° on the covered pixels); 0.5 gives 4.4° (cast-shadow marcher off)."""
+MAX_SEQUENCE_BYTES = 4 << 30
+"""Largest ``normal_sequence`` the solver builds in memory; longer sequences belong to the stream API."""
 
 
 def _contrasts(capture: psfmt.Capture, contrast: float, where: str) -> tuple[float, float]:
@@ -47,35 +42,39 @@ def _contrasts(capture: psfmt.Capture, contrast: float, where: str) -> tuple[flo
     return float(cal.contrast_pos), float(cal.contrast_neg)
 
 
-def _max_interval(light: LightModel, max_interval_us: float) -> float:
-    if max_interval_us > 0:
-        return max_interval_us
-    return MAX_INTERVAL_PERIODS * light.period_us if light.period_us else math.inf
-
-
-def _solve_bins(bins: np.ndarray, constraints: Constraints, n_bins: int, min_pairs: int) -> tuple[np.ndarray, np.ndarray]:
-    sums, counts = accumulate(bins, constraints, n_bins)
-    return smallest_eigenvectors(sums, counts, min_pairs)
+def _check_sequence_size(stream: psfmt.EventArray, window_us: float, target: tuple[int, int]) -> None:
+    """UserError when the windows' normal maps would not fit in ``MAX_SEQUENCE_BYTES``."""
+    count = math.floor(int(stream.t[-1]) / window_us) - math.floor(int(stream.t[0]) / window_us) + 1
+    size = count * target[0] * target[1] * 3 * 4
+    if size > MAX_SEQUENCE_BYTES:
+        raise UserError(
+            f"eventps: window_us={window_us:g} gives {count} windows, {size / 2**30:.1f} GiB of normal maps "
+            f"(at most {MAX_SEQUENCE_BYTES / 2**30:g} GiB); use longer windows, or pstoolkit.eventps.stream to take them one at a time"
+        )
 
 
 class EventPS(Solver):
     name = "eventps"
-    summary = "EventPS optimisation: per-pixel smallest eigenvector of event-pair constraints (numpy, CPU)"
+    summary = "EventPS optimisation: per-pixel smallest eigenvector of event-pair constraints, a normal at every pixel (CPU)"
     options = (
         Option("contrast", float, 0.0, "contrast threshold C in log units (0 = the capture's calibration)", minimum=0.0),
         Option("refractory_us", float, 0.0, "refractory period in µs (0 = the capture's calibration)", minimum=0.0),
         Option("min_interval_us", float, 0.0, "shortest pair interval used, µs (0 = the refractory period)", minimum=0.0),
         Option(
             "max_interval_us", float, 0.0,
-            f"longest pair interval used, µs (0 = {MAX_INTERVAL_PERIODS:g} of the light period; none for an aperiodic light)",
+            f"longest pair interval used, µs (0 = {eventps.MAX_INTERVAL_PERIODS:g} of the light period; none for an aperiodic light)",
             minimum=0.0,
         ),
-        Option("min_pairs", int, 2, "a pixel needs at least this many constraints", minimum=2),
+        Option("min_pairs", int, 3, "constraints a pixel needs for its own fit", minimum=2),
+        Option("reweight", int, 3, "Cauchy reweighting passes of each pixel's fit (0 = plain least squares, as the paper)", minimum=0),
+        Option("residual_scale", float, 0.03, "Cauchy scale of a pair's residual n·v/|v|", minimum=1e-6),
+        Option("fill", bool, True, "give pixels without their own fit a normal from the ring's swing or their neighbours"),
         Option(
             "window_us", float, 0.0,
             "also solve one normal map per window of this many µs (maps['normal_sequence']); 0 = off",
             minimum=0.0,
         ),
+        Option("threads", int, 0, "maps fitted at once with window_us (0 = the cores this process may use)", minimum=0),
     )
     needs = frozenset({"events", "lights"})
 
@@ -84,85 +83,56 @@ class EventPS(Solver):
         assert events is not None and capture.lights is not None
         where = str(capture.path or "the capture")
         light = build_light_model(capture.lights)
-        if light.near:
-            raise UserError(f"eventps: light model {light.name!r} is a near light; eventps needs a directional one")
         contrast_pos, contrast_neg = _contrasts(capture, options["contrast"], where)
-        refractory = options["refractory_us"] or float(capture.calibration.refractory_us or 0.0)
-        min_interval = options["min_interval_us"] or refractory
-        max_interval = _max_interval(light, options["max_interval_us"])
-        stream = events.read()
-        progress(0.2, "events read")
-        constraints, n_pairs = pair_constraints(
-            stream,
-            events.width,
-            light,
+        params = eventps.Params(
             contrast_pos=contrast_pos,
             contrast_neg=contrast_neg,
-            refractory_us=refractory,
-            min_interval_us=min_interval,
-            max_interval_us=max_interval,
+            refractory_us=options["refractory_us"] or float(capture.calibration.refractory_us or 0.0),
+            min_interval_us=options["min_interval_us"] or None,
+            max_interval_us=options["max_interval_us"] or None,
+            min_pairs=options["min_pairs"],
+            reweight=options["reweight"],
+            residual_scale=options["residual_scale"],
+            fill=options["fill"],
         )
-        progress(0.5, "constraints")
-        n_pixels = events.width * events.height
-        shape = (events.height, events.width)
-        normal, ok = _solve_bins(constraints.pixel, constraints, n_pixels, options["min_pairs"])
+        stream = events.read()
         target = psfmt.target_size(capture)
-        affine = event_to_frame_affine(capture, target)
-        out_normal, out_mask = to_target(normal.reshape(shape + (3,)), ok.reshape(shape), affine, target)
+        windowed = options["window_us"] > 0 and len(stream) > 0
+        if windowed:
+            _check_sequence_size(stream, options["window_us"], target)
+        progress(0.2, "events read")
+        windows: list[eventps.NormalWindow] = []
+        if windowed:
+            whole, windows = eventps.solve(
+                [stream], light, events.width, events.height, params,
+                window_us=options["window_us"], threads=options["threads"] or available_cpus(),
+            )
+        else:
+            (whole,) = eventps.stream([stream], light, events.width, events.height, params)
         progress(0.7, "normals")
-
-        maps: dict[str, np.ndarray] = {}
+        resample = Resampler(event_to_frame_affine(capture, target), (events.height, events.width), target)
+        out_normal, out_mask = resample.normals(whole.normal, whole.confidence > 0)
+        maps: dict[str, np.ndarray] = {"confidence": np.where(out_mask, resample.nearest(whole.confidence), 0.0)}
+        shortest, longest = params.intervals(light.period_us)
         diagnostics: dict[str, Any] = {
-            "events": len(stream),
-            "pairs": n_pairs,
-            "constraints": len(constraints.weight),
+            "events": whole.events,
+            "pairs": whole.pairs,
+            "constraints": whole.constraints,
             "contrast_pos": contrast_pos,
             "contrast_neg": contrast_neg,
-            "refractory_us": refractory,
-            "min_interval_us": min_interval,
-            "max_interval_us": max_interval if math.isfinite(max_interval) else None,
+            "refractory_us": params.refractory_us,
+            "min_interval_us": shortest,
+            "max_interval_us": longest if np.isfinite(longest) else None,
             "event_size": [events.height, events.width],
-            "event_mask_pixels": int(np.count_nonzero(ok)),
+            "sources": whole.sources(),
             "mask_pixels": int(np.count_nonzero(out_mask)),
         }
-        if options["window_us"] > 0 and len(stream):
-            (window_normal, window_ok), starts = self._windows(
-                constraints, stream, options["window_us"], n_pixels, options["min_pairs"]
-            )
-            seq_normal, seq_mask = to_target(
-                window_normal.reshape((-1,) + shape + (3,)), window_ok.reshape((-1,) + shape), affine, target
-            )
-            maps["normal_sequence"] = np.where(seq_mask[..., None], seq_normal, 0.0).astype(np.float32)
+        if windowed:
+            sequence = np.empty((len(windows),) + target + (3,), dtype=np.float32)
+            for i, window in enumerate(windows):
+                sequence[i] = resample.normals(window.normal, window.confidence > 0)[0]
+            maps["normal_sequence"] = sequence
             diagnostics["window_us"] = options["window_us"]
-            diagnostics["window_start_us"] = starts
+            diagnostics["window_start_us"] = [w.start_us for w in windows]
         progress(1.0, "done")
         return SolverResult(normal=out_normal, mask=out_mask, maps=maps, diagnostics=diagnostics)
-
-    @staticmethod
-    def _windows(
-        constraints: Constraints, stream: psfmt.EventArray, window_us: float, n_pixels: int, min_pairs: int
-    ) -> tuple[tuple[np.ndarray, np.ndarray], list[int]]:
-        """One normal map per window of ``window_us`` on the grid of its multiples covering the
-        stream; a pair belongs to the window of its later event. Windows are solved in groups of
-        about ``WINDOW_BINS`` pixel bins so memory stays bounded on long streams. Returns ((N, P, 3)
-        normals, (N, P) masks) and the window start times (µs)."""
-        first = math.floor(int(stream.t[0]) / window_us)
-        count = math.floor(int(stream.t[-1]) / window_us) - first + 1
-        window = np.floor(constraints.t_us / window_us).astype(np.int64) - first
-        order = np.argsort(window, kind="stable")
-        sorted_window = window[order]
-        normal = np.zeros((count, n_pixels, 3))
-        ok = np.zeros((count, n_pixels), dtype=bool)
-        group = max(1, WINDOW_BINS // n_pixels)
-        for start in range(0, count, group):
-            stop = min(start + group, count)
-            lo, hi = np.searchsorted(sorted_window, [start, stop])
-            pick = order[lo:hi]
-            part = Constraints(pixel=constraints.pixel[pick], t_us=constraints.t_us[pick], v=constraints.v[:, pick],
-                               weight=constraints.weight[pick])
-            bins = (window[pick] - start) * n_pixels + part.pixel
-            n, determined = _solve_bins(bins, part, (stop - start) * n_pixels, min_pairs)
-            normal[start:stop] = n.reshape(-1, n_pixels, 3)
-            ok[start:stop] = determined.reshape(-1, n_pixels)
-        starts = [round((first + i) * window_us) for i in range(count)]
-        return (normal, ok), starts

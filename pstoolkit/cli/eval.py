@@ -9,20 +9,24 @@ import typer
 import psfmt
 from pstoolkit.cli.app import app
 from pstoolkit.errors import UserError
-from pstoolkit.evaluation import collect, csv_text, json_text, markdown
+from pstoolkit.evaluation import CSV_COLUMNS, collect, csv_text, json_text, markdown
 
 
 @app.command("eval")
 def eval_command(
     paths: list[Path] = typer.Argument(..., help="Result folders (with result.json), folders of result folders, or captures with stored results."),
     as_json: bool = typer.Option(False, "--json", help="Print JSON: every result and the per-solver averages."),
-    as_csv: bool = typer.Option(False, "--csv", help="Print CSV, one row per result: object, solver, mae_deg, median_deg, data_rate, seconds."),
+    as_csv: bool = typer.Option(
+        False, "--csv", help=f"Print CSV, one row per result: {', '.join(CSV_COLUMNS)} (shares 0..1)."
+    ),
     out: Path | None = typer.Option(None, "-o", "--out", help="Write the output to this file instead of printing it."),
 ) -> None:
     """Compare results: markdown tables with a row per object (capture stem) and a column per solver
-    (result name) of the mean and median angular error in degrees, data rate and solver seconds, each
-    with an average row over the objects that have a value. A result without ground truth shows –.
-    Stored results in a capture are scored afresh against its ground truth."""
+    (result name) of the mean angular error in degrees (an unsolved pixel counts 90°), the mean error
+    of the solved pixels, the median error, the coverage (share of mask pixels solved), the shares of
+    pixels under 11.25°, 22.5° and 30°, data rate and solver seconds, each with an average row over the
+    objects that have a value. A result without ground truth, or a metric its result.json predates,
+    shows –. Stored results in a capture are scored afresh against its ground truth."""
     if as_json and as_csv:
         raise UserError("--json and --csv: choose one output format")
     records = collect(paths)

@@ -41,9 +41,11 @@ def run(
     """Estimate normals of CAPTURE with a solver. Writes to the output folder: normal.npy (float32
     H×W×3), normal.png (16-bit, RGB = (n+1)/2, x right, y up, z to the camera, background 0), each
     further map of the solver as <map>.png (16-bit, scale in result.json) and <map>.npy, error.png
-    (Turbo colormap, 0 to --error-max degrees, black outside the mask) and error.npy (float32 degrees,
-    NaN outside the mask) when the capture has ground truth, and result.json (solver, capture, seconds,
-    mean and median error in degrees, shares below 10/20/30°, data rate, options)."""
+    (Turbo colormap, 0 to --error-max degrees, black outside the mask, grey where the solver left a
+    pixel unsolved) and error.npy (float32 degrees, NaN outside the mask, 90 where unsolved) when the
+    capture has ground truth, and result.json (solver, capture, seconds, mean and median error in
+    degrees with unsolved pixels counted as 90°, coverage and the mean error of the solved pixels,
+    shares below 11.25/22.5/30°, data rate, options)."""
     entry = get_registries().solvers.get(solver)
     options = entry.parse_options(assignments)
     device = resolve_device(device)
@@ -79,5 +81,9 @@ def run(
     if as_json:
         typer.echo(text)
         return
-    score_text = f"MAE {summary['mae_deg']:.2f}°, median {summary['median_deg']:.2f}°" if solved.scored is not None else "no ground truth"
+    score_text = (
+        f"MAE {summary['mae_deg']:.2f}°, median {summary['median_deg']:.2f}°, coverage {100 * summary['coverage']:.1f} %"
+        if solved.scored is not None
+        else "no ground truth"
+    )
     typer.echo(f"{entry.name} on {capture}: {score_text}, {solved.seconds:.2f} s, data rate {100 * solved.data_rate:.1f} % → {outdir}")
