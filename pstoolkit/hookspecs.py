@@ -31,13 +31,15 @@ def pstoolkit_register_light_models(registry: Registry) -> None:
 
 @hookspec
 def pstoolkit_register_shadow_detectors(registry: Registry) -> None:
-    """Register shadow detectors: rules that mark which observations of a pixel lie in shadow so a
-    solver can leave them out."""
+    """Register shadow detectors (subclasses of ``pstoolkit.shadows.ShadowDetector``): rules that
+    mark when each pixel lies in a cast shadow, from a capture's ``ShadowEvidence``, so a solver
+    leaves those observations out; solvers take them by name (``dualres --set shadow_detector=NAME``)."""
 
 
 @hookspec
 def pstoolkit_register_brdfs(registry: Registry) -> None:
-    """Register reflectance models (BRDFs) that the simulator renders with and solvers fit."""
+    """Register reflectance models (subclasses of ``pstoolkit.brdf.BRDF``) that the simulator renders
+    with and solvers fit (``dualres --set brdf=NAME``), each saying how its maps are fitted (``fit``)."""
 
 
 @hookspec
