@@ -63,3 +63,37 @@ def error_stats(errors: np.ndarray, solved: np.ndarray | None = None) -> dict[st
     stats["coverage"] = float(np.count_nonzero(done) / values.size)
     stats["mae_solved_deg"] = float(values[done].mean()) if done.any() else None
     return stats
+
+
+def rim_band(mask: np.ndarray, share: float = 0.05) -> np.ndarray:
+    """(H, W) bool: the pixels of ``mask`` within ``share`` of the object's radius of its outline, the
+    radius taken as that of a disc of the mask's area (a sphere's outer 5 % at the default)."""
+    import cv2  # deferred: only this band needs the distance transform
+
+    mask = np.asarray(mask, dtype=bool)
+    radius = np.sqrt(mask.sum() / np.pi)
+    inside = cv2.distanceTransform(np.pad(mask, 1).astype(np.uint8), cv2.DIST_L2, 5)[1:-1, 1:-1]
+    return mask & (inside <= max(share * radius, 1.0))
+
+
+def highlight_band(normal: np.ndarray, mask: np.ndarray, directions: np.ndarray, roughness: float | np.ndarray,
+                   view: np.ndarray = np.array([0.0, 0.0, 1.0]), level: float = 0.1) -> np.ndarray:
+    """(H, W) bool: the pixels of ``mask`` a GGX highlight passes over while the light takes the unit
+    ``directions`` (T, 3): at some moment the pixel is lit and its lobe D(n·h) is at least ``level`` of
+    its peak, for ``roughness`` (a number or an (H, W) map) and unit normals ``normal`` (H, W, 3)."""
+    mask = np.asarray(mask, dtype=bool)
+    n = np.asarray(normal, dtype=np.float64)[mask]
+    r = np.broadcast_to(np.asarray(roughness, dtype=np.float64), mask.shape)[mask]
+    alpha2 = np.maximum(r, 0.02) ** 4
+    half = np.asarray(directions, dtype=np.float64) + np.asarray(view, dtype=np.float64)
+    half /= np.linalg.norm(half, axis=-1, keepdims=True)
+    hit = np.zeros(n.shape[0], dtype=bool)
+    for start in range(0, half.shape[0], 64):
+        cos_h = np.clip(n @ half[start : start + 64].T, 0.0, 1.0)
+        lit = n @ np.asarray(directions, dtype=np.float64)[start : start + 64].T > 0
+        # D(θ)/D(0) = α⁴ / (cos²θ·(α² − 1) + 1)² with α² = r⁴ (pstoolkit.brdf's GGX)
+        ratio = (alpha2[:, None] / (cos_h**2 * (alpha2[:, None] - 1.0) + 1.0)) ** 2
+        hit |= np.any(lit & (ratio >= level), axis=1)
+    out = np.zeros(mask.shape, dtype=bool)
+    out[mask] = hit
+    return out

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pstoolkit.errors import UserError
-from pstoolkit.metrics import angular_error_deg, error_stats
+from pstoolkit.metrics import angular_error_deg, error_stats, highlight_band, rim_band
 
 
 def test_known_angles() -> None:
@@ -74,3 +74,26 @@ def test_bad_input_is_a_clear_error() -> None:
         error_stats(np.full(4, np.nan))
     with pytest.raises(UserError, match=r"^solved map of 3 pixels does not fit an error map of 4$"):
         error_stats(np.zeros(4), np.ones(3, bool))
+
+
+def test_the_rim_band_is_the_outer_share_of_a_disc() -> None:
+    v, u = np.mgrid[0:101, 0:101]
+    mask = (u - 50) ** 2 + (v - 50) ** 2 < 40**2
+    band = rim_band(mask)
+    radius = np.hypot(u - 50, v - 50)[band]
+    assert radius.min() > 40 * 0.9 and band.sum() > 0.05 * mask.sum()  # the outer 2 px of a 40 px disc
+
+
+def test_the_highlight_band_follows_the_mirror_direction() -> None:
+    # a sphere under a light circling at 45° elevation: the highlight runs along a ring of normals
+    # halfway between the light and the view, n_z = cos(22.5°)
+    v, u = np.mgrid[0:81, 0:81]
+    x, y = (u - 40) / 38.0, (40 - v) / 38.0
+    mask = x**2 + y**2 < 1
+    normal = np.dstack([x, y, np.sqrt(np.clip(1 - x**2 - y**2, 0, None))])
+    azimuth = np.linspace(0, 2 * np.pi, 180, endpoint=False)
+    directions = np.stack([np.cos(azimuth) * np.cos(np.pi / 4), np.sin(azimuth) * np.cos(np.pi / 4), np.full(180, np.sin(np.pi / 4))], axis=-1)
+    band = highlight_band(normal, mask, directions, roughness=0.3)
+    tilt = np.degrees(np.arccos(normal[..., 2]))[band]
+    assert abs(np.median(tilt) - 22.5) < 1.5 and tilt.min() > 14 and tilt.max() < 31  # measured 23.3°, 15.0° to 30.0°
+    assert highlight_band(normal, mask, directions, roughness=0.6).sum() > band.sum()  # a rougher lobe is wider

@@ -103,6 +103,8 @@ class DualRes(Solver):
                "event bursts, at most three values per turn, as in the paper)", choices=SCALE_RULES),
     )
     needs = frozenset({"frames", "events", "lights"})
+    shadows: ShadowMask | None = None
+    """The cast-shadow mask the last ``solve`` ended with (for inspection from Python)."""
 
     def solve(self, capture: psfmt.Capture, options: dict[str, Any], progress: Progress) -> SolverResult:
         torch.manual_seed(options["seed"])
@@ -142,6 +144,7 @@ class DualRes(Solver):
                     progress(PREPROCESS_SHARE + (1.0 - PREPROCESS_SHARE) * done, message)
 
                 history += train(problem, field, model, config, report)
+            self.shadows = shadows
             with torch.no_grad():
                 normal, pixel_raw, smooth_raw = field()
                 maps = {name: value.cpu().numpy() for name, value in model.maps(pixel_raw, smooth_raw).items()}
