@@ -19,7 +19,9 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import cv2
 import dask
+import numpy as np
 import pytest
 from distributed import Client
 
@@ -121,6 +123,18 @@ def _result(folder: str | Path) -> dict:
     return json.loads((Path(folder) / "result.json").read_text())
 
 
+def _assert_same_maps(a: Path, b: Path) -> None:
+    """The maps of two result folders agree to float rounding: the .npy values to 1e-6, the 16-bit
+    normal PNG to one count and the error PNG in all but a few pixels (a rounding change there moves
+    one pixel to the next colour of the scale)."""
+    for name in ("normal.npy", "error.npy"):
+        np.testing.assert_allclose(np.load(a / name), np.load(b / name), rtol=0, atol=1e-6, equal_nan=True, err_msg=str(a / name))
+    normal = [cv2.imread(str(folder / "normal.png"), cv2.IMREAD_UNCHANGED).astype(np.int64) for folder in (a, b)]
+    assert np.abs(normal[0] - normal[1]).max() <= 1, a
+    error = [cv2.imread(str(folder / "error.png"), cv2.IMREAD_UNCHANGED) for folder in (a, b)]
+    assert np.count_nonzero(np.any(error[0] != error[1], axis=-1)) <= 0.001 * error[0].shape[0] * error[0].shape[1], a
+
+
 def test_batch_gives_the_numbers_of_serial_runs(
     client: Client, captures: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -135,10 +149,13 @@ def test_batch_gives_the_numbers_of_serial_runs(
         serial = tmp_path / "serial" / Path(pair.folder).name
         assert main(["run", pair.capture, "--solver", pair.solver, "-o", str(serial), "--device", "cpu"]) == 0
         mine, theirs = _result(pair.folder), _result(serial)
-        for key in ("mae_deg", "median_deg", "below_10", "n_pixels", "data_rate", "options", "object", "capture", "maps"):
+        for key in ("n_pixels", "data_rate", "options", "object", "capture", "maps"):
             assert mine[key] == theirs[key], (pair.folder, key)
-        for name in ("normal.npy", "error.npy", "normal.png", "error.png"):
-            assert (Path(pair.folder) / name).read_bytes() == (serial / name).read_bytes(), (pair.folder, name)
+        # a Dask worker runs with one BLAS/OpenMP thread (its nanny sets OMP_NUM_THREADS=1), this process
+        # with the machine's: the same numbers to rounding, not necessarily the same bits
+        for key in ("mae_deg", "median_deg", "below_10"):
+            assert mine[key] == pytest.approx(theirs[key], rel=1e-9, abs=1e-12), (pair.folder, key)
+        _assert_same_maps(Path(pair.folder), serial)
     assert _result(pairs[0].folder)["mae_deg"] < 10.0  # frameps on the sphere: a real result, not a blank
     capsys.readouterr()
     # all complete: the rerun needs no cluster, so an unreachable scheduler does not matter

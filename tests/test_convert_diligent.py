@@ -138,6 +138,7 @@ def test_semi_real_frames_recover_the_normals_and_events_are_seeded(ball: Fixtur
         assert a.events is not None and b.events is not None and len(a.events) > 0
         first, other = a.events.window(0, 10**6), b.events.window(0, 10**6)
         for column in "xytp":
+            # bit-equal: two conversions of the same files by the same code on the same machine
             np.testing.assert_array_equal(getattr(first, column), getattr(other, column))
         np.testing.assert_array_equal(np.asarray(a.frames.data), np.asarray(b.frames.data))
 
