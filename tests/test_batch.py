@@ -14,6 +14,8 @@ import json
 import os
 import shutil
 import signal
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -280,3 +282,45 @@ def test_an_unexpected_solver_error_is_recorded_with_its_traceback(gates: Path, 
     assert (outcome.status, outcome.error) == ("failed", "RuntimeError: gate: a solver bug")
     assert outcome.traceback is not None and 'raise RuntimeError("gate: a solver bug")' in outcome.traceback
     assert not (tmp_path / "out").exists()  # no result folder, no temporary one left
+
+
+def test_an_output_folder_that_cannot_be_written_is_refused_before_any_pair(
+    captures: list[Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 19, item 13: the output folder is tried before any pair runs (here no scheduler is even
+    asked: the address is unreachable)."""
+    blocker = tmp_path / "a-file"
+    blocker.write_text("x")
+    cases = {blocker / "results": "Not a directory"}
+    if os.geteuid() != 0:  # root writes into read-only folders
+        readonly = tmp_path / "readonly"
+        readonly.mkdir(mode=0o555)
+        cases[readonly] = "Permission denied"
+    for out, reason in cases.items():
+        args = ["batch", str(captures[0]), "--solver", "frameps", "-o", str(out), "--scheduler", "tcp://127.0.0.1:9"]
+        assert main(args) == 2
+        assert capsys.readouterr().err == f"pstoolkit: error: {out}: cannot write the results there ({reason})\n"
+
+
+def _command() -> list[str]:
+    """The ``pstoolkit`` console script of this environment (or the same entry point through -c)."""
+    script = Path(sys.executable).with_name("pstoolkit")
+    return [str(script)] if script.is_file() else [sys.executable, "-c", "from pstoolkit.cli import main; main()"]
+
+
+def test_ctrl_c_on_a_running_batch_is_one_line(captures: list[Path], tmp_path: Path) -> None:
+    """Issue 19, item 14: Ctrl-C at a terminal reaches every process of the command (its process
+    group); the workers ignore it, the command cancels and closes the cluster and says one line."""
+    out = tmp_path / "out"
+    command = [*_command(), "batch", *map(str, captures), "--solver", "frameps", "--solver", "eventps", "-o", str(out), "--workers", "2"]
+    child = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and child.poll() is None and not any(out.glob("*")):
+        time.sleep(0.05)  # a pair is being written: the workers run
+    os.killpg(child.pid, signal.SIGINT)
+    try:
+        stdout, stderr = child.communicate(timeout=120)
+    finally:
+        if child.poll() is None:
+            os.killpg(child.pid, signal.SIGKILL)
+    assert (child.returncode, stdout, stderr) == (130, "", "pstoolkit: error: interrupted\n")
