@@ -113,11 +113,17 @@ def solver_options(solvers: Sequence[str], assignments: Sequence[str]) -> dict[s
 
 
 def check_output_folder(outdir: Path) -> None:
-    """Make ``outdir`` (and its parents) and prove a file can be written in it, before any pair runs:
-    a read-only or full folder is a UserError now, not after every capture was solved."""
-    probe = temporary_sibling(outdir / LOG_FILE)
+    """Prove, before any pair runs and leaving nothing behind, that results can be written to
+    ``outdir``: a file is written and removed in it, or in its nearest existing parent when it does not
+    exist yet. A read-only or full folder, or a file in the way, is a UserError now, not after every
+    capture was solved."""
+    existing = outdir
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise UserError(f"{outdir}: cannot write the results there ({existing} is not a folder)")
+    probe = temporary_sibling(existing / LOG_FILE)
     try:
-        outdir.mkdir(parents=True, exist_ok=True)
         probe.write_bytes(b"")
         probe.unlink()
     except OSError as exc:
@@ -328,8 +334,10 @@ def local_cluster(workers: int | None = None) -> Any:
     if _quiet_forkserver():
         settings["distributed.worker.multiprocessing-method"] = "forkserver"
     with dask.config.set(settings):
+        # the scheduler serves HTTP whatever the dashboard: on a free port of this machine only (its
+        # default, 8787 on every interface, warns when taken and is reachable from the network)
         return LocalCluster(
-            n_workers=count, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=logging.ERROR
+            n_workers=count, threads_per_worker=1, processes=True, dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR
         )
 
 

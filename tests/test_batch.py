@@ -291,7 +291,7 @@ def test_an_output_folder_that_cannot_be_written_is_refused_before_any_pair(
     asked: the address is unreachable)."""
     blocker = tmp_path / "a-file"
     blocker.write_text("x")
-    cases = {blocker / "results": "Not a directory"}
+    cases = {blocker / "results": f"{blocker} is not a folder"}
     if os.geteuid() != 0:  # root writes into read-only folders
         readonly = tmp_path / "readonly"
         readonly.mkdir(mode=0o555)
