@@ -20,7 +20,8 @@ import shutil
 import signal
 import threading
 import traceback
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -313,6 +314,21 @@ def read_failures(outdir: Path) -> list[Outcome]:
 def available_cpus() -> int:
     """CPU cores this process may use (the affinity mask where the system has one)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+@contextmanager
+def quiet_loop_errors() -> Iterator[None]:
+    """Silence the callback errors of the client's event loop (tornado's ``tornado.application``
+    logger) for the block: they are Dask's own slips — a Ctrl-C while the client waits makes
+    distributed's cancel callback log a NameError traceback — and a pair that fails is reported as
+    its outcome anyway."""
+    logger = logging.getLogger("tornado.application")
+    level = logger.level
+    logger.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
 
 
 def local_cluster(workers: int | None = None) -> Any:

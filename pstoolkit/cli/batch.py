@@ -13,6 +13,7 @@ from pstoolkit.batch import (
     is_complete,
     local_cluster,
     plan,
+    quiet_loop_errors,
     run_batch,
     solver_options,
     status_counts,
@@ -68,13 +69,14 @@ def batch(
     if all(is_complete(pair) for pair in pairs):
         outcomes = run_batch(pairs, None, progress)  # nothing to compute: no cluster to start
     else:
-        client, cluster = _client(scheduler, workers)
-        try:
-            outcomes = run_batch(pairs, client, progress)
-        finally:
-            client.close()
-            if cluster is not None:
-                cluster.close()
+        with quiet_loop_errors():
+            client, cluster = _client(scheduler, workers)
+            try:
+                outcomes = run_batch(pairs, client, progress)
+            finally:
+                client.close()
+                if cluster is not None:
+                    cluster.close()
     log = write_log(out, outcomes)
     failed = [o for o in outcomes if o.status == "failed"]
     for outcome in failed:
