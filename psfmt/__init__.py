@@ -17,6 +17,7 @@ from psfmt.atomic import atomic_path
 from psfmt.datarate import DataRate, data_rate, target_size
 from psfmt.errors import FormatError
 from psfmt.events import EventArray, Events, Triggers
+from psfmt.limits import Limits
 from psfmt.model import (
     REFRACTORY_RULES,
     Calibration,
@@ -50,6 +51,7 @@ __all__ = [
     "Frames",
     "GroundTruth",
     "LightSpec",
+    "Limits",
     "Result",
     "Triggers",
     "ValidationReport",

@@ -2,7 +2,8 @@
 
 ``t`` is in µs relative to ``t_offset``; ``ms_to_idx[i]`` is the first event with ``t >= 1000·i``
 (``searchsorted(t, ms·1000, 'left')``), so a time window is sliced without scanning. Any integer
-widths are read; polarity 0/1 becomes -1/+1. DSEC files are usually zstd-compressed through
+widths are read; polarity 0/1 becomes -1/+1. Events whose x or y does not fit the uint16 of a
+capture are dropped and counted (``beyond``), never wrapped round into the sensor. DSEC files are usually zstd-compressed through
 ``hdf5plugin``: it is imported when installed, and a dataset whose filter is not available is a
 one-line FormatError saying what to install.
 """
@@ -20,7 +21,8 @@ import numpy as np
 from psfmt.atomic import atomic_path
 from psfmt.errors import FormatError
 from psfmt.events import EventArray
-from psfmt.files import damaged, open_hdf5
+from psfmt.files import hdf5_errors, open_hdf5
+from psfmt.limits import MAX_SENSOR_SIDE
 
 try:  # registers the zstd/blosc/lz4 filters with HDF5 when present
     import hdf5plugin
@@ -48,34 +50,36 @@ class DsecFile:
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
+        self.beyond = 0  # events read so far whose x or y exceeds 65535, dropped
         self._file = open_hdf5(self.path)
         try:
-            group = self._file.get("events")
-            if not isinstance(group, h5py.Group):
-                raise FormatError(self.path, "not a DSEC-style event file (no /events group)")
-            absent = [c for c in COLUMNS if not isinstance(group.get(c), h5py.Dataset)]
-            if absent:
-                raise FormatError(self.path, f"/events lacks {', '.join(absent)}")
-            self._cols = {c: group[c] for c in COLUMNS}
-            for c, ds in self._cols.items():
-                if ds.dtype.kind not in "iu" or ds.ndim != 1:
-                    raise FormatError(self.path, f"/events/{c} is {ds.dtype} of shape {ds.shape}, expected 1-D integers")
-                missing = _missing_filters(ds)
-                if missing:
-                    raise FormatError(
-                        self.path,
-                        f"/events/{c} needs the HDF5 filter {', '.join(missing)}, which is not installed "
-                        "(pip install hdf5plugin)",
-                    )
-            lengths = {int(ds.shape[0]) for ds in self._cols.values()}
-            if len(lengths) != 1:
-                raise FormatError(self.path, "/events columns x, y, p, t differ in length")
-            self.count = lengths.pop()
-            self.t_offset_us = int(self._file["t_offset"][()]) if "t_offset" in self._file else 0
-            self._index = self._file.get("ms_to_idx")
-            # DSEC itself stores no geometry; files written here carry it as root attributes
-            self.width: int | None = int(self._file.attrs.get("width", 0)) or None
-            self.height: int | None = int(self._file.attrs.get("height", 0)) or None
+            with hdf5_errors(self.path):
+                group = self._file.get("events")
+                if not isinstance(group, h5py.Group):
+                    raise FormatError(self.path, "not a DSEC-style event file (no /events group)")
+                absent = [c for c in COLUMNS if not isinstance(group.get(c), h5py.Dataset)]
+                if absent:
+                    raise FormatError(self.path, f"/events lacks {', '.join(absent)}")
+                self._cols = {c: group[c] for c in COLUMNS}
+                for c, ds in self._cols.items():
+                    if ds.dtype.kind not in "iu" or ds.ndim != 1:
+                        raise FormatError(self.path, f"/events/{c} is {ds.dtype} of shape {ds.shape}, expected 1-D integers")
+                    missing = _missing_filters(ds)
+                    if missing:
+                        raise FormatError(
+                            self.path,
+                            f"/events/{c} needs the HDF5 filter {', '.join(missing)}, which is not installed "
+                            "(pip install hdf5plugin)",
+                        )
+                lengths = {int(ds.shape[0]) for ds in self._cols.values()}
+                if len(lengths) != 1:
+                    raise FormatError(self.path, "/events columns x, y, p, t differ in length")
+                self.count = lengths.pop()
+                self.t_offset_us = int(self._file["t_offset"][()]) if "t_offset" in self._file else 0
+                self._index = self._file.get("ms_to_idx")
+                # DSEC itself stores no geometry; files written here carry it as root attributes
+                self.width: int | None = int(self._file.attrs.get("width", 0)) or None
+                self.height: int | None = int(self._file.attrs.get("height", 0)) or None
         except BaseException:
             self._file.close()
             raise
@@ -89,13 +93,26 @@ class DsecFile:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    def _columns(self, lo: int, hi: int, names: tuple[str, ...] = COLUMNS) -> dict[str, np.ndarray]:
+        with hdf5_errors(self.path):
+            return {c: self._cols[c][lo:hi] for c in names}
+
     def _slice(self, lo: int, hi: int) -> EventArray:
-        try:
-            cols = {c: self._cols[c][lo:hi] for c in COLUMNS}
-        except OSError as exc:
-            raise damaged(self.path, exc) from exc
+        cols = self._columns(lo, hi)
+        fits = (cols["x"] < MAX_SENSOR_SIDE) & (cols["y"] < MAX_SENSOR_SIDE)
+        if not fits.all():
+            self.beyond += int(fits.size - np.count_nonzero(fits))
+            cols = {c: v[fits] for c, v in cols.items()}
         t = cols["t"].astype(np.int64) + self.t_offset_us
         return EventArray(cols["x"], cols["y"], t, np.where(cols["p"] > 0, 1, -1))
+
+    def extent(self) -> tuple[int, int]:
+        """(largest x + 1, largest y + 1) over all events as stored (0, 0 for none), in bounded memory."""
+        extent = [0, 0]
+        for start in range(0, self.count, DEFAULT_CHUNK_EVENTS):
+            cols = self._columns(start, min(start + DEFAULT_CHUNK_EVENTS, self.count), ("x", "y"))
+            extent = [max(extent[0], int(cols["x"].max()) + 1), max(extent[1], int(cols["y"].max()) + 1)]
+        return extent[0], extent[1]
 
     def chunks(self, size: int = DEFAULT_CHUNK_EVENTS) -> Iterator[EventArray]:
         for start in range(0, self.count, size):

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from psfmt.files import damaged
+from psfmt.files import hdf5_errors, require_open
 from psfmt.inflate import ColumnReader
 
 EVENT_DTYPES: dict[str, np.dtype[Any]] = {
@@ -134,7 +134,13 @@ class MsIndexBuilder:
         self.t_last_us = int(t_us[-1])
         self._count += len(t_us)
 
+    def take(self) -> np.ndarray:
+        """The entries made final since the last ``take`` (a scan compares them as it goes)."""
+        parts, self._parts = self._parts, []
+        return np.concatenate(parts) if parts else np.empty(0, np.uint64)
+
     def finish(self) -> np.ndarray:
+        """The entries not taken yet, through the end of the index."""
         length = ms_index_length(self.t_first_us, self.t_last_us)
         tail = np.full(length - self._done, self._count, dtype=np.uint64)
         return np.concatenate(self._parts + [tail])
@@ -145,6 +151,7 @@ class H5EventStore:
 
     def __init__(self, group: Any) -> None:
         self._group = group
+        self._path = group.file.filename
         self._cols = {c: group[c] for c in "xytp"}
         self._readers = {c: ColumnReader(ds) for c, ds in self._cols.items()}
         self._n = int(self._cols["t"].shape[0])
@@ -157,17 +164,16 @@ class H5EventStore:
 
     @property
     def t_first_us(self) -> int | None:
-        return int(self._cols["t"][0]) if self._n else None
+        return int(self._column("t", 0, 1)[0]) if self._n else None
 
     @property
     def t_last_us(self) -> int | None:
-        return int(self._cols["t"][self._n - 1]) if self._n else None
+        return int(self._column("t", self._n - 1, self._n)[0]) if self._n else None
 
     def _column(self, c: str, lo: int, hi: int) -> np.ndarray:
-        try:
+        require_open(self._group, self._path)
+        with hdf5_errors(self._path):
             return self._readers[c].read(lo, hi)
-        except OSError as exc:
-            raise damaged(self._group.file.filename, exc) from exc
 
     def _slice(self, lo: int, hi: int, t: np.ndarray | None = None) -> EventArray:
         cols = {c: self._column(c, lo, hi) for c in "xyp"}
@@ -182,7 +188,9 @@ class H5EventStore:
             return 0
         if i >= length:
             return self._n
-        return int(self._index[i])
+        with hdf5_errors(self._path):
+            # a stored entry beyond N (a file read without verify) must not widen the read
+            return min(int(self._index[i]), self._n)
 
     def window(self, t0_us: int, t1_us: int) -> EventArray:
         """Events with ``t0_us <= t < t1_us``, reading only the chunks that hold them."""
@@ -254,3 +262,39 @@ class Triggers:
 
     def __len__(self) -> int:
         return len(self.t)
+
+    def read(self) -> Triggers:
+        return self
+
+
+class H5Triggers:
+    """The trigger table of an open HDF5 group, read when a column is first asked for (then kept)."""
+
+    def __init__(self, group: Any) -> None:
+        self._group = group
+        self._path = group.file.filename
+        self._n = int(group["t"].shape[0])
+        self._table: Triggers | None = None
+
+    def __len__(self) -> int:
+        return self._n
+
+    def read(self) -> Triggers:
+        """The whole table in memory."""
+        if self._table is None:
+            require_open(self._group, self._path)
+            with hdf5_errors(self._path):
+                self._table = Triggers(*(self._group[c][()] for c in ("t", "channel", "value")))
+        return self._table
+
+    @property
+    def t(self) -> np.ndarray:
+        return self.read().t
+
+    @property
+    def channel(self) -> np.ndarray:
+        return self.read().channel
+
+    @property
+    def value(self) -> np.ndarray:
+        return self.read().value

@@ -8,13 +8,15 @@ int64 microseconds, lengths in millimetres, angles in degrees, pixels as (column
 from __future__ import annotations
 
 import datetime as _dt
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from psfmt.events import Events, Triggers
+from psfmt.events import Events, H5Triggers, Triggers
+from psfmt.files import hdf5_errors
 
 FRAME_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.float32))
 REFRACTORY_RULES = ("reset-at-end", "rate-limited")
@@ -49,10 +51,11 @@ class FrameStack:
         return int(self._ds.shape[0])
 
     def __getitem__(self, index: Any) -> np.ndarray:
-        return np.asarray(self._ds[index])
+        with hdf5_errors(self._ds.file.filename):
+            return np.asarray(self._ds[index])
 
     def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
-        arr = self._ds[()]
+        arr = self[()]
         return arr if dtype is None else arr.astype(dtype)
 
 
@@ -184,10 +187,11 @@ class GroundTruth:
 @dataclass
 class Result:
     """Maps a solver wrote (``normal`` (H, W, 3) at least) and how they were made; ``data_rate`` is the
-    share of 24 RGB frames per period that the solver's inputs amount to (None when unknown)."""
+    share of 24 RGB frames per period that the solver's inputs amount to (None when unknown). A
+    result read from a file reads each map when it is asked for."""
 
     name: str
-    maps: dict[str, np.ndarray]
+    maps: Mapping[str, np.ndarray]
     solver: str
     options: dict[str, Any] = field(default_factory=dict)
     seconds: float = 0.0
@@ -202,7 +206,7 @@ class Capture:
 
     frames: Frames | None = None
     events: Events | None = None
-    triggers: Triggers | None = None
+    triggers: Triggers | H5Triggers | None = None
     lights: LightSpec | None = None
     calibration: Calibration = field(default_factory=Calibration)
     ground_truth: GroundTruth | None = None

@@ -17,6 +17,7 @@ import numpy as np
 
 from psfmt.errors import FormatError
 from psfmt.events import Triggers
+from psfmt.limits import MAX_SENSOR_SIDE
 
 MAX_HEADER_BYTES = 1 << 20
 
@@ -32,7 +33,7 @@ class RawHeader:
     data_offset: int = 0
 
 
-def _geometry(fields: dict[str, str], path: Path) -> tuple[int | None, int | None]:
+def _declared_geometry(fields: dict[str, str], path: Path) -> tuple[int | None, int | None]:
     try:
         if "geometry" in fields:
             w, h = fields["geometry"].lower().split("x")
@@ -47,6 +48,14 @@ def _geometry(fields: dict[str, str], path: Path) -> tuple[int | None, int | Non
     except ValueError:
         raise FormatError(path, "RAW header has an unreadable sensor geometry") from None
     return None, None
+
+
+def _geometry(fields: dict[str, str], path: Path) -> tuple[int | None, int | None]:
+    """The declared sensor size, each side within 1…65536 pixels (what a capture's uint16 holds)."""
+    width, height = _declared_geometry(fields, path)
+    if width is not None and height is not None and not (0 < width <= MAX_SENSOR_SIDE and 0 < height <= MAX_SENSOR_SIDE):
+        raise FormatError(path, f"RAW header declares a {width}×{height} sensor; each side must be 1…{MAX_SENSOR_SIDE} pixels")
+    return width, height
 
 
 def _encoding(fields: dict[str, str]) -> str | None:

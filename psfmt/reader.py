@@ -1,9 +1,16 @@
-"""Reading hybrid captures: lazily (frames by index, events by window or chunk) or wholly into memory."""
+"""Reading hybrid captures: lazily (frames by index, events by window or chunk) or wholly into memory.
+
+The reader runs the validator's own checks (``psfmt.validate.inspect``) before it reads anything, so
+the two agree on every file: the structure always, the data too with ``verify=True``. Sizes are held
+against what the file stores and against ``psfmt.Limits`` first, so a file cannot make the reader
+allocate more than it holds; every error HDF5 raises becomes a one-line FormatError.
+"""
 
 from __future__ import annotations
 
 import json
 import os
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -12,8 +19,9 @@ import numpy as np
 
 from psfmt import layout
 from psfmt.errors import FormatError
-from psfmt.files import damaged, open_hdf5
-from psfmt.events import Events, H5EventStore, Triggers
+from psfmt.events import Events, H5EventStore, H5Triggers
+from psfmt.files import hdf5_errors, open_hdf5, require_open
+from psfmt.limits import Limits
 from psfmt.model import (
     Calibration,
     Capture,
@@ -23,30 +31,49 @@ from psfmt.model import (
     LightSpec,
     Result,
 )
-from psfmt.validate import content_findings, structure_findings
+from psfmt.validate import attr, check, plain
 
 
-def _plain(value: Any) -> Any:
-    """HDF5 attribute values as plain Python (str, int, float, bool) or numpy arrays."""
-    if isinstance(value, bytes):
-        return value.decode()
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
+def _attrs(obj: h5py.HLObject, keys: tuple[str, ...]) -> dict[str, Any]:
+    """The attributes ``keys`` of ``obj`` that are present, as plain values (the ones validated)."""
+    values = {key: attr(obj, key) for key in keys}
+    return {key: value for key, value in values.items() if value is not None}
+
+
+class StoredMaps(Mapping[str, np.ndarray]):
+    """The maps of a stored result, each read from the file when it is asked for (sizes were checked
+    when the capture was opened)."""
+
+    def __init__(self, group: h5py.Group) -> None:
+        self._group = group
+        self._path = group.file.filename
+        self._names = [k for k, ds in group.items() if isinstance(ds, h5py.Dataset)]
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name not in self._names:
+            raise KeyError(name)
+        require_open(self._group, self._path)
+        with hdf5_errors(self._path):
+            return self._group[name][()]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._names)
+
+    def __len__(self) -> int:
+        return len(self._names)
 
 
 def _read_lights(group: h5py.Group) -> LightSpec:
-    params: dict[str, Any] = {k: _plain(v) for k, v in group.attrs.items() if k != "model"}
+    params: dict[str, Any] = {k: plain(v) for k, v in group.attrs.items() if k != "model"}
     for key, ds in group.items():
         params[key] = np.asarray(ds[()])
-    return LightSpec(str(_plain(group.attrs["model"])), params)
+    return LightSpec(str(plain(group.attrs["model"])), params)
 
 
 def _read_calibration(group: h5py.Group | None) -> Calibration:
     if group is None:
         return Calibration()
-    attrs = {k: _plain(v) for k, v in group.attrs.items()}
-    kwargs: dict[str, Any] = {k: attrs[k] for k in layout.CALIBRATION_ATTRS if k in attrs}
+    kwargs: dict[str, Any] = _attrs(group, layout.CALIBRATION_ATTRS)
     for key in ("event_to_frame", "view_direction"):
         if key in group:
             kwargs[key] = group[key][()]
@@ -63,10 +90,10 @@ def _read_ground_truth(group: h5py.Group) -> GroundTruth:
 
 
 def _read_result(name: str, group: h5py.Group) -> Result:
-    attrs = {k: _plain(v) for k, v in group.attrs.items()}
+    attrs = _attrs(group, (*layout.RESULT_ATTRS, "data_rate"))
     return Result(
         name=name,
-        maps={k: ds[()] for k, ds in group.items() if isinstance(ds, h5py.Dataset)},
+        maps=StoredMaps(group),
         solver=str(attrs.get("solver", name)),
         options=json.loads(attrs.get("options", "{}")),
         seconds=float(attrs.get("seconds", 0.0)),
@@ -76,79 +103,84 @@ def _read_result(name: str, group: h5py.Group) -> Result:
     )
 
 
-def read(path: str | os.PathLike[str], *, verify: bool = False) -> Capture:
-    """Open a capture lazily. Frames are read by index and events by time window or in chunks;
-    only metadata, lights, calibration, ground truth and results are read now.
+def _capture(fh: h5py.File, path: Path) -> Capture:
+    root = _attrs(fh, layout.ROOT_ATTRS)
+    frames = None
+    if layout.FRAMES in fh:
+        g = fh[layout.FRAMES]
+        frames = Frames(
+            FrameStack(g["data"]),
+            **{k: g[k][()] for k in layout.FRAME_WINDOW + layout.FRAME_INSTANT if k in g},
+            **_attrs(g, layout.FRAME_ATTRS),
+        )
+    events = None
+    if layout.EVENTS in fh:
+        g = fh[layout.EVENTS]
+        events = Events(int(g.attrs["width"]), int(g.attrs["height"]), H5EventStore(g))
+    results = {}
+    if layout.RESULTS in fh:
+        results = {name: _read_result(name, g) for name, g in fh[layout.RESULTS].items()}
+    return Capture(
+        frames=frames,
+        events=events,
+        triggers=H5Triggers(fh[layout.TRIGGERS]) if layout.TRIGGERS in fh else None,
+        lights=_read_lights(fh[layout.LIGHTS]) if layout.LIGHTS in fh else None,
+        calibration=_read_calibration(fh.get(layout.CALIBRATION)),
+        ground_truth=_read_ground_truth(fh[layout.GROUND_TRUTH]) if layout.GROUND_TRUTH in fh else None,
+        results=results,
+        description=str(root.get("description", "")),
+        creator=str(root.get("creator", "")),
+        creator_version=str(root.get("creator_version", "")),
+        created=str(root.get("created", "")),
+        format_version=str(root.get("format_version", "")),
+        path=path,
+        _handle=fh,
+    )
 
-    Structural faults (not HDF5, missing or misshapen datasets, a newer major version) raise
-    FormatError at once. ``verify=True`` also scans contents in bounded memory (sorted events,
-    polarity and coordinate ranges, finite frames) and raises on the first fault. Close the capture
-    (or use it as a context manager) to release the file.
+
+def read(
+    path: str | os.PathLike[str], *, verify: bool = False, limits: Limits | None = None, isolate_check: bool | None = None
+) -> Capture:
+    """Open a capture lazily. Frames are read by index, events by time window or in chunks, stored
+    results map by map and triggers when first used; metadata, lights, calibration and ground truth
+    are read now.
+
+    Structural faults (not HDF5, missing or misshapen datasets, sizes beyond what the file holds or
+    beyond ``limits`` (default ``Limits.from_env()``), a newer major version) raise FormatError at
+    once. ``verify=True`` also reads all the data in bounded memory (sorted events, polarity and
+    coordinate ranges, finite frames, every map readable) and raises on the first fault, exactly as
+    ``psfmt.validate`` reports it. A damaged file read later raises FormatError too.
+    ``isolate_check`` (default ``psfmt.isolate.enabled()``) runs those checks in a child process, so
+    a file that would hang or crash HDF5 is a FormatError instead. Close the capture (or use it as a
+    context manager) to release the file.
     """
     path = Path(path)
+    problems = [f for f in check(path, content=verify, limits=limits, isolate_check=isolate_check) if f.level == "error"]
+    if problems:
+        raise FormatError(path, problems[0].text)
     fh = open_hdf5(path)
     try:
-        problems = [f for f in structure_findings(fh) if f.level == "error"]
-        if verify and not problems:
-            problems = [f for f in content_findings(fh) if f.level == "error"]
-        if problems:
-            raise FormatError(path, problems[0].text)
-        root = {k: _plain(v) for k, v in fh.attrs.items()}
-        frames = None
-        if layout.FRAMES in fh:
-            g = fh[layout.FRAMES]
-            attrs = {k: _plain(v) for k, v in g.attrs.items()}
-            frames = Frames(
-                FrameStack(g["data"]),
-                **{k: g[k][()] for k in layout.FRAME_WINDOW + layout.FRAME_INSTANT if k in g},
-                **{k: attrs[k] for k in layout.FRAME_ATTRS if k in attrs},
-            )
-        events = None
-        if layout.EVENTS in fh:
-            g = fh[layout.EVENTS]
-            events = Events(int(g.attrs["width"]), int(g.attrs["height"]), H5EventStore(g))
-        triggers = None
-        if layout.TRIGGERS in fh:
-            g = fh[layout.TRIGGERS]
-            triggers = Triggers(g["t"][()], g["channel"][()], g["value"][()])
-        results = {}
-        if layout.RESULTS in fh:
-            results = {name: _read_result(name, g) for name, g in fh[layout.RESULTS].items()}
-        return Capture(
-            frames=frames,
-            events=events,
-            triggers=triggers,
-            lights=_read_lights(fh[layout.LIGHTS]) if layout.LIGHTS in fh else None,
-            calibration=_read_calibration(fh.get(layout.CALIBRATION)),
-            ground_truth=_read_ground_truth(fh[layout.GROUND_TRUTH]) if layout.GROUND_TRUTH in fh else None,
-            results=results,
-            description=str(root.get("description", "")),
-            creator=str(root.get("creator", "")),
-            creator_version=str(root.get("creator_version", "")),
-            created=str(root.get("created", "")),
-            format_version=str(root.get("format_version", "")),
-            path=path,
-            _handle=fh,
-        )
-    except FormatError:
+        with hdf5_errors(path):
+            return _capture(fh, path)
+    except BaseException:
         fh.close()
         raise
-    except OSError as exc:
-        fh.close()
-        raise damaged(path, exc) from exc
-    except (KeyError, ValueError) as exc:
-        fh.close()
-        raise FormatError(path, f"damaged file ({exc})") from exc
 
 
-def load(path: str | os.PathLike[str], *, verify: bool = True) -> Capture:
-    """Read a whole capture into memory and close the file."""
-    capture = read(path, verify=verify)
+def load(
+    path: str | os.PathLike[str], *, verify: bool = True, limits: Limits | None = None, isolate_check: bool | None = None
+) -> Capture:
+    """Read a whole capture into memory (frames, events, triggers, results) and close the file."""
+    capture = read(path, verify=verify, limits=limits, isolate_check=isolate_check)
     try:
         if capture.frames is not None:
             capture.frames.data = np.asarray(capture.frames.data)
         if capture.events is not None:
             capture.events.data = capture.events.read()
+        if capture.triggers is not None:
+            capture.triggers = capture.triggers.read()
+        for result in capture.results.values():
+            result.maps = dict(result.maps)
     finally:
         capture.close()
     return capture

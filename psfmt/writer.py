@@ -18,10 +18,11 @@ import h5py
 import numpy as np
 
 from psfmt import layout
-from psfmt.atomic import commit, temporary_sibling
+from psfmt.atomic import check_target, commit, temporary_sibling
 from psfmt.deflate import ChunkCompressor
 from psfmt.errors import FormatError
 from psfmt.events import DEFAULT_CHUNK_EVENTS, EVENT_DTYPES, EventArray, MsIndexBuilder
+from psfmt.limits import MAX_SENSOR_SIDE
 from psfmt.model import (
     COLOR_ORDERS,
     FRAME_DTYPES,
@@ -85,7 +86,7 @@ class CaptureWriter:
         compression_level: int = 1,
         event_chunk: int = DEFAULT_CHUNK_EVENTS,
     ) -> None:
-        self.path = Path(path)
+        self.path = check_target(path)
         if not self.path.parent.is_dir():
             raise FormatError(self.path, f"folder {self.path.parent} does not exist")
         self._tmp = temporary_sibling(self.path)
@@ -199,6 +200,9 @@ class CaptureWriter:
         """Declare the event sensor geometry (pixels)."""
         if self._events is not None:
             raise FormatError(self.path, "events were already begun")
+        for key, side in (("width", width), ("height", height)):
+            if not 1 <= int(side) <= MAX_SENSOR_SIDE:
+                raise FormatError(self.path, f"event sensor {key} {side} is not within 1…{MAX_SENSOR_SIDE} (x and y are uint16)")
         group = self._file.create_group(layout.EVENTS)
         group.attrs["width"] = int(width)
         group.attrs["height"] = int(height)
@@ -225,6 +229,11 @@ class CaptureWriter:
         self._buffered += len(events)
         if self._buffered >= self._event_chunk:
             self._flush_events(final=False)
+
+    @property
+    def event_count(self) -> int:
+        """Events appended so far."""
+        return self._n_events + self._buffered
 
     def _flush_events(self, final: bool) -> None:
         assert self._events is not None

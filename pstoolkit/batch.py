@@ -17,14 +17,18 @@ import logging
 import os
 import secrets
 import shutil
+import signal
+import threading
 import traceback
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import psfmt
 from psfmt.atomic import temporary_sibling
+from psfmt.isolate import isolated
 from pstoolkit.errors import UserError
 from pstoolkit.evaluation import RESULT_FILE
 from pstoolkit.folders import replace_folder
@@ -110,6 +114,24 @@ def solver_options(solvers: Sequence[str], assignments: Sequence[str]) -> dict[s
     return {name: entries[name].parse_options(mine[name]) for name in solvers}
 
 
+def check_output_folder(outdir: Path) -> None:
+    """Prove, before any pair runs and leaving nothing behind, that results can be written to
+    ``outdir``: a file is written and removed in it, or in its nearest existing parent when it does not
+    exist yet. A read-only or full folder, or a file in the way, is a UserError now, not after every
+    capture was solved."""
+    existing = outdir
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise UserError(f"{outdir}: cannot write the results there ({existing} is not a folder)")
+    probe = temporary_sibling(existing / LOG_FILE)
+    try:
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise UserError(f"{outdir}: cannot write the results there ({exc.strerror or exc})") from None
+
+
 def plan(
     captures: Sequence[Path],
     options: dict[str, dict[str, Any]],
@@ -168,13 +190,15 @@ def _failed(pair: Pair, error: str, trace: str | None = None) -> Outcome:
 def run_pair(pair: Pair) -> Outcome:
     """Worker side: solve one pair and write its result folder atomically (a temporary sibling folder,
     renamed when complete). Every error becomes a failed outcome, so nothing but this small record
-    travels back (exceptions of plugins may not survive pickling)."""
+    travels back (exceptions of plugins may not survive pickling). The capture is checked in a child
+    process first, as ``pstoolkit run`` does (``psfmt.isolate``)."""
     partial = temporary_sibling(pair.folder)
     try:
         entry = get_registries().solvers.get(pair.solver)
         device = resolve_device(pair.device)
         capture = Path(pair.capture)
-        solved = solve_capture(entry, capture, pair.options, device=device)
+        with isolated():
+            solved = solve_capture(entry, capture, pair.options, device=device)
         summary = result_summary(
             solved,
             entry=entry,
@@ -283,17 +307,68 @@ def available_cpus() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
+@contextmanager
+def quiet_loop_errors() -> Iterator[None]:
+    """Silence the callback errors of the client's event loop (tornado's ``tornado.application``
+    logger) for the block: they are Dask's own slips — a Ctrl-C while the client waits makes
+    distributed's cancel callback log a NameError traceback — and a pair that fails is reported as
+    its outcome anyway."""
+    logger = logging.getLogger("tornado.application")
+    level = logger.level
+    logger.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
 def local_cluster(workers: int | None = None) -> Any:
     """A ``LocalCluster`` of ``workers`` processes (default: one per available core) with one thread
     each, so a worker holds one capture at a time; each worker takes a task only when it is idle, so a
-    worker that dies takes down only the pair it was running."""
+    worker that dies takes down only the pair it was running.
+
+    Ctrl-C (SIGINT, which a terminal sends to every process of the command) reaches this process
+    only, which cancels the tasks and closes the cluster: the user sees one line, not every worker's
+    traceback. Where it can (``_quiet_forkserver``), the workers are forked from a fork server that
+    ignores SIGINT, which they inherit."""
     import dask  # deferred: only batch runs need dask
     from distributed import LocalCluster
 
     count = available_cpus() if workers is None else workers
     if count < 1:
         raise UserError(f"--workers {count}: need at least one worker")
-    with dask.config.set({"distributed.scheduler.worker-saturation": 1.0}):
+    settings: dict[str, Any] = {"distributed.scheduler.worker-saturation": 1.0}
+    if _quiet_forkserver():
+        settings["distributed.worker.multiprocessing-method"] = "forkserver"
+    with dask.config.set(settings):
+        # the scheduler serves HTTP whatever the dashboard: on a free port of this machine only (its
+        # default, 8787 on every interface, warns when taken and is reachable from the network)
         return LocalCluster(
-            n_workers=count, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=logging.ERROR
+            n_workers=count, threads_per_worker=1, processes=True, dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR
         )
+
+
+def _quiet_forkserver() -> bool:
+    """Start multiprocessing's fork server with SIGINT ignored, which every process it forks inherits
+    (a signal handler or mask would not survive); False where that cannot be done: no fork server
+    (Windows), not the main thread, or a fork server already running."""
+    import multiprocessing
+    import multiprocessing.forkserver
+
+    import dask
+    from distributed.utils import get_mp_context
+
+    if "forkserver" not in multiprocessing.get_all_start_methods() or threading.current_thread() is not threading.main_thread():
+        return False
+    server = multiprocessing.forkserver._forkserver  # type: ignore[attr-defined]
+    if server._forkserver_pid is not None:
+        return False
+    with dask.config.set({"distributed.worker.multiprocessing-method": "forkserver"}):
+        get_mp_context()  # sets the modules the server imports once for every worker
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        # the server process is started here (milliseconds); it imports its modules on its own
+        multiprocessing.forkserver.ensure_running()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    return True

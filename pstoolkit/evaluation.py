@@ -20,6 +20,7 @@ import numpy as np
 
 import psfmt
 from pstoolkit.errors import UserError
+from pstoolkit.markup import md
 from pstoolkit.metrics import SHARE_KEYS, THRESHOLDS_DEG, angular_error_deg, error_stats
 
 MISSING = "–"
@@ -191,12 +192,13 @@ def format_value(metric: str, value: float | None) -> str:
 
 def markdown_table(records: list[Record], metric: str) -> str:
     """One metric as a markdown table: a row per object, a column per solver, and an average row
-    (each column averaged over the objects that have a value)."""
+    (each column averaged over the objects that have a value). Names are escaped (``markup.md``): a
+    ``|`` or newline in one cannot move a value into another column or row."""
     solvers = sorted({r.solver for r in records})
     cells = {(r.object, r.solver): getattr(r, metric) for r in records}
-    lines = ["| object | " + " | ".join(solvers) + " |", "|:--" + "|--:" * len(solvers) + "|"]
+    lines = ["| object | " + " | ".join(map(md, solvers)) + " |", "|:--" + "|--:" * len(solvers) + "|"]
     for obj in sorted({r.object for r in records}):
-        lines.append(f"| {obj} | " + " | ".join(format_value(metric, cells.get((obj, s))) for s in solvers) + " |")
+        lines.append(f"| {md(obj)} | " + " | ".join(format_value(metric, cells.get((obj, s))) for s in solvers) + " |")
     mean = averages(records)
     lines.append("| **average** | " + " | ".join(format_value(metric, mean[s][metric]) for s in solvers) + " |")
     return "\n".join(lines)

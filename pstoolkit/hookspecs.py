@@ -67,4 +67,4 @@ def pstoolkit_register_scenes(registry: Registry) -> None:
 @hookspec
 def pstoolkit_add_commands(app: typer.Typer) -> None:
     """Add commands to the ``pstoolkit`` command line: decorate functions with ``@app.command()``.
-    Called once, when ``pstoolkit.cli`` is imported."""
+    Called once, when the ``pstoolkit`` command starts (``pstoolkit.cli.main``)."""

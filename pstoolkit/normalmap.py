@@ -8,11 +8,15 @@ OpenCV stores colour images as BGR, so every read and write here swaps the chann
 from __future__ import annotations
 
 import os
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
 import numpy as np
 from psfmt import atomic_path
+from psfmt.text import printable
 
 from pstoolkit.errors import UserError
 
@@ -97,10 +101,34 @@ def write_normal_png(path: str | os.PathLike[str], normal: np.ndarray, mask: np.
     write_png(path, normal_to_rgb(normal, mask, bits))
 
 
+@contextmanager
+def _quiet_stderr() -> Iterator[None]:
+    """Send what C libraries write to stderr (file descriptor 2) nowhere for the block: libpng prints
+    "libpng error: …" on a damaged image before OpenCV returns None, and the caller says in one line
+    of its own what failed."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def decode_image(path: Path) -> np.ndarray | None:
+    """The image file at ``path`` as stored (OpenCV order: BGR for colour, its own bit depth), or None
+    when OpenCV cannot decode it; the decoder's own complaints are not printed."""
+    data = np.fromfile(path, dtype=np.uint8)
+    with _quiet_stderr():
+        return cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+
+
 def _read_image(path: Path) -> np.ndarray:
     if not path.is_file():
         raise UserError(f"{path}: file does not exist")
-    image = cv2.imdecode(np.fromfile(path, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    image = decode_image(path)
     if image is None:
         raise UserError(f"{path}: not a readable image")
     return image
@@ -132,15 +160,25 @@ def write_npy(path: str | os.PathLike[str], array: np.ndarray) -> None:
             np.save(fh, array, allow_pickle=False)
 
 
-def read_normal_npy(path: str | os.PathLike[str]) -> np.ndarray:
-    """Read a float32 (H, W, 3) normal map .npy."""
+def read_npy(path: str | os.PathLike[str]) -> np.ndarray:
+    """Read a numeric .npy array; a missing file, a damaged one or one that holds Python objects
+    (which would need unpickling, never done) is a UserError."""
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: file does not exist")
     try:
         array = np.load(path, allow_pickle=False)
-    except (ValueError, OSError) as exc:
-        raise UserError(f"{path}: not a readable .npy array ({exc})") from None
+    except (ValueError, OSError, EOFError) as exc:
+        raise UserError(f"{path}: not a readable .npy array ({printable(str(exc))})") from None
+    if not isinstance(array, np.ndarray) or array.dtype.kind not in "biuf":
+        raise UserError(f"{path}: expected an array of numbers, got {getattr(array, 'dtype', type(array).__name__)}")
+    return array
+
+
+def read_normal_npy(path: str | os.PathLike[str]) -> np.ndarray:
+    """Read a float32 (H, W, 3) normal map .npy."""
+    path = Path(path)
+    array = read_npy(path)
     if array.ndim != 3 or array.shape[2] != 3 or array.dtype.kind != "f":
         raise UserError(f"{path}: expected a float (H, W, 3) normal map, got {array.dtype} {array.shape}")
     return array.astype(np.float32, copy=False)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -15,7 +16,8 @@ _FALSE = {"0", "false", "no", "off"}
 @dataclass(frozen=True)
 class Option:
     """One option of a solver, scene, backend …: ``type`` is int, float, bool or str; ``choices``
-    restricts a str option; ``minimum``/``maximum`` bound a number. A ``multiple`` option may be
+    restricts a str option; ``minimum``/``maximum`` bound a number. A float option is finite: NaN
+    passes no range check and is not JSON, infinity is no setting. A ``multiple`` option may be
     given repeatedly: its value is the tuple of the given values in order (``default`` when none).
     A ``nested`` option (a multiple str) collects the options of another registry entry the owner
     uses (a solver's shadow detector): ``--set NAME.key=value`` adds ``"key=value"`` to it."""
@@ -46,6 +48,8 @@ class Option:
         return self.check(value)
 
     def check(self, value: Any) -> Any:
+        if self.type is float and not math.isfinite(value):
+            raise UserError(f"option {self.name}: {value!r} is not a finite number")
         if self.choices is not None and value not in self.choices:
             raise UserError(f"option {self.name}: {value!r} is not one of {', '.join(self.choices)}")
         if self.minimum is not None and value < self.minimum:

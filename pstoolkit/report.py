@@ -9,12 +9,18 @@ on (from ``batch.json``).
 Without ground truth the error tables, the plot and the error maps are left out. Figures are PNGs
 beside the report, named ``<report stem>-…png``, drawn with matplotlib's Agg canvas (no pyplot, so
 no global backend state).
+
+Names and error lines come from files: the markdown escapes them (``markup.md``), the HTML page is
+made from that markdown and escapes them again for HTML, and the figures show them without
+mathtext. The report is written as a unit: every figure and page is made beside its target first,
+and only when all are made do they replace the old ones, so a failed report leaves the old one whole.
 """
 
 from __future__ import annotations
 
 import html
 import json
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,11 +28,13 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-import psfmt
+from psfmt.atomic import check_target, commit, temporary_sibling
+from psfmt.text import printable
 from pstoolkit.batch import read_failures
 from pstoolkit.errors import UserError
 from pstoolkit.evaluation import averages, collect, GROUND_TRUTH_METRICS, markdown_table, METRICS, Record, RESULT_FILE, TITLES
-from pstoolkit.normalmap import normal_to_rgb, read_normal_npy
+from pstoolkit.markup import ESCAPE, md
+from pstoolkit.normalmap import normal_to_rgb, read_normal_npy, read_npy
 from pstoolkit.outputs import error_to_rgb
 
 DPI = 100
@@ -49,9 +57,14 @@ def _safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]", "_", name)
 
 
+def _label(name: str) -> str:
+    """A name for a figure: one printable line, ``$`` escaped so matplotlib draws no mathtext."""
+    return printable(name).replace("$", r"\$")
+
+
 def _save(fig: Figure, path: Path) -> None:
-    with psfmt.atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=DPI, format="png")
+    # a PNG whatever the name: write_report draws into hidden temporary files
+    fig.savefig(path, dpi=DPI, format="png")
 
 
 def plot_mae_vs_rate(records: list[Record], path: Path) -> None:
@@ -67,7 +80,7 @@ def plot_mae_vs_rate(records: list[Record], path: Path) -> None:
             continue
         x, y = np.array(points).T
         ax.scatter(x, y, s=18, color=colour, alpha=0.35)
-        ax.scatter([x.mean()], [y.mean()], s=90, color=colour, edgecolors="black", label=f"{solver} (average)", zorder=3)
+        ax.scatter([x.mean()], [y.mean()], s=90, color=colour, edgecolors="black", label=f"{_label(solver)} (average)", zorder=3)
     ax.set_xlabel("data rate (% of 24 RGB frames)")
     ax.set_ylabel("mean angular error (°)")
     ax.set_title("Mean angular error against data rate")
@@ -79,13 +92,18 @@ def plot_mae_vs_rate(records: list[Record], path: Path) -> None:
 
 
 def _error_map(folder: Path) -> tuple[np.ndarray, float] | None:
-    """``error.npy`` of a result folder and the top of its colour scale, or None without ground truth."""
+    """``error.npy`` of a result folder (a float (H, W) map of degrees, else a UserError) and the top
+    of its colour scale, or None without ground truth."""
     path = folder / "error.npy"
     if not path.is_file():
         return None
+    error = read_npy(path)
+    if error.ndim != 2 or error.dtype.kind != "f":
+        raise UserError(f"{path}: expected a float (H, W) error map in degrees, got {error.dtype} {error.shape}")
     data = json.loads((folder / RESULT_FILE).read_text(encoding="utf-8"))
     top = data.get("error_max_deg")
-    return np.load(path, allow_pickle=False), float(top) if isinstance(top, (int, float)) and top > 0 else 30.0
+    usable = isinstance(top, (int, float)) and not isinstance(top, bool) and math.isfinite(top) and top > 0
+    return error, float(top) if usable else 30.0
 
 
 def plot_maps(records: list[Record], path: Path) -> None:
@@ -102,7 +120,7 @@ def plot_maps(records: list[Record], path: Path) -> None:
         if record.coverage is not None:
             score += f", {100 * record.coverage:.1f} % solved"
         axes[0, column].imshow(normal_to_rgb(normal, bits=8), interpolation="nearest")
-        axes[0, column].set_title(f"{record.solver}\n{score}", fontsize="small")
+        axes[0, column].set_title(f"{_label(record.solver)}\n{score}", fontsize="small")
         if rows == 2:
             if error is None:
                 axes[1, column].text(0.5, 0.5, "no ground truth", ha="center", va="center", transform=axes[1, column].transAxes)
@@ -113,19 +131,20 @@ def plot_maps(records: list[Record], path: Path) -> None:
                 axes[1, column].set_title(f"error 0–{error[1]:g}°{grey}", fontsize="small")
         for ax in axes[:, column]:
             ax.set_axis_off()
-    fig.suptitle(records[0].object)
+    fig.suptitle(_label(records[0].object))
     _save(fig, path)
 
 
 def report_markdown(records: list[Record], failures: list[str], plot: str | None, maps: dict[str, str], sources: list[Path]) -> str:
-    """The report as markdown; ``plot`` and ``maps`` (object → file) are figure file names beside it."""
+    """The report as markdown; ``plot`` and ``maps`` (object → file) are figure file names beside it.
+    Every name, path and error line is escaped (``markup.md``)."""
     objects = sorted({r.object for r in records})
     solvers = sorted({r.solver for r in records})
     has_error = any(r.mae_deg is not None for r in records)
     parts = [
         "# Evaluation report",
         f"{len(records)} results: {len(objects)} objects × {len(solvers)} solvers, from "
-        + ", ".join(f"`{s}`" for s in sources)
+        + ", ".join(md(s) for s in sources)
         + ".",
     ]
     if not has_error:
@@ -137,20 +156,42 @@ def report_markdown(records: list[Record], failures: list[str], plot: str | None
     if plot is not None:
         parts += ["## Mean angular error against data rate", f"![Mean angular error against data rate]({plot})"]
     parts.append("## Normal and error maps" if has_error else "## Normal maps")
-    parts += [f"![{obj}]({maps[obj]})" for obj in objects]
+    parts += [f"![{md(obj)}]({maps[obj]})" for obj in objects]
     if failures:
-        parts += ["## Failed pairs", "\n".join(f"- {line}" for line in failures)]
+        parts += ["## Failed pairs", "\n".join(f"- {md(line)}" for line in failures)]
     return "\n\n".join(parts) + "\n"
 
 
+_TOKEN = re.compile(ESCAPE.pattern + r"|(&(?:amp|lt|gt|quot|#\d+);)|\*\*(.+?)\*\*|`([^`]+)`")
+
+
 def _inline(text: str) -> str:
-    escaped = html.escape(text, quote=False)
-    escaped = re.sub(r"\*\*(.+?)\*\*", r"<strong>\1</strong>", escaped)
-    return re.sub(r"`(.+?)`", r"<code>\1</code>", escaped)
+    """HTML of one line of the report's markdown: backslash escapes as their character, entities kept,
+    ``**strong**`` and ```code```, everything else HTML-escaped."""
+    out, pos = [], 0
+    for m in _TOKEN.finditer(text):
+        out.append(html.escape(text[pos : m.start()], quote=False))
+        if m[1] is not None:
+            out.append(html.escape(m[1], quote=False))
+        elif m[2] is not None:
+            out.append(m[2])
+        elif m[3] is not None:
+            out.append(f"<strong>{_inline(m[3])}</strong>")
+        else:
+            out.append(f"<code>{html.escape(m[4], quote=False)}</code>")
+        pos = m.end()
+    out.append(html.escape(text[pos:], quote=False))
+    return "".join(out)
+
+
+def _literal(text: str) -> str:
+    """The text an escaped markdown string shows (for an HTML attribute, which ``html.escape`` quotes)."""
+    return html.unescape(ESCAPE.sub(r"\1", text))
 
 
 def _cells(line: str) -> list[str]:
-    return [cell.strip() for cell in line.strip().strip("|").split("|")]
+    """A table row's cells, split at the pipes that are not escaped."""
+    return [cell.strip() for cell in re.split(r"(?<!\\)\|", line.strip().removeprefix("|").removesuffix("|"))]
 
 
 def _html_table(lines: list[str]) -> str:
@@ -177,7 +218,7 @@ def markdown_to_html(text: str, title: str) -> str:
             level = len(heading.group(1))
             body.append(f"<h{level}>{_inline(heading.group(2))}</h{level}>")
         elif image:
-            alt, src = (html.escape(part) for part in image.groups())
+            alt, src = (html.escape(_literal(part)) for part in image.groups())
             body.append(f'<figure><img src="{src}" alt="{alt}"><figcaption>{alt}</figcaption></figure>')
         elif lines[0].startswith("|"):
             body.append(_html_table(lines))
@@ -205,21 +246,30 @@ def write_report(paths: list[Path], out: Path) -> ReportFiles:
     records = collect(paths)
     failures = [f"{f.object} × {f.solver}: {f.error}" for path in paths for f in read_failures(path)]
     out.parent.mkdir(parents=True, exist_ok=True)
-    figures: list[Path] = []
-    plot = None
-    if any(r.mae_deg is not None and r.data_rate is not None for r in records):
-        plot = f"{out.stem}-mae-vs-data-rate.png"
-        plot_mae_vs_rate(records, out.parent / plot)
-        figures.append(out.parent / plot)
-    maps = {}
-    for index, obj in enumerate(sorted({r.object for r in records})):
-        maps[obj] = f"{out.stem}-maps-{index:03d}-{_safe(obj)}.png"
-        plot_maps([r for r in records if r.object == obj], out.parent / maps[obj])
-        figures.append(out.parent / maps[obj])
-    text = report_markdown(records, failures, plot, maps, paths)
-    page = out.with_suffix(".html")
-    with psfmt.atomic_path(out) as tmp:
-        tmp.write_text(text, encoding="utf-8")
-    with psfmt.atomic_path(page) as tmp:
-        tmp.write_text(markdown_to_html(text, f"Evaluation report: {', '.join(str(p) for p in paths)}"), encoding="utf-8")
+    staged: dict[Path, Path] = {}  # target → its finished temporary file
+
+    def stage(target: Path) -> Path:
+        staged[target] = temporary_sibling(check_target(target))
+        return staged[target]
+
+    try:
+        plot = None
+        if any(r.mae_deg is not None and r.data_rate is not None for r in records):
+            plot = f"{out.stem}-mae-vs-data-rate.png"
+            plot_mae_vs_rate(records, stage(out.parent / plot))
+        maps = {}
+        for index, obj in enumerate(sorted({r.object for r in records})):
+            maps[obj] = f"{out.stem}-maps-{index:03d}-{_safe(obj)}.png"
+            plot_maps([r for r in records if r.object == obj], stage(out.parent / maps[obj]))
+        figures = list(staged)
+        text = report_markdown(records, failures, plot, maps, paths)
+        page = out.with_suffix(".html")
+        stage(page).write_text(markdown_to_html(text, f"Evaluation report: {', '.join(str(p) for p in paths)}"), encoding="utf-8")
+        stage(out).write_text(text, encoding="utf-8")
+        # everything is made: now the new files replace the old ones, the markdown last
+        for target in list(staged):
+            commit(staged.pop(target), target)
+    finally:
+        for tmp in staged.values():
+            tmp.unlink(missing_ok=True)
     return ReportFiles(out, page, figures)

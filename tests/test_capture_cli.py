@@ -136,7 +136,8 @@ def test_ctrl_c_leaves_the_lights_off_and_no_file(recording: Path, tmp_path: Pat
     out = tmp_path / "out.h5"
     args = ["capture", "--light", "ringlight", "--port", f"ringlightsim://{tmp_path.name}", "--source", f"interrupted-replay:{recording}"]
     assert main([*args, "-o", str(out), "--source-set", "speed=0"]) == 130
-    assert capsys.readouterr().err == "pstoolkit: error: interrupted\n"
+    # issue 19, item 14: the line says what the user needs to know after a Ctrl-C
+    assert capsys.readouterr().err == f"pstoolkit: error: interrupted: the lights are off and {out} was not written\n"
     assert list(tmp_path.iterdir()) == []
     assert not device(tmp_path.name).lit() and device(tmp_path.name).fault == "NONE"  # turned off, not by the watchdog
 

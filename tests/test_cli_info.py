@@ -137,3 +137,27 @@ def test_a_capture_that_records_no_refractory_rule_has_the_default(tmp_path: Pat
     assert main(["info", str(path)]) == 0
     assert "  event sensor: contrast +0.15/−unknown, refractory 500 µs, reset-at-end (not recorded: the format's default)" in (
         capsys.readouterr().out.splitlines())
+
+
+def test_strings_from_the_file_reach_the_terminal_without_control_characters(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 19, item 9: escape sequences (window title, clear screen), carriage returns, a line break
+    and a direction override in the description, the creator and a result name are not printed."""
+    capture = known_capture()
+    capture.description = "ball\x1b]0;owned\x07 under\x1b[2J light\rX\nlights: fake\u202eevil"
+    capture.creator = "psfmt\x1b[8m"
+    path = tmp_path / "c.h5"
+    psfmt.write(capture, path)
+    psfmt.write_result(path, psfmt.Result("r\x1b[31m", {"normal": np.zeros((64, 64, 3), np.float32)}, solver="s\x9b1m"))
+    for command in (["info", str(path)], ["validate", str(path)]):
+        capsys.readouterr()
+        main(command)
+        out, err = capsys.readouterr()
+        assert not any(c in out + err for c in "\x1b\x07\r\x9b\u202e"), command
+    main(["info", str(path)])
+    lines = capsys.readouterr().out.splitlines()
+    assert "  description: ball]0;owned under[2J light X lights: fakeevil" in lines
+    assert not any(line.startswith("lights: fake") for line in lines)
+    assert lines[0].endswith(f"by psfmt[8m {capture.creator_version}".rstrip() + f" at {capture.created}")
+    assert "  results: eventps (eventps, 1.25 s), r[31m (s1m, 0.00 s)" in lines
+    info = info_json(path, capsys)  # JSON escapes them: the values stay as stored
+    assert info["description"] == capture.description

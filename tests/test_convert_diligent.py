@@ -5,7 +5,10 @@ discrete captures, several objects, bad input, and the generic converter flags."
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import struct
+import zlib
 from pathlib import Path
 
 import cv2
@@ -138,6 +141,7 @@ def test_semi_real_frames_recover_the_normals_and_events_are_seeded(ball: Fixtur
         assert a.events is not None and b.events is not None and len(a.events) > 0
         first, other = a.events.window(0, 10**6), b.events.window(0, 10**6)
         for column in "xytp":
+            # bit-equal: two conversions of the same files by the same code on the same machine
             np.testing.assert_array_equal(getattr(first, column), getattr(other, column))
         np.testing.assert_array_equal(np.asarray(a.frames.data), np.asarray(b.frames.data))
 
@@ -316,3 +320,43 @@ def test_repeatable_option_collects_values_and_keeps_its_default() -> None:
     assert parse_assignments(["tag=e"], with_default, owner="x") == {"tag": ("e",)}
     with pytest.raises(UserError, match="option tag: 'f' is not one of d, e"):
         parse_assignments(["tag=f"], with_default, owner="x")
+
+
+def test_files_outside_the_object_folder_are_refused(ball: Fixture, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 19, item 11: names in filenames.txt that climb out, absolute names and symbolic links
+    that lead out of the object folder are refused before anything is read through them."""
+    folder = tmp_path / "ballPNG"
+    shutil.copytree(ball.folder, folder)
+    listing = folder / "filenames.txt"
+    names = listing.read_text().splitlines()
+    secret = tmp_path / "outside" / "secret.png"
+    secret.parent.mkdir()
+    shutil.copy(folder / names[0], secret)
+    out = tmp_path / "ball.h5"
+    for listed in ("../outside/secret.png", str(secret)):
+        listing.write_text("\n".join([listed, *names[1:]]) + "\n")
+        code, _, err = convert(["diligent", str(folder), "-o", str(out)], capsys)
+        assert (code, err) == (2, f"pstoolkit: error: {listing}: {listed!r} lies outside the object folder {folder}: refused\n")
+    listing.write_text("\n".join(names) + "\n")
+    (folder / names[0]).unlink()
+    os.symlink(secret, folder / names[0])
+    code, _, err = convert(["diligent", str(folder), "-o", str(out)], capsys)
+    assert (code, err) == (2, f"pstoolkit: error: {listing}: {names[0]!r} lies outside the object folder {folder}: refused\n")
+    assert not out.exists()
+
+
+def test_a_png_that_does_not_inflate_is_one_line_without_libpng_s_own(ball: Fixture, tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
+    """Issue 19, item 15: image data that does not inflate (checksums intact) is our one line on
+    stderr, without the line libpng prints itself."""
+    folder = tmp_path / "ballPNG"
+    shutil.copytree(ball.folder, folder)
+    image = folder / "042.png"
+    data = bytearray(image.read_bytes())
+    at = data.find(b"IDAT")
+    length = struct.unpack(">I", data[at - 4 : at])[0]
+    data[at + 4 + 2 : at + 4 + 6] = b"\xff\xff\xff\xff"  # inside the deflate stream, after its zlib header
+    data[at + 4 + length : at + 8 + length] = struct.pack(">I", zlib.crc32(bytes(data[at : at + 4 + length])))
+    image.write_bytes(bytes(data))
+    capfd.readouterr()
+    assert main(["convert", "diligent", str(folder), "-o", str(tmp_path / "ball.h5")]) == 2
+    assert capfd.readouterr() == ("", f"pstoolkit: error: {image}: corrupted PNG (the image data cannot be decoded)\n")

@@ -121,6 +121,7 @@ def test_sorted_typed_chunked_and_deterministic() -> None:
     again, _ = run(render, 0, PERIOD_US, sigma=0.03, chunk_samples=16, seed=3)
     other, _ = run(render, 0, PERIOD_US, sigma=0.03, chunk_samples=16, seed=4)
     for c in "xytp":
+        # bit-equal: the same seed runs the same code on the same machine
         assert np.array_equal(getattr(events, c), getattr(again, c))
     assert len(other) != len(events) or not np.array_equal(other.t, events.t)
 

@@ -7,6 +7,7 @@ import logging
 from pathlib import Path
 
 import cv2
+import h5py
 import numpy as np
 import pytest
 
@@ -157,3 +158,52 @@ def test_info_reports_the_real_evt3_size(tmp_path: Path, capsys: pytest.CaptureF
     assert encoding["data_rate_events"] == pytest.approx(rate.event_rate, rel=1e-12)
     assert main(["info", str(path)]) == 0
     assert f"  EVT 3.0: {size:,} bytes ({size / 3000:.2f} per event; 16-bit estimate 6,000)" in capsys.readouterr().out
+
+
+def test_dsec_coordinates_beyond_uint16_are_dropped_and_counted(tmp_path: Path, caplog: pytest.LogCaptureFixture, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 19, item 6: an x of 65541 or 4·10⁹ stored as uint32 is not wrapped into the sensor."""
+    src = tmp_path / "wide.h5"
+    with h5py.File(src, "w") as f:
+        f.attrs["width"], f.attrs["height"] = 640, 480
+        f["events/x"] = np.array([3, 65541, 7, 4_000_000_000], np.uint32)
+        f["events/y"] = np.array([1, 2, 3, 4], np.uint32)
+        f["events/p"] = np.array([1, 0, 1, 1], np.uint8)
+        f["events/t"] = np.array([10, 20, 30, 40], np.uint32)
+        f["t_offset"] = np.int64(0)
+    out = tmp_path / "wide_capture.h5"
+    with caplog.at_level(logging.WARNING, logger="pstoolkit.eventfiles"):
+        assert main(["convert", "dsec", str(src), "-o", str(out), "-q"]) == 0
+    assert caplog.messages == [f"{src}: 2 events outside 640×480 dropped"]
+    with psfmt.read(out) as capture:
+        events = capture.events.read()
+        assert events.x.tolist() == [3, 7] and events.t.tolist() == [10, 30]
+    with h5py.File(src, "r+") as f:
+        del f.attrs["width"]
+        del f.attrs["height"]
+    capsys.readouterr()
+    assert main(["convert", "dsec", str(src), "-o", str(tmp_path / "no_width.h5")]) == 2
+    assert capsys.readouterr().err == (
+        f"pstoolkit: error: {src}: coordinates reach x = 4000000000, y = 4, beyond the 65536 pixels a side of an event sensor; "
+        "give --width and --height to keep the events inside them\n"
+    )
+    assert main(["convert", "dsec", str(src), "-o", str(tmp_path / "given.h5"), "--width", "640", "--height", "480", "-q"]) == 0
+
+
+def test_a_recording_without_events_needs_allow_empty(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 19, item 15: a RAW file with only a header, or with every event outside its geometry,
+    is refused (no file) unless --allow-empty asks for the empty capture."""
+    header_only = raw_file(tmp_path / "header.raw", [])
+    outside = raw_file(tmp_path / "outside.raw", [0x8000, 0x6000 | 100, 0x0050, 0x2800 | 40], width=16, height=12)
+    expected = {
+        header_only: "no events to convert",
+        outside: "no events to convert (0 events, 0 triggers from 4 words; 1 events outside the sensor geometry dropped)",
+    }
+    for src, why in expected.items():
+        out = tmp_path / f"{src.stem}.h5"
+        capsys.readouterr()
+        assert main(["convert", "raw", str(src), "-o", str(out)]) == 2
+        assert capsys.readouterr().err == f"pstoolkit: error: {src}: {why}; --allow-empty writes the empty capture anyway\n"
+        assert not out.exists()
+        assert main(["convert", "raw", str(src), "-o", str(out), "--allow-empty", "-q"]) == 0
+        with psfmt.read(out) as capture:
+            assert len(capture.events) == 0

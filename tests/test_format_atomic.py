@@ -15,6 +15,7 @@ import pytest
 from test_format_roundtrip import sample_capture, sample_events
 
 import psfmt
+from psfmt.atomic import commit
 
 INTERRUPTS = [RuntimeError("disk on fire"), KeyboardInterrupt()]
 
@@ -128,13 +129,21 @@ def test_write_result_that_fails_leaves_the_capture_as_it_was(tmp_path: Path, er
     assert_untouched(path, before)
 
 
-def test_failing_rename_leaves_nothing(tmp_path: Path) -> None:
+def test_a_folder_at_the_target_is_named_and_left_alone(tmp_path: Path) -> None:
+    """Issue 19, item 15: a folder where the file should go is reported under its own name (not the
+    hidden temporary file's), before anything is written, and also when it appears at the rename."""
     path = tmp_path / "capture.h5"
     path.mkdir()
     (path / "keep").write_text("x")
-    with pytest.raises(OSError):
+    with pytest.raises(psfmt.FormatError) as caught:
         psfmt.write(sample_capture("events", seed=1), path)
+    assert str(caught.value) == f"{path}: is a folder, not a file"
     assert listing(tmp_path) == ["capture.h5"] and listing(path) == ["keep"]
+    tmp = tmp_path / ".late.tmp"
+    tmp.write_text("data")
+    with pytest.raises(psfmt.FormatError) as caught:
+        commit(tmp, path)
+    assert str(caught.value) == f"{path}: is a folder, not a file"
 
 
 def test_atomic_path_on_interrupt(tmp_path: Path) -> None:

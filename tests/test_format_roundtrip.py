@@ -1,4 +1,8 @@
-"""Round trips of every field of the hybrid-capture format (spec/hybrid-capture.md)."""
+"""Round trips of every field of the hybrid-capture format (spec/hybrid-capture.md).
+
+Arrays are compared bit for bit: HDF5 stores the values as they are (deflate and shuffle are lossless)
+and nothing is recomputed on the way.
+"""
 
 from __future__ import annotations
 

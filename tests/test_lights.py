@@ -45,6 +45,7 @@ def test_directional_broadcasts_over_points() -> None:
     light = RingLight(elevation_deg=45, period_us=100)
     direction, intensity = light.evaluate(np.arange(4.0), np.zeros((5, 3)))
     assert direction.shape == intensity.shape == (4, 5, 3)
+    # bit-equal: a directional model broadcasts the same (T, 3) directions over the points (a copy)
     np.testing.assert_array_equal(direction[:, 3], light.evaluate(np.arange(4.0))[0])
 
 
@@ -148,6 +149,7 @@ def test_spec_round_trip(light: LightModel) -> None:
         np.testing.assert_array_equal(again.to_spec().params[key], value)
     t = np.linspace(-3e4, 3e4, 11)
     points = np.array([[1.0, 2.0, 0.0], [-3.0, 0.5, 1.0]])
+    # bit-equal: the same parameters (copied, not recomputed) through the same code on the same times
     for got, want in zip(again.evaluate(t, points), light.evaluate(t, points)):
         np.testing.assert_array_equal(got, want)
 
@@ -170,6 +172,7 @@ def test_build_light_model_uses_the_registry() -> None:
     light = RingLight(elevation_deg=50, period_us=1000, phase_deg=5)
     built = build_light_model(light.to_spec())
     assert isinstance(built, RingLight)
+    # bit-equal: the registry builds the same class from the same parameters; the same code runs
     np.testing.assert_array_equal(built.evaluate(np.arange(3.0))[0], light.evaluate(np.arange(3.0))[0])
     assert isinstance(build_light_model(NearRingLight(radius_mm=1, height_mm=1, pixel_pitch_mm=1, period_us=1).to_spec()), NearRingLight)
     with pytest.raises(UserError, match=r"unknown .*'spiral'"):
@@ -193,4 +196,5 @@ def test_specs_survive_a_capture_file_and_validate(tmp_path: Path, light: LightM
         again = build_light_model(capture.lights)
     t = np.linspace(0, 5e4, 9)
     points = np.array([[1.0, 2.0, 0.0]])
+    # bit-equal: HDF5 stores the float64 parameters exactly and the same code evaluates them
     np.testing.assert_array_equal(again.evaluate(t, points)[0], light.evaluate(t, points)[0])

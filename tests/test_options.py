@@ -57,6 +57,11 @@ def test_bool_false_spellings(text: str) -> None:
         ("frames=0", "option frames: 0 is below the minimum 1"),
         ("frames=25", "option frames: 25 is above the maximum 24"),
         ("lr=-1", "option lr: -1.0 is below the minimum 0"),
+        # issue 19, item 5: NaN passes every range check, and neither it nor infinity is JSON
+        ("lr=nan", "option lr: nan is not a finite number"),
+        ("lr=NaN", "option lr: nan is not a finite number"),
+        ("lr=inf", "option lr: inf is not a finite number"),
+        ("lr=-Infinity", "option lr: -inf is not a finite number"),
         ("frames", "--set 'frames': expected key=value"),
         ("=3", "--set '=3': expected key=value"),
         ("iters=5", "solver 'demo' has no option 'iters' (options: frames, loss, lr, robust, tag)"),

@@ -87,6 +87,7 @@ def test_column_major_margins_are_the_transposed_maps_of_the_lights_along_the_ro
         assert (rows[:-1].min(axis=(1, 2)) < rows[:-1].max(axis=(1, 2))).all()
         for g in range(len(lights)):
             got = stored[g].reshape(41, 48).T if major[g] else stored[g]
+            # bit-equal: column-major storage writes the same sweep's values elsewhere (no fastmath)
             np.testing.assert_array_equal(got, rows[g], err_msg=f"light {g}")
 
 

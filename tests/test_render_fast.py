@@ -96,6 +96,7 @@ def test_frame_openness_in_the_reused_buffer_equals_a_fresh_sweep() -> None:
         assert np.shares_memory(got, buffer)
         direction, _ = reused.light.evaluate(k * grid_step(1.0))
         np.testing.assert_array_equal(column_major, np.abs(direction[:, 0]) >= np.abs(direction[:, 1]))
+        # bit-equal: the same sweeps (no fastmath) written into a reused buffer, some rows transposed
         np.testing.assert_array_equal(_row_major(reused, got, column_major)[:, reused.index], expected)
         np.testing.assert_array_equal(got[column_major][:, reused.column_major_index], expected[column_major])
     assert (fresh[0] < 1.0).any() and (fresh[0] >= 1.0).any()
@@ -110,6 +111,7 @@ def test_frame_openness_holds_every_frame_pixel() -> None:
     assert table.shape == (40, 40 * 40) and renderer.pixels < 40 * 40
     assert column_major.any() and not column_major.all()
     frame = _row_major(renderer, table, column_major)
+    # bit-equal: both run the same sweeps on the same times; only the storage order differs
     np.testing.assert_array_equal(frame[:, renderer.index], renderer.grid_openness(keys))
     assert (np.delete(frame, renderer.index, axis=1) > 1.0).all()
     assert (frame[:, renderer.index] < 1.0).any()
@@ -216,6 +218,7 @@ def test_fixed_sample_times_are_the_only_whole_frame_renders() -> None:
     grid = np.linspace(0.0, PERIOD_US, 401)[1:-1]
     kwargs = {"width": SIZE, "height": SIZE, "render_pixels": render_pixels}
     events = EventArray.concatenate(list(simulate_events(counted, 0, PERIOD_US, sample_times_us=grid, **kwargs)))
+    # bit-equal: the render is called with the given sample times themselves, not recomputed ones
     np.testing.assert_array_equal(np.concatenate(seen), np.concatenate(([0.0], grid, [PERIOD_US])))
     assert np.abs(threshold_residuals(render, events, 0, 0.0)).max() < 5e-3
     with pytest.raises(UserError, match=r"sample_times_us must increase strictly inside \(t0_us, t1_us\)"):

@@ -5,11 +5,14 @@ listed, and results without ground truth get everything but the errors."""
 from __future__ import annotations
 
 import dataclasses
+import html
 import json
 import re
+import shutil
 from pathlib import Path
 
 import cv2
+import numpy as np
 import pytest
 
 import psfmt
@@ -121,3 +124,55 @@ def test_bad_input_is_one_line_exit_2(batch_dir: Path, tmp_path: Path, capsys: p
     for args, message in cases.items():
         assert main(["report", *args]) == 2
         assert capsys.readouterr().err == f"pstoolkit: error: {message}\n"
+
+
+HOSTILE_OBJECT = "<img src=x onerror=alert(1)>|ball\n# injected"
+HOSTILE_SOLVER = "ev|ps<script>alert(1)</script>"
+
+
+def _renamed(source: Path, target: Path, obj: str, name: str) -> None:
+    shutil.copytree(source, target)
+    data = json.loads((target / "result.json").read_text())
+    (target / "result.json").write_text(json.dumps({**data, "object": obj, "name": name}))
+
+
+def test_names_from_files_are_escaped_for_markdown_and_html(batch_dir: Path, tmp_path: Path) -> None:
+    """Issue 19, item 10: HTML, a newline (a heading) and a pipe (a cell) in names from result files
+    and in a batch log's error show as text in the markdown and in the HTML page."""
+    hostile = tmp_path / "hostile"
+    _renamed(batch_dir / "ball-frameps", hostile / "a", HOSTILE_OBJECT, "frameps")
+    _renamed(batch_dir / "ball-eventps", hostile / "b", HOSTILE_OBJECT, HOSTILE_SOLVER)
+    failed = Outcome("o|x", "frameps", "c.h5", str(hostile / "c"), "failed", error="<script>steal()</script>\n## fake")
+    write_log(hostile, [failed])
+    report = tmp_path / "r.md"
+    assert main(["report", str(hostile), "-o", str(report)]) == 0
+    text, page = report.read_text(), report.with_suffix(".html").read_text()
+    for document in (text, page):
+        assert "<img src=x" not in document and "<script" not in document
+        assert "\n# injected" not in document and "\n## fake" not in document
+    table = text.split("## Mean angular error (degrees)\n\n", 1)[1].split("\n\n", 1)[0].splitlines()
+    cells = [re.split(r"(?<!\\)\|", line.strip()[1:-1]) for line in table]
+    assert [len(row) for row in cells] == [3] * len(cells)  # object | ev|ps… | frameps, in every row
+    escaped_object = html.escape(HOSTILE_OBJECT.replace("\n", " "), quote=False)
+    assert f"<td style=\"text-align:left\">{escaped_object}</td>" in page
+    assert f"<th style=\"text-align:right\">{html.escape(HOSTILE_SOLVER, quote=False)}</th>" in page
+    assert f"<li>o|x × frameps: {html.escape('<script>steal()</script> ## fake', quote=False)}</li>" in page
+
+
+def test_a_failed_report_leaves_the_old_one_whole(batch_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 19, item 12: a report that fails (here on an error.npy of Python objects, which is never
+    unpickled) replaces none of the files of the report already at its path."""
+    report = tmp_path / "out" / "r.md"
+    assert main(["report", str(batch_dir), "-o", str(report)]) == 0
+    before = {p.name: p.read_bytes() for p in report.parent.iterdir()}
+    broken = tmp_path / "broken"
+    for folder in ("ball-frameps", "blobs-frameps"):
+        shutil.copytree(batch_dir / folder, broken / folder)
+    bad = broken / "blobs-frameps" / "error.npy"
+    np.save(bad, np.array([{"x": 1}], dtype=object), allow_pickle=True)
+    capsys.readouterr()
+    assert main(["report", str(broken), "-o", str(report)]) == 2
+    assert capsys.readouterr().err == (
+        f"pstoolkit: error: {bad}: not a readable .npy array (Object arrays cannot be loaded when allow_pickle=False)\n"
+    )
+    assert {p.name: p.read_bytes() for p in report.parent.iterdir()} == before

@@ -196,6 +196,7 @@ def test_run_writes_every_map_and_a_consistent_error_map(
     residual_png = cv2.imread(str(out / "residual.png"), cv2.IMREAD_UNCHANGED)
     assert residual.shape == residual_png.shape == (SIZE, SIZE) and residual_png.dtype == np.uint16
     assert result["maps"]["residual"]["scale"] == 1.0  # a grey map within [0, 1] keeps its values
+    # integers from the same float64 expression (value / 1.0 · 65535 + 0.5, floored) as outputs.encode_map
     np.testing.assert_array_equal(residual_png[mask], np.floor(residual[mask].astype(np.float64) * 65535 + 0.5))
 
     shading = np.load(out / "shading.npy")
@@ -268,13 +269,15 @@ def test_store_round_trips_through_the_capture(sphere: Path, tmp_path: Path, cap
     summary = json.loads((out / "result.json").read_text())
     assert summary["name"] == summary["stored"] == "lsq-test"
     with psfmt.read(sphere) as capture:
+        # bit-equal: the same stored frames through the same conversion
         np.testing.assert_array_equal(capture.frames.as_float(), frames)
         assert list(capture.results) == ["lsq-test"]
-        stored = capture.results["lsq-test"]
+    stored = psfmt.load(sphere).results["lsq-test"]  # read lazily, a stored result's maps need the file open
     assert (stored.solver, stored.version, stored.options) == ("lsq", pstoolkit.__version__, {"threshold": 0.03})
     assert stored.seconds == summary["seconds"]
     assert sorted(stored.maps) == ["albedo", "mask", "normal", "residual", "shading"]
     normal = np.load(out / "normal.npy")
+    # bit-equal: the same float32 arrays, stored in the capture and in the .npy files
     np.testing.assert_array_equal(stored.maps["normal"], normal)
     np.testing.assert_array_equal(stored.maps["mask"].astype(bool), np.any(normal != 0, axis=-1))
     for name in ("albedo", "residual", "shading"):

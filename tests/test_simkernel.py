@@ -130,6 +130,8 @@ def test_results_do_not_depend_on_room_threads_or_repetition() -> None:
     for other, other_sums in (small, single, run(r)):
         for name in ("x", "y", "t", "p"):
             np.testing.assert_array_equal(getattr(other, name), getattr(events, name))
+        # bit-equal by construction: each event pixel is stepped by one thread, start to end, in the same
+        # order of operations whatever the thread count or room (no cross-pixel sums, no fastmath)
         np.testing.assert_array_equal(np.stack(other_sums), np.stack(sums))
     assert np.all(np.diff(events.t) >= 0)
 
@@ -219,6 +221,8 @@ def test_lit_shadow_bits_follow_their_definition() -> None:
     shaded = (v < 1.0) & near
     intervals = shaded[:-1] | shaded[1:]
     expected = (intervals.astype(np.uint64) << np.arange(rows - 1, dtype=np.uint64)[:, None]).sum(axis=0, dtype=np.uint64)
+    # bits of thresholds on n·l summed in the kernel's order (numba without fastmath contracts no FMA),
+    # so the same doubles are compared on both sides
     np.testing.assert_array_equal(reach[r.index], expected)
     assert np.count_nonzero(reach) == np.count_nonzero(expected) > 50
     # the shadows' last interval and masks that are not all one
@@ -262,6 +266,7 @@ def test_shading_reads_the_table_only_where_the_bits_say_it_matters() -> None:
             simkernel._shade_lanes(t1, np.cos(azimuth), np.sin(azimuth), consts, frame, frame_t, bits, True, ring,
                                    openness, column_major, grid, LOG_EPS, now, grey)
             results.append((now, grey))
+        # bit-equal: where the skipped intervals are, V ≥ 1 and the same arithmetic gives the same doubles
         np.testing.assert_array_equal(results[0][0], results[1][0])
         np.testing.assert_array_equal(results[0][1], results[1][1])
         row = np.clip(np.floor(t1 / grid[0] - grid[1]).astype(np.int64), 0, openness.shape[0] - 2)
@@ -298,6 +303,8 @@ def test_a_sphere_without_self_shadowing_is_simulated_as_with_it() -> None:
     events, sums = run(r)
     swept_events, swept_sums = run(swept)
     assert len(events) > 5000
+    # bit-equal: where the swept table could shadow, the pixel faces away from the light, and elsewhere
+    # V ≥ 1 leaves the same arithmetic
     for c in "xytp":
         np.testing.assert_array_equal(getattr(events, c), getattr(swept_events, c))
     for a, b in zip(sums, swept_sums, strict=True):

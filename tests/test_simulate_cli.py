@@ -47,6 +47,7 @@ def test_simulate_writes_a_valid_hybrid_capture_with_ground_truth(tmp_path: Path
         assert capture.calibration.contrast_pos == capture.calibration.contrast_neg == 0.15
         gt = capture.ground_truth
         sphere = Sphere().build(32, 0, **defaults(Sphere.options))
+        # bit-equal: simulate stores the float32 maps of this very scene builder
         np.testing.assert_array_equal(gt.normal, sphere.normal)
         np.testing.assert_array_equal(gt.mask, sphere.mask)
         assert set(gt.materials) == {"f0", "roughness", "metallic"}
@@ -60,6 +61,7 @@ def test_same_seed_writes_identical_data_and_another_seed_does_not(tmp_path: Pat
     a, b, c = (datasets(p) for p in paths)
     assert a.keys() == b.keys() and "events/t" in a and "frames/data" in a
     for key in a:
+        # bit-equal: the same seed runs the same code on the same machine (determinism, not portability)
         np.testing.assert_array_equal(a[key], b[key], err_msg=key)
     assert not np.array_equal(a["ground_truth/depth"], c["ground_truth/depth"])
 

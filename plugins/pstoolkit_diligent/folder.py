@@ -8,6 +8,10 @@ Layout: the images named in ``filenames.txt`` (16-bit RGB PNG, stored BGR as Ope
 intensities in RGB order), ``mask.png`` (non-zero inside) and ``Normal_gt.mat`` (variable
 ``Normal_gt``, float64 (H, W, 3)). Lights and normals share the camera frame of the capture format
 (x right, y up, z towards the camera), so they are taken as they are.
+
+Every file read lies inside the object folder: a name in ``filenames.txt`` that is absolute, climbs
+out with ``..`` or reaches out through a symbolic link is refused, as is a fixed file that is a link
+to elsewhere (a downloaded dataset must not make the converter read the user's other files).
 """
 
 from __future__ import annotations
@@ -64,6 +68,16 @@ class ObjectFolder:
         return image[..., ::-1]
 
 
+def _inside(folder: Path, name: str, listed_in: Path | None = None) -> Path:
+    """``folder / name``, refused (UserError) unless it stays inside ``folder`` once symbolic links
+    and ``..`` are resolved; ``listed_in`` is the file that named it."""
+    path = folder / name
+    if not Path(name).is_absolute() and path.resolve().is_relative_to(folder.resolve()):
+        return path
+    where = f"{listed_in}: {name!r}" if listed_in is not None else str(path)
+    raise UserError(f"{where} lies outside the object folder {folder}: refused")
+
+
 def _mask(path: Path, height: int, width: int) -> np.ndarray:
     header = check_png(path)
     if (header.height, header.width) != (height, width):
@@ -99,21 +113,22 @@ def scan_object(folder: Path, require_normal: bool) -> ObjectFolder:
     naming the file and the problem; ``Normal_gt.mat`` may be absent unless ``require_normal``."""
     if not folder.is_dir():
         raise UserError(f"{folder}: folder does not exist")
-    names = text_lines(folder / FILENAMES)
-    for path in (folder / DIRECTIONS, folder / INTENSITIES, folder / MASK):
+    files = (FILENAMES, DIRECTIONS, INTENSITIES, MASK, NORMAL)
+    listing, lights, colours, mask_path, normal_path = (_inside(folder, name) for name in files)
+    names = text_lines(listing)
+    for path in (lights, colours, mask_path):
         require_file(path)
-    normal_path = folder / NORMAL
     if require_normal:
         require_file(normal_path)
-    directions = read_directions(folder / DIRECTIONS)
-    intensities = read_intensities(folder / INTENSITIES)
+    directions = read_directions(lights)
+    intensities = read_intensities(colours)
     counts = {FILENAMES: len(names), DIRECTIONS: len(directions), INTENSITIES: len(intensities)}
     if len(set(counts.values())) != 1:
         listed = ", ".join(f"{name} has {count}" for name, count in counts.items())
         raise UserError(f"{folder}: the numbers of images and lights differ ({listed} lines)")
     if not names:
-        raise UserError(f"{folder / FILENAMES}: lists no images")
-    images = [folder / name for name in names]
+        raise UserError(f"{listing}: lists no images")
+    images = [_inside(folder, name, listing) for name in names]
     size: tuple[int, int] | None = None
     for path in images:
         header = check_png(path)
@@ -126,6 +141,6 @@ def scan_object(folder: Path, require_normal: bool) -> ObjectFolder:
         elif (header.height, header.width) != size:
             raise UserError(f"{path}: image is {header.width}×{header.height}, {images[0].name} is {size[1]}×{size[0]}")
     assert size is not None
-    mask = _mask(folder / MASK, *size)
+    mask = _mask(mask_path, *size)
     normal = _normal(normal_path, mask) if normal_path.is_file() else None
     return ObjectFolder(folder, images, directions, intensities, mask, normal)

@@ -11,10 +11,10 @@ import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from pstoolkit.errors import UserError
+from pstoolkit.normalmap import decode_image
 
 SIGNATURE = b"\x89PNG\r\n\x1a\n"
 CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}
@@ -62,7 +62,7 @@ def check_png(path: Path) -> PngHeader:
 
 def decode(path: Path) -> np.ndarray:
     """The image as stored (OpenCV order: BGR for colour), at its own bit depth."""
-    image = cv2.imdecode(np.fromfile(path, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    image = decode_image(path)
     if image is None:
         raise UserError(f"{path}: corrupted PNG (the image data cannot be decoded)")
     return image

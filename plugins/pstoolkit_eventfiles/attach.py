@@ -13,11 +13,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 import psfmt
 from pstoolkit.errors import UserError
+from pstoolkit.normalmap import decode_image
 from pstoolkit.options import Option
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm")
@@ -64,7 +64,7 @@ def image_stack(folder: Path) -> tuple[np.ndarray, str]:
         raise UserError(f"{folder}: holds no images ({', '.join(IMAGE_SUFFIXES)})")
     images = []
     for path in files:
-        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        image = decode_image(path)
         if image is None:
             raise UserError(f"{path}: not a readable image")
         if image.dtype not in (np.uint8, np.uint16):

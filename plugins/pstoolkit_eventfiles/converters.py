@@ -3,7 +3,9 @@
 Events stream from the decoder into ``psfmt.CaptureWriter`` block by block. A capture's events are
 sorted; the few that a sensor stamps earlier than their predecessor (small backward TIME_LOW steps,
 which EVT 3.0 decoders keep as they are) get their predecessor's time and are counted. Whatever was
-skipped, dropped or re-timed is logged as one warning line; a clean recording logs nothing.
+skipped, dropped or re-timed is logged as one warning line; a clean recording logs nothing. A
+recording that leaves no event (a header alone, every event outside the sensor) is refused unless
+``--allow-empty`` asks for the empty capture.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from psfmt.atomic import temporary_sibling
 from psfmt.dsec import DEFAULT_CHUNK_EVENTS, DsecFile
 from psfmt.evt2 import Evt2File
 from psfmt.evt3 import Evt3File
+from psfmt.limits import MAX_SENSOR_SIDE
 from psfmt.rawheader import concat_triggers, read_header
 from pstoolkit.converter import Converter
 from pstoolkit.errors import UserError
@@ -69,10 +72,13 @@ def open_raw(src: Path) -> Evt3File | Evt2File:
     raise UserError(f"{src}: {header.encoding} RAW files are not supported (EVT 3.0 and EVT 2.0 are)")
 
 
+ALLOW_EMPTY = Option("allow_empty", bool, False, "write the capture even when the recording leaves no event")
+
+
 class _EventFile(Converter):
     """Shared by the event-file converters: attachments checked first, then events streamed."""
 
-    options: ClassVar[tuple[Option, ...]] = ATTACH_OPTIONS
+    options: ClassVar[tuple[Option, ...]] = (*ATTACH_OPTIONS, ALLOW_EMPTY)
 
     def convert(self, src: Path, out: Path, options: dict[str, Any], progress: Progress) -> list[Path]:
         if src.is_dir():
@@ -87,6 +93,9 @@ class _EventFile(Converter):
         try:
             with psfmt.CaptureWriter(staging, description=description, creator="pstoolkit", creator_version=pstoolkit.__version__) as writer:
                 triggers, notes = self.write_events(src, writer, options, progress)
+                if writer.event_count == 0 and not options["allow_empty"]:
+                    why = f" ({notes})" if notes else ""
+                    raise UserError(f"{src}: no events to convert{why}; --allow-empty writes the empty capture anyway")
                 if len(triggers):
                     writer.set_triggers(triggers.t, triggers.channel, triggers.value)
                 if frames is not None and frames.needs_windows:
@@ -140,6 +149,7 @@ class Dsec(_EventFile):
         Option("width", int, 0, "sensor width in pixels (0: the file's width attribute, else the largest x + 1)", minimum=0),
         Option("height", int, 0, "sensor height in pixels (0: the file's height attribute, else the largest y + 1)", minimum=0),
         *ATTACH_OPTIONS,
+        ALLOW_EMPTY,
     )
 
     def write_events(
@@ -148,11 +158,13 @@ class Dsec(_EventFile):
         with DsecFile(src) as dsec:
             width, height = options["width"] or dsec.width, options["height"] or dsec.height
             if width is None or height is None:
-                extent = [0, 0]
-                for block in dsec.chunks():
-                    if len(block):
-                        extent = [max(extent[0], int(block.x.max()) + 1), max(extent[1], int(block.y.max()) + 1)]
+                extent = dsec.extent()
                 width, height = width or extent[0], height or extent[1]
+                if max(width, height) > MAX_SENSOR_SIDE:
+                    raise UserError(
+                        f"{src}: coordinates reach x = {width - 1}, y = {height - 1}, beyond the {MAX_SENSOR_SIDE} pixels a side "
+                        "of an event sensor; give --width and --height to keep the events inside them"
+                    )
             writer.begin_events(width, height)
             outside = 0
             for k, block in enumerate(dsec.chunks()):
@@ -162,5 +174,7 @@ class Dsec(_EventFile):
                 outside += int(len(block) - np.count_nonzero(inside))
                 writer.append_events(block if inside.all() else block[inside])
                 progress(min(1.0, (k + 1) * DEFAULT_CHUNK_EVENTS / max(1, dsec.count)), "events")
+            # events with x or y beyond uint16 were dropped while reading: outside any sensor
+            outside += dsec.beyond
         note = f"{outside:,} events outside {width}×{height} dropped" if outside else ""
         return concat_triggers([]), note

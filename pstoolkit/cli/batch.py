@@ -7,8 +7,19 @@ from typing import Any
 
 import typer
 
-from pstoolkit.batch import expand_captures, is_complete, local_cluster, plan, run_batch, solver_options, status_counts, write_log
-from pstoolkit.cli.app import app, progress_bar
+from pstoolkit.batch import (
+    check_output_folder,
+    expand_captures,
+    is_complete,
+    local_cluster,
+    plan,
+    quiet_loop_errors,
+    run_batch,
+    solver_options,
+    status_counts,
+    write_log,
+)
+from pstoolkit.cli.app import app, echo, progress_bar
 from pstoolkit.errors import UserError
 from pstoolkit.solver import DEVICES
 
@@ -52,23 +63,25 @@ def batch(
         raise UserError(f"--device {device!r}: expected one of {', '.join(DEVICES)}")
     if out.exists() and not out.is_dir():
         raise UserError(f"{out}: exists and is not a folder")
+    check_output_folder(out)
     pairs = plan(expand_captures(captures), solver_options(solvers, assignments), out, device=device, error_max_deg=error_max)
     progress = progress_bar("batch", quiet)
     if all(is_complete(pair) for pair in pairs):
         outcomes = run_batch(pairs, None, progress)  # nothing to compute: no cluster to start
     else:
-        client, cluster = _client(scheduler, workers)
-        try:
-            outcomes = run_batch(pairs, client, progress)
-        finally:
-            client.close()
-            if cluster is not None:
-                cluster.close()
+        with quiet_loop_errors():
+            client, cluster = _client(scheduler, workers)
+            try:
+                outcomes = run_batch(pairs, client, progress)
+            finally:
+                client.close()
+                if cluster is not None:
+                    cluster.close()
     log = write_log(out, outcomes)
     failed = [o for o in outcomes if o.status == "failed"]
     for outcome in failed:
-        typer.echo(f"pstoolkit: failed: {outcome.object} × {outcome.solver}: {outcome.error}", err=True)
+        echo(f"pstoolkit: failed: {outcome.object} × {outcome.solver}: {outcome.error}", err=True)
     counts = status_counts(outcomes)
-    typer.echo(f"{len(pairs)} pairs: {counts['done']} done, {counts['skipped']} skipped, {counts['failed']} failed → {out} (log {log.name})")
+    echo(f"{len(pairs)} pairs: {counts['done']} done, {counts['skipped']} skipped, {counts['failed']} failed → {out} (log {log.name})")
     if failed:
         raise typer.Exit(1)

@@ -15,7 +15,7 @@ from pstoolkit.calibrate import (
     read_pairs,
     store_affine,
 )
-from pstoolkit.cli.app import app
+from pstoolkit.cli.app import app, echo
 from pstoolkit.errors import UserError
 
 
@@ -59,4 +59,4 @@ def calibrate_command(
         for path in [target, *apply_to]:
             store_affine(path, fit.affine)
         line += "; stored in " + ", ".join(str(p) for p in [target, *apply_to])
-    typer.echo(line)
+    echo(line)

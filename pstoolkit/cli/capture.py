@@ -25,8 +25,8 @@ from pstoolkit.backend import (
     backend_class,
     record,
 )
-from pstoolkit.cli.app import app, progress_bar
-from pstoolkit.errors import UserError
+from pstoolkit.cli.app import app, echo, progress_bar
+from pstoolkit.errors import Interrupted, UserError
 from pstoolkit.options import parse_assignments
 from pstoolkit.plugins import get_registries
 
@@ -140,22 +140,27 @@ def capture_command(
     sources = _sources(source, source_assignments)
     given = _stored_affine(calibration) if calibration is not None else None
     progress = progress_bar("capture", quiet)
-    with ExitStack() as stack:
-        for s in sources:
-            stack.enter_context(s)
-        sweep = Sweep(_period_us(period_ms, sources), DIRECTIONS[direction], smooth, trigger, exposures)
-        writer = stack.enter_context(
-            psfmt.CaptureWriter(out, description=description, creator="pstoolkit capture", creator_version=pstoolkit.__version__)
-        )
-        _begin(writer, sources)
-        rig: LightBackend = stack.enter_context(light_cls(port, light_options))
-        rig.configure(sweep)
-        rig.start()
-        done = record(sources, writer, sweep, periods, rig.keepalive, rig.keepalive_s, progress=progress)
-        rig.stop()
-        writer.set_lights(rig.light_spec(sweep, done.t0_us))
-        writer.set_calibration(_calibration(sources, given))
-        if done.triggers:
-            writer.set_triggers(*(np.concatenate([getattr(b, c) for b in done.triggers]) for c in ("t", "channel", "value")))
+    try:
+        with ExitStack() as stack:
+            for s in sources:
+                stack.enter_context(s)
+            sweep = Sweep(_period_us(period_ms, sources), DIRECTIONS[direction], smooth, trigger, exposures)
+            writer = stack.enter_context(
+                psfmt.CaptureWriter(out, description=description, creator="pstoolkit capture", creator_version=pstoolkit.__version__)
+            )
+            _begin(writer, sources)
+            rig: LightBackend = stack.enter_context(light_cls(port, light_options))
+            rig.configure(sweep)
+            rig.start()
+            done = record(sources, writer, sweep, periods, rig.keepalive, rig.keepalive_s, progress=progress)
+            rig.stop()
+            writer.set_lights(rig.light_spec(sweep, done.t0_us))
+            writer.set_calibration(_calibration(sources, given))
+            if done.triggers:
+                writer.set_triggers(*(np.concatenate([getattr(b, c) for b in done.triggers]) for c in ("t", "channel", "value")))
+    except KeyboardInterrupt:
+        # leaving the block sent the light OFF (on a dead link its watchdog turns them off) and removed
+        # the writer's temporary file
+        raise Interrupted(f"the lights are off and {out} was not written") from None
     if not quiet:
-        typer.echo(f"wrote {out}: {done.frames} frames, {done.events:,} events, {periods} period(s) of {sweep.period_us} µs")
+        echo(f"wrote {out}: {done.frames} frames, {done.events:,} events, {periods} period(s) of {sweep.period_us} µs")

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import typer
 
-from pstoolkit.cli.app import app, progress_bar
+from pstoolkit.cli.app import app, echo, progress_bar
 from pstoolkit.converter import run_converter
 from pstoolkit.errors import UserError
 from pstoolkit.options import Option
@@ -116,12 +116,12 @@ def convert(
     tokens = [t for t in tokens if t not in HELP_FLAGS]
     if not tokens or tokens[0].startswith("-"):
         if helping or not tokens:
-            typer.echo(_listing(ctx))
+            echo(_listing(ctx))
             return
         raise UserError(f"expected a converter NAME before {tokens[0]} (pstoolkit convert NAME SRC -o OUT)")
     entry = get_registries().converters.get(tokens[0])
     if helping:
-        typer.echo(converter_help(entry))
+        echo(converter_help(entry))
         return
     pairs, positional = flag_assignments(tokens[1:], entry.options, f"converter {entry.name!r}")
     if len(positional) != 1:
@@ -134,4 +134,4 @@ def convert(
     written = run_converter(entry, Path(positional[0]), out, options, progress)
     if not quiet:
         for path in written:
-            typer.echo(f"wrote {path}")
+            echo(f"wrote {path}")

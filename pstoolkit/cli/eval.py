@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 import psfmt
-from pstoolkit.cli.app import app
+from pstoolkit.cli.app import app, echo
 from pstoolkit.errors import UserError
 from pstoolkit.evaluation import CSV_COLUMNS, collect, csv_text, json_text, markdown
 
@@ -32,10 +32,10 @@ def eval_command(
     records = collect(paths)
     text = json_text(records) if as_json else csv_text(records) if as_csv else markdown(records)
     if out is None:
-        typer.echo(text, nl=False)
+        echo(text, nl=False)
         return
     if not out.parent.is_dir():
         raise UserError(f"{out}: folder {out.parent} does not exist")
     with psfmt.atomic_path(out) as tmp:
         tmp.write_text(text, encoding="utf-8")
-    typer.echo(f"wrote {out}: {len(records)} result(s)")
+    echo(f"wrote {out}: {len(records)} result(s)")

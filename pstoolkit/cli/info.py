@@ -9,7 +9,8 @@ from typing import Any
 import typer
 
 import psfmt
-from pstoolkit.cli.app import app
+from psfmt.text import printable
+from pstoolkit.cli.app import app, echo
 
 
 def describe(capture: psfmt.Capture) -> dict[str, Any]:
@@ -101,9 +102,11 @@ def event_encoding(capture: psfmt.Capture) -> dict[str, Any]:
 
 
 def _text(d: dict[str, Any]) -> str:
-    lines = [f"{d['file']}: {d['kind']} capture, format {d['format_version']}, by {d['creator']} at {d['created']}"]
+    """The summary as lines; every string from the file is made one printable line (``printable``)."""
+    s = printable
+    lines = [f"{s(d['file'])}: {d['kind']} capture, format {s(d['format_version'])}, by {s(d['creator'])} at {s(d['created'])}"]
     if d["description"]:
-        lines.append(f"  description: {d['description']}")
+        lines.append(f"  description: {s(d['description'])}")
     if "frames" in d:
         f = d["frames"]
         timing = (
@@ -133,14 +136,14 @@ def _text(d: dict[str, Any]) -> str:
             f"refractory {number('refractory_us', ' µs')}, {rule}"
         )
     if "lights" in d:
-        params = ", ".join(f"{k}={v}" for k, v in d["lights"]["params"].items())
-        lines.append(f"  lights: {d['lights']['model']}" + (f" ({params})" if params else ""))
+        params = ", ".join(f"{s(k)}={s(v)}" for k, v in d["lights"]["params"].items())
+        lines.append(f"  lights: {s(d['lights']['model'])}" + (f" ({params})" if params else ""))
     else:
         lines.append("  lights: none")
-    lines.append("  ground truth: " + (", ".join(d["ground_truth"]) if d.get("ground_truth") else "none"))
+    lines.append("  ground truth: " + (", ".join(map(s, d["ground_truth"])) if d.get("ground_truth") else "none"))
     results = d["results"]
     lines.append(
-        "  results: " + (", ".join(f"{k} ({v['solver']}, {v['seconds']:.2f} s)" for k, v in results.items()) or "none")
+        "  results: " + (", ".join(f"{s(k)} ({s(v['solver'])}, {v['seconds']:.2f} s)" for k, v in results.items()) or "none")
     )
     r = d["data_rate"]
     lines.append(
@@ -167,4 +170,4 @@ def info(
     data rate against 24 RGB 8-bit frames."""
     with psfmt.read(file, verify=True) as capture:
         summary = describe(capture)
-    typer.echo(json.dumps(summary, indent=2) if as_json else _text(summary))
+    echo(json.dumps(summary, indent=2) if as_json else _text(summary))

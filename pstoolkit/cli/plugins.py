@@ -7,7 +7,7 @@ from typing import Any
 
 import typer
 
-from pstoolkit.cli.app import app
+from pstoolkit.cli.app import app, echo
 from pstoolkit.options import Option
 from pstoolkit.plugins import PluginInfo, get_registries, load_failures, loaded_plugins
 from pstoolkit.registry import Entry, Registry
@@ -71,10 +71,10 @@ def plugins(as_json: bool = typer.Option(False, "--json", help="Print the listin
             "plugins": [_plugin_json(info, held) for info, held in listing],
             "failures": [{"plugin": f.plugin, "error": f.error} for f in failures],
         }
-        typer.echo(json.dumps(doc, indent=2, default=str))
+        echo(json.dumps(doc, indent=2, default=str))
         return
     lines = [line for info, held in listing for line in _plugin_text(info, held)] or ["no plugins loaded"]
     if failures:
         lines.append("failed:")
         lines.extend(f"  {f.plugin}: {f.error}" for f in failures)
-    typer.echo("\n".join(lines))
+    echo("\n".join(lines))

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from pstoolkit.cli.app import app
+from pstoolkit.cli.app import app, echo
 from pstoolkit.report import write_report
 
 
@@ -21,4 +21,4 @@ def report(
     normal and error maps side by side per solver (unsolved pixels grey), and the pairs a batch failed
     on. Results without ground truth get everything but the errors."""
     files = write_report(paths, out)
-    typer.echo(f"wrote {files.markdown}, {files.html.name} and {len(files.figures)} figure(s)")
+    echo(f"wrote {files.markdown}, {files.html.name} and {len(files.figures)} figure(s)")

@@ -9,7 +9,7 @@ import typer
 
 import psfmt
 from pstoolkit import __version__
-from pstoolkit.cli.app import app, progress_bar
+from pstoolkit.cli.app import app, echo, progress_bar
 from pstoolkit.errors import UserError
 from pstoolkit.outputs import result_summary, solve_capture, write_result_folder
 from pstoolkit.plugins import get_registries
@@ -22,7 +22,7 @@ def _demo_capture(progress: Progress) -> Path:
     # Deferred: the demo module loads the simulator (and torch), which a run on a given file never needs.
     from pstoolkit import demo
 
-    typer.echo("no CAPTURE given: running on the built-in demo capture (simulated on first use, then cached)", err=True)
+    echo("no CAPTURE given: running on the built-in demo capture (simulated on first use, then cached)", err=True)
     return demo.demo_capture_path(demo.DEMO_CONFIG, progress)
 
 
@@ -76,14 +76,14 @@ def run(
         )
         psfmt.write_result(capture, stored)
         where = f"the demo capture {capture} (a cached file, regenerated without it if the cache is cleared)" if demo else str(capture)
-        typer.echo(f"stored result {result_name!r} in {where}", err=True)
+        echo(f"stored result {result_name!r} in {where}", err=True)
     text = write_result_folder(outdir, solved, summary)
     if as_json:
-        typer.echo(text)
+        echo(text)
         return
     score_text = (
         f"MAE {summary['mae_deg']:.2f}°, median {summary['median_deg']:.2f}°, coverage {100 * summary['coverage']:.1f} %"
         if solved.scored is not None
         else "no ground truth"
     )
-    typer.echo(f"{entry.name} on {capture}: {score_text}, {solved.seconds:.2f} s, data rate {100 * solved.data_rate:.1f} % → {outdir}")
+    echo(f"{entry.name} on {capture}: {score_text}, {solved.seconds:.2f} s, data rate {100 * solved.data_rate:.1f} % → {outdir}")
