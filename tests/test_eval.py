@@ -56,8 +56,8 @@ def test_capture_results_are_scored_against_its_ground_truth(runs: Runs) -> None
         stored = capture.results["lsq"]
         errors = angular_error_deg(stored.maps["normal"], capture.ground_truth.normal, capture.ground_truth.mask)
         rate = psfmt.data_rate(capture).rate
-    mask = ~np.isnan(errors)
-    solved = mask & np.any(stored.maps["normal"] != 0, axis=-1)
+        mask = ~np.isnan(errors)
+        solved = mask & np.any(stored.maps["normal"] != 0, axis=-1)
     inside = errors[mask]
     assert record == Record(
         object="ball",

@@ -81,7 +81,7 @@ class DualRes(Solver):
         Option("seed", int, 0, "seed of the network initialisation and the event batches"),
         Option("brdf", str, "ggx", "reflectance model, a registered BRDF (ggx, lambertian, sg, mlp-bases, metallic, or a plugin's)"),
         Option("shadow_detector", str, "fused", "cast-shadow detector, a registered one (fused, geometry, silences, spikes, none, or a plugin's)"),
-        Option("shadow", str, (), "an option of the shadow detector, as shadow.KEY=VALUE (see `pstoolkit plugins`)",
+        Option("shadow", str, (), "an option of the shadow detector (its options are listed under shadow detectors)",
                multiple=True, nested=True),
         Option("lr", float, -1.0, "learning rate of the surface (−1 = the preset's: fast 5e-3, paper 1e-3)", minimum=-1.0),
         Option("material_lr", float, -1.0, "learning rate of the smooth materials (−1 = the preset's)", minimum=-1.0),

@@ -125,12 +125,12 @@ def _text(d: dict[str, Any]) -> str:
             f"{e['rate_ev_per_s'] / 1e6:.3f} M events/s"
         )
     if "event_sensor" in d:
-        s = d["event_sensor"]
+        sensor = d["event_sensor"]
 
         def number(key: str, unit: str = "") -> str:
-            return "unknown" if s[key] is None else f"{s[key]:g}{unit}"
+            return "unknown" if sensor[key] is None else f"{sensor[key]:g}{unit}"
 
-        rule = s["refractory_rule"] + ("" if s["refractory_rule_recorded"] else " (not recorded: the format's default)")
+        rule = s(sensor["refractory_rule"]) + ("" if sensor["refractory_rule_recorded"] else " (not recorded: the format's default)")
         lines.append(
             f"  event sensor: contrast +{number('contrast_pos')}/−{number('contrast_neg')}, "
             f"refractory {number('refractory_us', ' µs')}, {rule}"
