@@ -312,14 +312,13 @@ def quiet_loop_errors() -> Iterator[None]:
     """Silence the callback errors of the client's event loop (tornado's ``tornado.application``
     logger) for the block: they are Dask's own slips — a Ctrl-C while the client waits makes
     distributed's cancel callback log a NameError traceback — and a pair that fails is reported as
-    its outcome anyway."""
+    its outcome anyway. After an exception (a Ctrl-C) they stay silenced: the loop's thread runs the
+    cancel callbacks after the block has been left, while the process ends."""
     logger = logging.getLogger("tornado.application")
     level = logger.level
     logger.setLevel(logging.CRITICAL)
-    try:
-        yield
-    finally:
-        logger.setLevel(level)
+    yield
+    logger.setLevel(level)
 
 
 def local_cluster(workers: int | None = None) -> Any:
