@@ -46,8 +46,8 @@ class Preset:
 
 
 PRESETS: dict[str, Preset] = {
-    "fast": Preset("fast", field="pyramid", epochs=150, lr=5e-3, material_lr=5e-2, event_weight=4.0, tv_weight=0.02,
-                   tv_fraction=0.3, frame_samples=8, batch_pixels=0, smoothness=10.0, detect_at=(0.4,)),
+    "fast": Preset("fast", field="pyramid", epochs=150, lr=5e-3, material_lr=5e-2, event_weight=8.0, tv_weight=0.05,
+                   tv_fraction=0.3, frame_samples=8, batch_pixels=0, smoothness=3.0, detect_at=(0.4,)),
     "paper": Preset("paper", field="mlp", epochs=1200, lr=1e-3, material_lr=1e-3, event_weight=0.05, tv_weight=0.02,
                     tv_fraction=0.3, frame_samples=0, batch_pixels=512, smoothness=0.0, detect_at=(0.25, 0.5)),
 }

@@ -86,7 +86,7 @@ class DualRes(Solver):
         Option("lr", float, -1.0, "learning rate of the surface (−1 = the preset's: fast 5e-3, paper 1e-3)", minimum=-1.0),
         Option("material_lr", float, -1.0, "learning rate of the smooth materials (−1 = the preset's)", minimum=-1.0),
         Option("frame_weight", float, 1.0, "λ_f, weight of the frame loss (eq. 24)", minimum=0.0),
-        Option("event_weight", float, -1.0, "λ_e, weight of the event loss (eq. 25) (−1 = the preset's: fast 4, paper 0.05)", minimum=-1.0),
+        Option("event_weight", float, -1.0, "λ_e, weight of the event loss (eq. 25) (−1 = the preset's: fast 8, paper 0.05)", minimum=-1.0),
         Option("tv_weight", float, -1.0, "λ_tv, weight of the TV warm-up (−1 = the preset's)", minimum=-1.0),
         Option("tv_fraction", float, -1.0, "share of each stage's epochs over which the TV term fades to zero (−1 = the preset's)",
                minimum=-1.0, maximum=1.0),
