@@ -101,7 +101,7 @@ def _roughness(options: list[str], default: float) -> float:
 
 def direct(label: str, scene: str, options: list[str], args: argparse.Namespace, folder: Path, rule: str) -> Captures:
     common: dict[str, Any] = {"scene": scene, "scene_options": options, "size": args.size, "seed": args.seed}
-    hybrid, classic = folder / f"{label}-direct-{rule}.h5", folder / f"{label}-direct-classic.h5"
+    hybrid, classic = folder / f"{label}-{args.size}-direct-{rule}.h5", folder / f"{label}-{args.size}-direct-classic.h5"
     if not hybrid.exists():
         simulate(SimulationConfig(event_scale=0.5, refractory_rule=rule, **common), hybrid)
     if not classic.exists():
@@ -113,11 +113,11 @@ def direct(label: str, scene: str, options: list[str], args: argparse.Namespace,
 
 def semi_real(label: str, scene: str, options: list[str], args: argparse.Namespace, folder: Path, rule: str) -> Captures:
     lights = str(args.diligent_lights) if args.diligent_lights.is_file() else "grid"
-    grid = folder / f"{label}-grid96.h5"
+    grid = folder / f"{label}-{args.size}-lights96.h5"
     if not grid.exists():
         simulate(SimulationConfig(scene=scene, scene_options=[*options, *SHINY], size=int(round(SEMI_RENDER_SCALE * args.size)),
                                   seed=args.seed, lights=lights, discrete_lights=96, bit_depth=16, auto_gain="peak"), grid)
-    hybrid, classic = folder / f"{label}-semi-{rule}.h5", folder / f"{label}-semi-classic.h5"
+    hybrid, classic = folder / f"{label}-{args.size}-semi-{rule}.h5", folder / f"{label}-{args.size}-semi-classic.h5"
     if not hybrid.exists():
         semi_real_from_capture(grid, hybrid, size=args.size, refractory_rule=rule, seed=args.seed)
     if not classic.exists():
@@ -298,7 +298,7 @@ def main() -> None:
             for kind in args.kinds:
                 for label, scene, options in chosen:
                     if label in args.paper_scenes:
-                        paper += paper_rows(makers[kind](label, scene, options, small, folder / f"paper{args.paper_size}", RULES[0]), small)
+                        paper += paper_rows(makers[kind](label, scene, options, small, folder, RULES[0]), small)
     table(rows, "method", f"Accuracy, {args.size} px frames, events at half that",
           extra=("coverage", "data_rate", "highlight_mae_deg", "rim_mae_deg"))
     if ablation:

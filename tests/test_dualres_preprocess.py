@@ -19,29 +19,17 @@ from pstoolkit.shadows import interval_profile
 from pstoolkit.shadows.score import true_shadows
 from pstoolkit.simulator import SimulationConfig, simulate
 
+from event_rows import event_stream, shading
+
 T = 33_333.0
 C = 0.15
 
 
-def _stream(rows: list[list[tuple[float, int]]]) -> psfmt.EventArray:
-    """Events of pixels 0, 1, … (one row of the sensor) from (t_us, polarity) lists, sorted by time."""
-    x = np.concatenate([np.full(len(r), i) for i, r in enumerate(rows)])
-    t = np.concatenate([[e[0] for e in r] for r in rows]).astype(np.int64)
-    p = np.concatenate([[e[1] for e in r] for r in rows])
-    order = np.argsort(t, kind="stable")
-    return psfmt.EventArray(x[order], np.zeros(len(t)), t[order], p[order])
-
-
-def _shading(t0: float, t1: float, step: float, polarity: int) -> list[tuple[float, int]]:
-    """Slow shading events every ``step`` µs in [t0, t1): |f| = C/step, far below θ."""
-    return [(t, polarity) for t in np.arange(t0, t1, step)]
-
-
 def test_importance_sampling_crowds_where_irradiance_changes_fast() -> None:
     # a fast rise in the first window (20 events 100 µs apart), the same fall slowly over the others
-    fast = _shading(1000.0, 3000.0, 100.0, +1)
-    slow = _shading(12_000.0, 12_000.0 + 20 * 1050.0, 1050.0, -1)
-    events = _stream([fast + slow])
+    fast = shading(1000.0, 3000.0, 100.0, +1)
+    slow = shading(12_000.0, 12_000.0 + 20 * 1050.0, 1050.0, -1)
+    events = event_stream([fast + slow])
     profile = interval_profile(events, 1, t0_us=0.0, period_us=T, contrast_pos=C, contrast_neg=C)
     bounds = np.array([0.0, T / 3, 2 * T / 3, T])
     irradiance = approximate(

@@ -19,24 +19,12 @@ from pstoolkit.shadows.silences import dark_spans
 from pstoolkit.shadows.spikes import find_shadows, spike_threshold
 from pstoolkit.simulator import SimulationConfig, simulate
 
+from event_rows import event_stream, shading
+
 T = 33_333.0
 C = 0.15
 BURST_US = 10  # spacing of the events of a sharp shadow edge: one profile sample
 THETA = {"theta": 4000.0, "theta_min": 500.0, "gamma": 0.7, "max_duration_us": T / 2}
-
-
-def _stream(rows: list[list[tuple[float, int]]]) -> psfmt.EventArray:
-    """Events of pixels 0, 1, … (one row of the sensor) from (t_us, polarity) lists, sorted by time."""
-    x = np.concatenate([np.full(len(r), i) for i, r in enumerate(rows)])
-    t = np.concatenate([[e[0] for e in r] for r in rows]).astype(np.int64)
-    p = np.concatenate([[e[1] for e in r] for r in rows])
-    order = np.argsort(t, kind="stable")
-    return psfmt.EventArray(x[order], np.zeros(len(t)), t[order], p[order])
-
-
-def _shading(t0: float, t1: float, step: float, polarity: int) -> list[tuple[float, int]]:
-    """Slow shading events every ``step`` µs in [t0, t1): |f| = C/step, far below θ."""
-    return [(t, polarity) for t in np.arange(t0, t1, step)]
 
 
 def _burst(t0: float, n: int, spacing: float, polarity: int) -> list[tuple[float, int]]:
@@ -48,28 +36,28 @@ def _shadowed(entry: float, exit_: float, entry_spacing: float = BURST_US) -> li
     ``entry_spacing``) and leaving it at ``exit_`` (the last event of a sharp positive burst)."""
     entry_burst = _burst(entry, 12, entry_spacing, -1)
     exit_burst = _burst(exit_ - 11 * BURST_US, 12, BURST_US, +1)
-    before = _shading(0.0, entry - 2000.0, 2000.0, -1) if entry > exit_ else []
-    return sorted(_shading(exit_ + 2000.0, entry - 1000.0, 2000.0, -1) + before + entry_burst + exit_burst)
+    before = shading(0.0, entry - 2000.0, 2000.0, -1) if entry > exit_ else []
+    return sorted(shading(exit_ + 2000.0, entry - 1000.0, 2000.0, -1) + before + entry_burst + exit_burst)
 
 
 def _profile(rows: list[list[tuple[float, int]]]):
-    return interval_profile(_stream(rows), len(rows), t0_us=0.0, period_us=T, contrast_pos=C, contrast_neg=C)
+    return interval_profile(event_stream(rows), len(rows), t0_us=0.0, period_us=T, contrast_pos=C, contrast_neg=C)
 
 
 @pytest.fixture(scope="module")
 def stream() -> psfmt.EventArray:
-    return _stream(
+    return event_stream(
         [
             _shadowed(10_000.0, 16_000.0),  # sharp entry and exit
             _shadowed(10_000.0, 16_000.0, entry_spacing=250.0),  # entry softened: |f| = 600 < θ
-            sorted(_burst(T - 3000.0, 12, BURST_US, -1) + _burst(2000.0 - 110, 12, BURST_US, +1) + _shading(6000.0, 25_000.0, 2500.0, -1)),
-            sorted(_shading(500.0, 16_000.0, 1500.0, +1) + _shading(17_000.0, 33_000.0, 1500.0, -1)),  # no shadow
+            sorted(_burst(T - 3000.0, 12, BURST_US, -1) + _burst(2000.0 - 110, 12, BURST_US, +1) + shading(6000.0, 25_000.0, 2500.0, -1)),
+            sorted(shading(500.0, 16_000.0, 1500.0, +1) + shading(17_000.0, 33_000.0, 1500.0, -1)),  # no shadow
         ]
     )
 
 
 def test_profile_is_eq20_with_cyclic_gap() -> None:
-    events = _stream([[(1000.0, 1), (4000.0, -1), (4100.0, -1)], [(5000.0, 1)]])
+    events = event_stream([[(1000.0, 1), (4000.0, -1), (4100.0, -1)], [(5000.0, 1)]])
     profile = interval_profile(events, 2, t0_us=0.0, period_us=T, contrast_pos=0.2, contrast_neg=0.1)
     assert profile.pixel.tolist() == [0, 0, 0, 1]
     expected = [0.2 / ((1000.0 + T - 4100.0) * 1e-6), -0.1 / 3000e-6, -0.1 / 100e-6, 0.2 / (T * 1e-6)]
@@ -110,11 +98,11 @@ def test_the_spike_threshold_follows_the_refractory_cap() -> None:
 def test_dark_spans_of_each_refractory_rule() -> None:
     r = 2000.0
     # reset-at-end: the entry fires one negative event, silence until the exit's positive event
-    reset = _shading(2000.0, 12_000.0, 2100.0, -1) + _shading(20_000.0, 31_000.0, 2100.0, +1)
+    reset = shading(2000.0, 12_000.0, 2100.0, -1) + shading(20_000.0, 31_000.0, 2100.0, +1)
     # rate-limited: negative events every R while in shadow from 12 000, then positive ones every R
-    rate = _shading(2000.0, 10_000.0, 2500.0, -1) + _burst(12_000.0, 4, r, -1) + _burst(20_000.0, 4, r, +1)
+    rate = shading(2000.0, 10_000.0, 2500.0, -1) + _burst(12_000.0, 4, r, -1) + _burst(20_000.0, 4, r, +1)
     # a smooth minimum: the events slow down gradually before turning
-    minimum = _shading(2000.0, 12_000.0, 2100.0, -1) + [(14_500.0, -1), (18_000.0, +1)] + _shading(20_500.0, 31_000.0, 2100.0, +1)
+    minimum = shading(2000.0, 12_000.0, 2100.0, -1) + [(14_500.0, -1), (18_000.0, +1)] + shading(20_500.0, 31_000.0, 2100.0, +1)
     profile = _profile([reset, rate, minimum])
     found = dark_spans(profile, refractory_us=r, min_gap_us=r)
     spans = {int(p): (a, b) for p, a, b in zip(found.pixel, found.t0_us, found.t1_us)}
