@@ -341,10 +341,17 @@ def local_cluster(workers: int | None = None) -> Any:
         settings["distributed.worker.multiprocessing-method"] = "forkserver"
     with dask.config.set(settings):
         # the scheduler serves HTTP whatever the dashboard: on a free port of this machine only (its
-        # default, 8787 on every interface, warns when taken and is reachable from the network)
+        # default, 8787 on every interface, warns when taken and is reachable from the network).
         return LocalCluster(
             n_workers=count, threads_per_worker=1, processes=True, dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR
         )
+
+
+def quiet_worker_logs() -> None:
+    """Run in each worker of the local cluster (``Client.run``): Dask's own logs there up to
+    CRITICAL. A worker still heartbeating while a Ctrl-C closes the cluster logs its broken stream as
+    an ERROR traceback on the command's stderr; a pair that fails is reported as its outcome."""
+    logging.getLogger("distributed").setLevel(logging.CRITICAL)
 
 
 def _quiet_forkserver() -> bool:

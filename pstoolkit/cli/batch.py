@@ -14,6 +14,7 @@ from pstoolkit.batch import (
     local_cluster,
     plan,
     quiet_loop_errors,
+    quiet_worker_logs,
     run_batch,
     solver_options,
     status_counts,
@@ -31,7 +32,9 @@ def _client(scheduler: str | None, workers: int | None) -> tuple[Any, Any]:
 
     if scheduler is None:
         cluster = local_cluster(workers)
-        return Client(cluster, set_as_default=False), cluster
+        client = Client(cluster, set_as_default=False)
+        client.run(quiet_worker_logs)
+        return client, cluster
     if workers is not None:
         raise UserError("--workers: only for the local cluster; an existing scheduler (--scheduler) has its own workers")
     try:
