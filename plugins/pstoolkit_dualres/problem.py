@@ -187,7 +187,7 @@ def build_problem(pre: Preprocessed, view: np.ndarray, *, device: str, frame_sam
     t_end = np.asarray(pre.t_end_us, dtype=np.float64)
     source: dict[str, np.ndarray] = {"exposure_s": np.float64(np.sum(t_end - t_start) / US_PER_S)}
     shared_light = shared_weight = None
-    s_pos, s_frame, s_t, s_weight = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))
+    s_pos, s_frame, s_dir, s_weight = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3))
     if frame_samples > 0:
         g_t = np.concatenate([sample_times(t_start[j], t_end[j], frame_samples) for j in range(k)])
         g_dt_us = np.repeat((t_end - t_start) / frame_samples, frame_samples)
@@ -197,7 +197,8 @@ def build_problem(pre: Preprocessed, view: np.ndarray, *, device: str, frame_sam
     else:
         # each masked frame pixel takes its super pixel's importance samples of each frame's window
         s_pos, s_frame, s_t, s_dt = _pixel_samples(pre, pixels)
-        s_weight = light.evaluate(s_t)[1] * (s_dt * scale)[:, None]
+        s_dir, s_int = light.evaluate(s_t)
+        s_weight = s_int * (s_dt * scale)[:, None]
         source.update(sample_pixel=s_pos, sample_t=s_t, sample_dt_s=s_dt, sample_weight=s_weight)
 
     measured = np.asarray(pre.frames, dtype=np.float32).reshape(k, h * w, -1)[:, pixels].reshape(k * p, -1)
@@ -229,7 +230,7 @@ def build_problem(pre: Preprocessed, view: np.ndarray, *, device: str, frame_sam
         init_normal=tensor(init_normal), init_albedo=tensor(init_albedo),
         shared_light=shared_light, shared_weight=shared_weight, shared_visible=None,
         sample_pixel=tensor(s_pos, torch.int64), sample_group=tensor(s_frame * p + s_pos, torch.int64),
-        sample_light=tensor(light.evaluate(s_t)[0] if s_t.size else np.zeros((0, 3))), sample_weight=tensor(s_weight),
+        sample_light=tensor(s_dir), sample_weight=tensor(s_weight),
         measured=tensor(measured), saturated=tensor(saturated, torch.bool),
         event_taps=tensor(np.maximum(taps, 0), torch.int64), event_weight_now=tensor(area), event_weight_ref=tensor(area),
         event_light=tensor(dir_ev), event_light_ref=tensor(dir_ref),

@@ -5,7 +5,7 @@ normal or a smoothed depth step invents; the events (``silences``) see every dee
 pixel but also the dark spans of smooth shading. A frame pixel is taken to be in a cast shadow at a
 time when both say so: the surface's shadow at that pixel, and a dark span (or no event at all over
 the period) of the super pixel covering it. On simulated captures at the 2 ms recipe the mask of the
-two together is far more precise than either alone (``benchmarks/dualres.py --shadows``). Before the
+two together is far more precise than either alone (``benchmarks/dualres.py --ablation``). Before the
 solver has a surface the detector returns no mask.
 """
 
@@ -46,7 +46,7 @@ class FusedDetector(ShadowDetector):
         if evidence.normal is None:
             return evidence.no_mask()
         steps = options["time_steps"]
-        surface = surface_shadows(evidence, evidence.normal, steps, options["margin_px"])
+        surface = surface_shadows(evidence, steps, options["margin_px"])
         pixels = np.flatnonzero(np.asarray(evidence.mask).ravel())
         dark = event_darkness(evidence, steps, min_gap_us(options["min_gap_ms"], evidence.refractory_us, 1.0))
         both = surface & dark[:, evidence.super_pixel[pixels]]

@@ -26,15 +26,16 @@ GEOMETRY_OPTIONS: tuple[Option, ...] = (
 )
 
 
-def surface_shadows(evidence: ShadowEvidence, normal: np.ndarray, time_steps: int, margin_px: float) -> np.ndarray:
+def surface_shadows(evidence: ShadowEvidence, time_steps: int, margin_px: float) -> np.ndarray:
     """(time_steps, P) bool, P the masked frame pixels in flat order: cast shadows of the surface
-    ``normal`` (H, W, 3) at the bin centres of ``intervals.grid_times`` from ``evidence.t0_us``."""
+    ``evidence.normal`` (H, W, 3; not None) at the bin centres of ``intervals.grid_times`` from
+    ``evidence.t0_us``."""
     # deferred: the sweep is compiled with numba, which `pstoolkit plugins` need not load
     from pstoolkit.render import shadow_margin
     from pstoolkit.surface import integrate_normals
 
     mask = np.asarray(evidence.mask, dtype=bool)
-    height = integrate_normals(np.asarray(normal, dtype=np.float64), mask).astype(np.float32)
+    height = integrate_normals(np.asarray(evidence.normal, dtype=np.float64), mask).astype(np.float32)
     directions = evidence.light.evaluate(evidence.t0_us + grid_times(evidence.period_us, time_steps))[0]
     inside = mask.ravel()
     out = np.empty((time_steps, int(inside.sum())), dtype=bool)
@@ -53,6 +54,6 @@ class GeometryDetector(ShadowDetector):
     def detect(self, evidence: ShadowEvidence, options: dict[str, Any]) -> ShadowMask:
         if evidence.normal is None:
             return evidence.no_mask()
-        shadowed = surface_shadows(evidence, evidence.normal, options["time_steps"], options["margin_px"])
+        shadowed = surface_shadows(evidence, options["time_steps"], options["margin_px"])
         pixels = np.flatnonzero(np.asarray(evidence.mask).ravel())
         return evidence.frame_mask(intervals_from_grid(shadowed, evidence.period_us, pixels))
