@@ -24,9 +24,11 @@ the scene's roughness passes over the pixel during the turn, ``pstoolkit.metrics
 and in the rim band (the outer 5 % of the object's radius, ``rim_band``). Seconds are wall seconds of
 the solver on this machine (torch's default threads).
 
-``--ablation``: the shadow detectors (fused, geometry, silences, spikes, none) × the refractory rules
-(reset-at-end, rate-limited) on ``--ablation-scenes`` (bear, cat, blobs) of each kind, with the
-detected mask's precision and recall per pixel-time against the true shadows of direct captures.
+``--ablation``: the shadow detectors (``--detectors``: fused, geometry, silences, spikes, none, and
+``truth``, the geometry detector on the capture's true normals, whose gain over ``none`` is the most a
+detector of cast shadows can give) × the refractory rules (``--rules``: reset-at-end, rate-limited)
+on ``--ablation-scenes`` (bear, cat, blobs) of each kind, with the detected mask's precision and
+recall per pixel-time against the true shadows of direct captures.
 ``--paper-epochs`` (with ``--paper-size``, ``--paper-scenes``): the paper's MLP after each number of
 epochs beside ``fast`` at that size.
 
@@ -64,6 +66,8 @@ from pstoolkit.lights import build_light_model
 from pstoolkit.metrics import angular_error_deg, highlight_band, rim_band
 from pstoolkit.evaluation import score as score_normals
 from pstoolkit.plugins import get_registries
+from pstoolkit.shadows import ShadowEvidence, ShadowMask
+from pstoolkit.shadows.geometry import GeometryDetector
 from pstoolkit.shadows.score import score, true_shadows
 from pstoolkit.simulator import SimulationConfig, simulate
 
@@ -73,6 +77,8 @@ SPECULAR_RELIEF = ["f0=0.1", "roughness=0.25"]
 SHINY = ["f0=0.15", "roughness=0.25"]
 SEMI_RENDER_SCALE = 1.25
 DETECTORS = ("fused", "geometry", "silences", "spikes", "none")
+TRUTH = "truth"
+"""The ablation's ceiling row: ``geometry`` on the capture's true normals, not the solver's."""
 RULES = ("reset-at-end", "rate-limited")
 TIME_LIMIT_S = 60.0
 MARGIN_DEG = 1.0
@@ -178,15 +184,37 @@ def rows_of(captures: Captures, args: argparse.Namespace) -> list[dict[str, Any]
     return rows
 
 
+class TruthDetector(GeometryDetector):
+    """``geometry`` on the true normals of the capture being solved (``normal``, set per capture): the
+    mask a detector would give with a perfect surface, so ``none`` minus this row is the most any
+    detector of cast shadows can gain on the capture."""
+
+    name = TRUTH
+    summary = "cast shadows of the true surface (benchmark ceiling)"
+    normal: np.ndarray | None = None
+
+    def detect(self, evidence: ShadowEvidence, options: dict[str, Any]) -> ShadowMask:
+        assert TruthDetector.normal is not None
+        return super().detect(evidence.with_normal(TruthDetector.normal), options)
+
+
+def register_truth() -> None:
+    registry = get_registries().shadow_detectors
+    if TRUTH not in registry:
+        with registry.registering_for("benchmarks/dualres.py"):
+            registry.register(TruthDetector)
+
+
 def ablation_rows(captures: Captures, rule: str, args: argparse.Namespace) -> list[dict[str, Any]]:
     gt = captures.hybrid.ground_truth
+    TruthDetector.normal = np.asarray(gt.normal, dtype=np.float32)
     truth = None
     if gt.depth is not None:
         light = build_light_model(captures.hybrid.lights)
         t0 = float(captures.hybrid.frames.t_start_us.min())
         truth = true_shadows(gt.depth, gt.mask, light, t0, light.period_us)
     rows = []
-    for detector in DETECTORS:
+    for detector in args.detectors:
         row, solver = dualres_row(captures, [f"seed={args.seed}", f"shadow_detector={detector}"], psfmt.data_rate(captures.hybrid).rate)
         row.update(scene=captures.label, kind=captures.kind, rule=rule, detector=detector)
         if truth is not None:
@@ -243,14 +271,18 @@ def verdict(rows: list[dict[str, Any]], ablation: list[dict[str, Any]], size: in
     seconds = [r["seconds"] for r in rows if r["method"] == "dualres"]
     out["dualres_max_seconds"] = max(seconds) if seconds else None
     out["dualres_within_time_limit"] = (max(seconds) <= TIME_LIMIT_S) if seconds and size == 256 else None
-    gains = {}
+    gains, ceilings = {}, {}
     for (kind, scene) in dict.fromkeys((r["kind"], r["scene"]) for r in ablation):
         cell = {r["detector"]: r["mae_deg"] for r in ablation if (r["kind"], r["scene"], r["rule"]) == (kind, scene, RULES[0])}
         if "fused" in cell and "none" in cell:
             gains[f"{kind} {scene}"] = cell["none"] - cell["fused"]
+        if TRUTH in cell and "none" in cell:
+            ceilings[f"{kind} {scene}"] = cell["none"] - cell[TRUTH]
     if gains:
         out["ablation_gain_deg"] = gains
         out["default_detector_gains_0.5deg"] = all(g >= ABLATION_GAIN_DEG for g in gains.values())
+    if ceilings:
+        out["ablation_ceiling_gain_deg"] = ceilings
     return out
 
 
@@ -264,6 +296,8 @@ def main() -> None:
     parser.add_argument("--dualres-only", action="store_true", help="no baseline rows")
     parser.add_argument("--ablation", action="store_true", help="also the shadow ablation")
     parser.add_argument("--ablation-scenes", nargs="*", default=["bear", "cat", "blobs"])
+    parser.add_argument("--detectors", nargs="*", default=[*DETECTORS, TRUTH], help="the ablation's detector rows")
+    parser.add_argument("--rules", nargs="*", default=list(RULES), choices=RULES, help="the ablation's refractory rules")
     parser.add_argument("--paper-epochs", type=int, nargs="*", default=[], help="epochs of the paper preset's rows (none: skip)")
     parser.add_argument("--paper-size", type=int, default=128)
     parser.add_argument("--paper-scenes", nargs="*", default=["sphere", "bear"])
@@ -275,6 +309,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
+    if TRUTH in args.detectors:
+        register_truth()
     chosen = [(label, scene, SPECULAR_RELIEF if label == "relief" else options) for label, scene, options in scenes(args.geometry_root)
               if not args.scenes or label in args.scenes]
     makers = {"direct": direct, "semi": semi_real}
@@ -291,7 +327,7 @@ def main() -> None:
             for kind in args.kinds:
                 for label, scene, options in chosen:
                     if label in args.ablation_scenes:
-                        for rule in RULES:
+                        for rule in args.rules:
                             ablation += ablation_rows(makers[kind](label, scene, options, args, folder, rule), rule, args)
         if args.paper_epochs:
             small = argparse.Namespace(**{**vars(args), "size": args.paper_size})
@@ -302,7 +338,7 @@ def main() -> None:
     table(rows, "method", f"Accuracy, {args.size} px frames, events at half that",
           extra=("coverage", "data_rate", "highlight_mae_deg", "rim_mae_deg"))
     if ablation:
-        for rule in RULES:
+        for rule in args.rules:
             table([r for r in ablation if r["rule"] == rule], "detector", f"Shadow ablation, {rule}, {args.size} px",
                   extra=("precision", "recall"))
     if paper:
