@@ -13,7 +13,7 @@ events at ``--event-scale`` of the frame resolution over ``--periods`` turns. Ro
 - ``eventps`` on the hybrid capture's events alone, and as the paper has it (``reweight=0``: plain
   least squares; ``fill=false``: pixels without their own fit left out).
 
-Scores are those of ``pstoolkit run`` (``pstoolkit.evaluation.score``): MAE over the ground-truth
+Scores are those of ``pstoolkit run`` (``pstoolkit.evaluation.scoring.score``): MAE over the ground-truth
 mask with an unsolved pixel counted as 90°, ``coverage`` (share of mask pixels solved) and
 ``mae_solved_deg`` (MAE over them). Data rate counts only the data the row uses (frames as 24-bit RGB,
 events as 16-bit words; 100 % = 24 RGB frames per turn).
@@ -52,12 +52,12 @@ from typing import Any
 import numpy as np
 
 import psfmt
-from pstoolkit import eventps
-from pstoolkit.evaluation import score
-from pstoolkit.lights import build_light_model
-from pstoolkit.plugins import get_registries
-from pstoolkit.simulator import SimulationConfig, simulate
-from pstoolkit.solver import no_progress, run_solver
+from pstoolkit.events import eventps
+from pstoolkit.evaluation.scoring import score
+from pstoolkit.optics.lights import build_light_model
+from pstoolkit.plugin.manager import get_registries
+from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit.solve.base import no_progress, run_solver
 from pstoolkit_eventps.resample import Resampler
 from results_io import write_results
 

@@ -20,7 +20,7 @@ Rows per capture: ``dualres`` (the default preset, or ``--dualres-options``), ``
 three exposures, ``eventps`` on the same events, ``frameps`` with 24 lights plain and robust
 (``robust=true``, the strongest frame baseline). Scores are ``pstoolkit run``'s (unsolved pixels count
 90°, with the coverage); dualres rows also give the MAE in the highlight band (where a GGX lobe at
-the scene's roughness passes over the pixel during the turn, ``pstoolkit.metrics.highlight_band``)
+the scene's roughness passes over the pixel during the turn, ``pstoolkit.evaluation.metrics.highlight_band``)
 and in the rim band (the outer 5 % of the object's radius, ``rim_band``). Seconds are wall seconds of
 the solver on this machine (torch's default threads).
 
@@ -62,14 +62,14 @@ from pstoolkit_diligent.rendered import semi_real_from_capture
 from results_io import write_results
 
 import psfmt
-from pstoolkit.lights import build_light_model
-from pstoolkit.metrics import angular_error_deg, highlight_band, rim_band
-from pstoolkit.evaluation import score as score_normals
-from pstoolkit.plugins import get_registries
+from pstoolkit.optics.lights import build_light_model
+from pstoolkit.evaluation.metrics import angular_error_deg, highlight_band, rim_band
+from pstoolkit.evaluation.scoring import score as score_normals
+from pstoolkit.plugin.manager import get_registries
 from pstoolkit.shadows import ShadowEvidence, ShadowMask
 from pstoolkit.shadows.geometry import GeometryDetector
 from pstoolkit.shadows.score import score, true_shadows
-from pstoolkit.simulator import SimulationConfig, simulate
+from pstoolkit.sim.simulator import SimulationConfig, simulate
 
 RESULTS = Path(__file__).resolve().parent / "results" / "dualres.json"
 DILIGENT_LIGHTS = Path("/work/shared/data/diligent-lights/light_directions.txt")

@@ -1,4 +1,4 @@
-"""Speed of the ESIM-style event generator (``pstoolkit.esim.simulate_events``).
+"""Speed of the ESIM-style event generator (``pstoolkit.sim.esim.simulate_events``).
 
 A Lambertian sphere on a black background at 128×128 event pixels, lit by a light circling at 47°
 zenith, one period of 33 333 µs (30 rounds/s), C = 0.15, rendered in numpy (one small matrix
@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from pstoolkit.esim import simulate_events
+from pstoolkit.sim.esim import simulate_events
 from results_io import write_results
 
 RESULTS = Path(__file__).resolve().parent / "results" / "esim.json"

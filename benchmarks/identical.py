@@ -33,10 +33,10 @@ from pstoolkit_diligent.rendered import semi_real_from_capture
 from results_io import write_results
 
 import psfmt
-from pstoolkit.evaluation import score
-from pstoolkit.plugins import get_registries
-from pstoolkit.simulator import SimulationConfig, simulate
-from pstoolkit.solver import run_solver
+from pstoolkit.evaluation.scoring import score
+from pstoolkit.plugin.manager import get_registries
+from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit.solve.base import run_solver
 
 RESULTS = Path(__file__).resolve().parent / "results" / "identical.json"
 SOLVERS: tuple[tuple[str, str, list[str]], ...] = (

@@ -3,13 +3,13 @@
 Simulates one light period of a 256×256-frame / 128×128-event hybrid capture (three long exposures,
 C = 0.15, the CLI's other defaults) of each scene into a temporary folder, and reports the seconds of
 the whole ``simulate`` call (scene, rendering, events and frames in one pass, writing the HDF5 file),
-the events per second of it, and — for the compiled engine (``pstoolkit.simkernel``, the CPU path) —
+the events per second of it, and — for the compiled engine (``pstoolkit.sim.ring_engine``, the CPU path) —
 the seconds and events per second of the engine alone (events and exposure sums, no file); the best
 of ``--repeat`` runs, as the machine may be shared. Peak memory: the process's peak resident size
 (``resource.getrusage``, includes torch and the interpreter) and the peak of Python-tracked
 allocations (``tracemalloc``, numpy arrays included, torch tensors not; measured in a separate run,
 as tracing slows allocation). Threads: numba's (``NUMBA_NUM_THREADS``, default all cores). Freed
-memory is kept for reuse, as the ``pstoolkit`` command keeps it (``pstoolkit.allocator``; ``--no-keep``
+memory is kept for reuse, as the ``pstoolkit`` command keeps it (``pstoolkit._shared.allocator``; ``--no-keep``
 leaves glibc's defaults); the first run of each scene is reported beside the best (the first scene's
 also loads the compiled engine). Prints a table and writes ``benchmarks/results/simulate.json``.
 
@@ -38,11 +38,11 @@ import torch
 from results_io import write_results
 
 import psfmt
-from pstoolkit import simkernel
-from pstoolkit.allocator import keep_freed_memory
-from pstoolkit.eventmodel import REFRACTORY_RULES
-from pstoolkit.plugins import get_registries
-from pstoolkit.simulator import (
+from pstoolkit.sim import ring_engine as simkernel
+from pstoolkit._shared.allocator import keep_freed_memory
+from pstoolkit.events.rule import REFRACTORY_RULES
+from pstoolkit.plugin.manager import get_registries
+from pstoolkit.sim.simulator import (
     SimulationConfig,
     build_renderer,
     build_scene,
@@ -100,7 +100,7 @@ def main() -> None:
     parser.add_argument("--refractory-rule", default=SimulationConfig.refractory_rule, choices=REFRACTORY_RULES)
     parser.add_argument("--repeat", type=int, default=1, help="runs per scene; the fastest is kept")
     parser.add_argument("--no-keep", action="store_true",
-                        help="leave glibc's allocator defaults (see pstoolkit.allocator)")
+                        help="leave glibc's allocator defaults (see pstoolkit._shared.allocator)")
     args = parser.parse_args()
     kept = False if args.no_keep else keep_freed_memory()
     rows = []

@@ -1,18 +1,53 @@
 """pstoolkit — the photometric-stereo core: plugins and registries, shared maths, simulator, CLI.
 
+The package is split by job: ``plugin`` (hook specifications, the plugin manager, registries, typed
+options), ``optics`` (light models, equivalent lights, light layouts, BRDFs), ``events`` (the event
+rule and the EventPS relation), ``sim`` (scenes, renderer, event engines, the simulator), ``solve``
+(the solver interface, result folders, batch runs), ``shadows`` (cast-shadow detectors),
+``surface`` (normal integration), ``evaluation`` (scores, tables, the report), ``hardware``
+(backends, calibration), ``io`` (normal maps, DiLiGenT folders, converters) and ``cli``.
+
 A plugin imports what it needs from here: ``hookimpl`` to mark its hook functions, ``Option`` for
-typed options, ``Solver`` and ``SolverResult`` for solvers, ``Converter`` for dataset converters,
-``LightBackend`` and ``CameraSource`` for hardware.
+typed options, ``Registry`` for the registries its hooks receive, ``Solver``/``SolverResult`` and
+``Progress`` for solvers, ``Converter`` for dataset converters, ``LightBackend`` and ``CameraSource``
+for hardware, ``LightModel`` and the built-in light models, ``BRDF``/``FitParam`` for reflectance
+models, ``ShadowDetector`` and its evidence and mask types for shadow detectors, ``UserError`` for
+one-line errors, and the units and constants (``US_PER_S``, ``GREY_WEIGHTS``). Importing the
+package loads neither torch nor numba: ``BRDF`` and ``FitParam`` (torch) load on first use.
 """
 
 from __future__ import annotations
 
+from typing import Any
+
 __version__ = "0.1.0"
 
-from pstoolkit.backend import CameraSource, LightBackend
-from pstoolkit.converter import Converter
-from pstoolkit.options import Option
-from pstoolkit.plugins import get_registries, hookimpl
-from pstoolkit.solver import Solver, SolverResult
+from pstoolkit.errors import UserError
+from pstoolkit.events.rule import GREY_WEIGHTS
+from pstoolkit.hardware.backend import CameraSource, LightBackend
+from pstoolkit.io.converter import Converter
+from pstoolkit.optics.lights import US_PER_S, LightModel, NearRingLight, RingLight, SampledLight, build_light_model
+from pstoolkit.plugin.manager import get_registries, hookimpl
+from pstoolkit.plugin.options import Option
+from pstoolkit.plugin.registry import Registry
+from pstoolkit.shadows import ShadowDetector, ShadowEvidence, ShadowIntervals, ShadowMask
+from pstoolkit.solve.base import Progress, Solver, SolverResult, no_progress
 
-__all__ = ["CameraSource", "Converter", "LightBackend", "Option", "Solver", "SolverResult", "__version__", "get_registries", "hookimpl"]
+_TORCH_NAMES = {"BRDF": "pstoolkit.optics.brdf", "FitParam": "pstoolkit.optics.brdf"}
+
+
+def __getattr__(name: str) -> Any:
+    # PEP 562: the torch-backed names load on first use so that `import pstoolkit` stays light
+    if name in _TORCH_NAMES:
+        import importlib
+
+        return getattr(importlib.import_module(_TORCH_NAMES[name]), name)
+    raise AttributeError(f"module 'pstoolkit' has no attribute {name!r}")
+
+
+__all__ = [
+    "BRDF", "GREY_WEIGHTS", "US_PER_S", "CameraSource", "Converter", "FitParam", "LightBackend", "LightModel",
+    "NearRingLight", "Option", "Progress", "Registry", "RingLight", "SampledLight", "ShadowDetector", "ShadowEvidence",
+    "ShadowIntervals", "ShadowMask", "Solver", "SolverResult", "UserError", "__version__", "build_light_model",
+    "get_registries", "hookimpl", "no_progress",
+]

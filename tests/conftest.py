@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from pstoolkit.simulator import SimulationConfig, simulate
+from pstoolkit.sim.simulator import SimulationConfig, simulate
 
 
 @pytest.fixture(scope="session")

@@ -1,4 +1,4 @@
-"""``pstoolkit.allocator``: after ``keep_freed_memory`` a large array comes from the heap, not from
+"""``pstoolkit._shared.allocator``: after ``keep_freed_memory`` a large array comes from the heap, not from
 fresh mmap pages, and the CLI sets it at start."""
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ class Info(ctypes.Structure):
 libc = ctypes.CDLL("libc.so.6")
 libc.mallinfo2.restype = Info
 if sys.argv[1] == "keep":
-    from pstoolkit.allocator import keep_freed_memory
+    from pstoolkit._shared.allocator import keep_freed_memory
     assert keep_freed_memory()
 before = libc.mallinfo2().hblkhd
 block = np.ones(8 << 20, dtype=np.uint8)

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from pstoolkit.brdf import GGX, MIN_ROUGHNESS, SG_SHARPNESS, Lambertian, MetallicGGX, MLPBases, SphericalGaussians, pbr_from_specular
-from pstoolkit.plugins import get_registries
+from pstoolkit.optics.brdf import GGX, MIN_ROUGHNESS, SG_SHARPNESS, Lambertian, MetallicGGX, MLPBases, SphericalGaussians, pbr_from_specular
+from pstoolkit.plugin.manager import get_registries
 
 
 def _unit(a: np.ndarray) -> np.ndarray:

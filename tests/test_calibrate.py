@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import psfmt
-from pstoolkit.calibrate import (
+from pstoolkit.hardware.calibrate import (
     apply_affine,
     blob_centres,
     calibrate_target,

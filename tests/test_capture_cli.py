@@ -17,12 +17,13 @@ from test_calibrate import led_target
 from test_replay import PERIOD_US, write_recording
 
 import psfmt
-from pstoolkit import hookimpl, plugins
+from pstoolkit import hookimpl
+from pstoolkit.plugin import manager as plugins
 from pstoolkit.cli import main
-from pstoolkit.metrics import angular_error_deg
-from pstoolkit.plugins import get_registries
-from pstoolkit.registry import Registry
-from pstoolkit.solver import run_solver
+from pstoolkit.evaluation.metrics import angular_error_deg
+from pstoolkit.plugin.manager import get_registries
+from pstoolkit.plugin.registry import Registry
+from pstoolkit.solve.base import run_solver
 
 
 @pytest.fixture(scope="module")

@@ -20,7 +20,7 @@ from pstoolkit_diligent.semireal import BOUNDARY_LOOP
 import psfmt
 from pstoolkit.cli import main
 from pstoolkit.errors import UserError
-from pstoolkit.options import Option, parse_assignments
+from pstoolkit.plugin.options import Option, parse_assignments
 
 SEMI_SIZE = 32
 

@@ -18,12 +18,12 @@ from pstoolkit_diligent.rendered import semi_real_from_capture
 from pstoolkit_diligent.semireal import BOUNDARY_LOOP
 
 import psfmt
-import pstoolkit.diligentexport
+import pstoolkit.io.diligent_export
 from pstoolkit.cli import main
-from pstoolkit.diligentexport import export_diligent
+from pstoolkit.io.diligent_export import export_diligent
 from pstoolkit.errors import UserError
-from pstoolkit.layouts import grid_directions
-from pstoolkit.simulator import SimulationConfig, simulate
+from pstoolkit.optics.layouts import grid_directions
+from pstoolkit.sim.simulator import SimulationConfig, simulate
 
 
 @pytest.fixture(scope="module")
@@ -168,7 +168,7 @@ def test_a_failure_midway_leaves_no_folder_and_the_old_one_intact(existing: bool
         folder.mkdir()
         (folder / "notes.txt").write_text("mine")
     written = []
-    real = pstoolkit.diligentexport.write_png
+    real = pstoolkit.io.diligent_export.write_png
 
     def failing(path: Path, image: np.ndarray) -> None:
         if len(written) == 5:
@@ -176,7 +176,7 @@ def test_a_failure_midway_leaves_no_folder_and_the_old_one_intact(existing: bool
         real(path, image)
         written.append(path)
 
-    monkeypatch.setattr(pstoolkit.diligentexport, "write_png", failing)
+    monkeypatch.setattr(pstoolkit.io.diligent_export, "write_png", failing)
     with pytest.raises(KeyboardInterrupt):
         export_diligent(grid8, folder, force=True)
     assert len(written) == 5 and all(p.parent != folder for p in written)

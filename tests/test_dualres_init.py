@@ -14,7 +14,7 @@ from pstoolkit_dualres.init import closed_form
 from pstoolkit_dualres.preprocess import Preprocessed, PreprocessOptions, preprocess
 
 import psfmt
-from pstoolkit.metrics import angular_error_deg
+from pstoolkit.evaluation.metrics import angular_error_deg
 
 
 @pytest.fixture(scope="module")

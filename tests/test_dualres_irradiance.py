@@ -14,7 +14,7 @@ from pstoolkit_dualres.preprocess import PreprocessOptions, preprocess
 import psfmt
 from pstoolkit.errors import UserError
 from pstoolkit.shadows import interval_profile
-from pstoolkit.simulator import SimulationConfig, simulate
+from pstoolkit.sim.simulator import SimulationConfig, simulate
 
 T = 33_333.0
 C = 0.15

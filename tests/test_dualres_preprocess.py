@@ -14,10 +14,10 @@ from pstoolkit_dualres.sampling import Samples, importance_samples, segment_coun
 
 import psfmt
 from pstoolkit.errors import UserError
-from pstoolkit.eventmodel import consecutive_pairs
+from pstoolkit.events.rule import consecutive_pairs
 from pstoolkit.shadows import interval_profile
 from pstoolkit.shadows.score import true_shadows
-from pstoolkit.simulator import SimulationConfig, simulate
+from pstoolkit.sim.simulator import SimulationConfig, simulate
 
 from event_rows import event_stream, shading
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pstoolkit import equivalent
-from pstoolkit.equivalent import DEFAULT_SAMPLES, equivalent_lights, sample_times
-from pstoolkit.lights import NearRingLight, RingLight, SampledLight
+from pstoolkit.optics import equivalent
+from pstoolkit.optics.equivalent import DEFAULT_SAMPLES, equivalent_lights, sample_times
+from pstoolkit.optics.lights import NearRingLight, RingLight, SampledLight
 
 PERIOD_US = 33333.0
 

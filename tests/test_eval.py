@@ -14,8 +14,8 @@ import pytest
 
 import psfmt
 from pstoolkit.cli import main
-from pstoolkit.evaluation import Record, collect, markdown_table
-from pstoolkit.metrics import angular_error_deg
+from pstoolkit.evaluation.scoring import Record, collect, markdown_table
+from pstoolkit.evaluation.metrics import angular_error_deg
 from test_run_cli import lsq_plugin, simulate_sphere
 
 

@@ -10,14 +10,14 @@ import pytest
 
 import psfmt
 from psfmt import EventArray
-from pstoolkit import eventfill, eventps
+from pstoolkit.events import eventps, fill as eventfill
 from pstoolkit.errors import UserError
-from pstoolkit.esim import simulate_events
-from pstoolkit.lights import RingLight, SampledLight, build_light_model
-from pstoolkit.metrics import angular_error_deg
-from pstoolkit.plugins import get_registries
-from pstoolkit.simulator import SimulationConfig, simulate
-from pstoolkit.solver import SolverResult, run_solver
+from pstoolkit.sim.esim import simulate_events
+from pstoolkit.optics.lights import RingLight, SampledLight, build_light_model
+from pstoolkit.evaluation.metrics import angular_error_deg
+from pstoolkit.plugin.manager import get_registries
+from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit.solve.base import SolverResult, run_solver
 
 LUMA = np.array([0.299, 0.587, 0.114])
 NORMAL = np.array([0.3, -0.2, 0.9]) / np.linalg.norm([0.3, -0.2, 0.9])
@@ -136,7 +136,7 @@ def test_too_many_windows_is_one_clear_error() -> None:
     capture.ground_truth = psfmt.GroundTruth(normal=np.broadcast_to(np.float32(0.0), (16384, 16384, 3)))
     message = (
         r"^eventps: window_us=10 gives 4001 windows, 12003\.0 GiB of normal maps \(at most 4 GiB\); "
-        r"use longer windows, or pstoolkit\.eventps\.stream to take them one at a time$"
+        r"use longer windows, or pstoolkit\.events\.eventps\.stream to take them one at a time$"
     )
     with pytest.raises(UserError, match=message):
         _solve(capture, "window_us=10")
@@ -317,7 +317,7 @@ def test_the_per_pixel_fit_matches_lapack() -> None:
     """``robust_fit`` without reweighting solves each pixel by the adjugate (no trigonometry): the same
     smallest eigenvector and eigenvalues as LAPACK on Σ u uᵀ of noisy constraints, and no normal for a
     pixel below ``min_pairs`` or with parallel constraints."""
-    from pstoolkit.eventkernel import robust_fit
+    from pstoolkit.events.relation_kernel import robust_fit
 
     rng = np.random.default_rng(5)
     truth = rng.normal(size=(300, 3))
@@ -337,7 +337,7 @@ def test_the_per_pixel_fit_matches_lapack() -> None:
 
 
 def test_closed_form_eigenvectors_match_lapack() -> None:
-    from pstoolkit.eventnormals import symmetric_eigen
+    from pstoolkit.events.relation import symmetric_eigen
 
     rng = np.random.default_rng(3)
     v = rng.normal(size=(500, 6, 3))

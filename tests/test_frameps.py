@@ -10,10 +10,10 @@ import pytest
 
 import psfmt
 from pstoolkit.errors import UserError
-from pstoolkit.metrics import angular_error_deg
-from pstoolkit.plugins import get_registries
-from pstoolkit.simulator import SimulationConfig, simulate
-from pstoolkit.solver import SolverResult, run_solver
+from pstoolkit.evaluation.metrics import angular_error_deg
+from pstoolkit.plugin.manager import get_registries
+from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit.solve.base import SolverResult, run_solver
 
 
 def _solve(capture: psfmt.Capture, *assignments: str) -> SolverResult:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from pstoolkit import hookspecs
+from pstoolkit.plugin import spec as hookspecs
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = (ROOT / "docs" / "hooks.md").read_text()

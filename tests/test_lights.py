@@ -10,7 +10,7 @@ import pytest
 import psfmt
 from psfmt import LightSpec
 from pstoolkit.errors import UserError
-from pstoolkit.lights import LightModel, NearRingLight, RingLight, SampledLight, build_light_model, pixel_points_mm
+from pstoolkit.optics.lights import LightModel, NearRingLight, RingLight, SampledLight, build_light_model, pixel_points_mm
 
 
 def test_ring_direction_formula() -> None:

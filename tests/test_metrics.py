@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pstoolkit.errors import UserError
-from pstoolkit.metrics import angular_error_deg, error_stats, highlight_band, rim_band
+from pstoolkit.evaluation.metrics import angular_error_deg, error_stats, highlight_band, rim_band
 
 
 def test_known_angles() -> None:

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from pstoolkit.errors import UserError
-from pstoolkit.metrics import angular_error_deg
-from pstoolkit.normalmap import (
+from pstoolkit.evaluation.metrics import angular_error_deg
+from pstoolkit.io.normalmap import (
     normal_to_rgb,
     read_geometry_folder,
     read_normal_npy,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from pstoolkit.errors import UserError
-from pstoolkit.options import Option, defaults, parse_assignments
+from pstoolkit.plugin.options import Option, defaults, parse_assignments
 
 OPTIONS = (
     Option("frames", int, 3, "frames per period", minimum=1, maximum=24),

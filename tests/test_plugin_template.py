@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 
 import psfmt
-from pstoolkit import plugins
+from pstoolkit.plugin import manager as plugins
 from pstoolkit.cli import main
 from pstoolkit.cli.app import terminal_progress
 from pstoolkit.errors import UserError
-from pstoolkit.lights import build_light_model
-from pstoolkit.plugins import get_registries
-from pstoolkit.registry import PluginError
-from pstoolkit.solver import SolverResult, check_inputs, resolve_device, run_solver
+from pstoolkit.optics.lights import build_light_model
+from pstoolkit.plugin.manager import get_registries
+from pstoolkit.plugin.registry import PluginError
+from pstoolkit.solve.base import SolverResult, check_inputs, resolve_device, run_solver
 from test_plugins import fake_distribution
 
 TEMPLATE = Path(__file__).resolve().parents[1] / "examples" / "plugin-template"
@@ -248,7 +248,7 @@ class Broken:
 
 
 def test_run_solver_guards_against_bad_results_and_missing_inputs(monkeypatch: pytest.MonkeyPatch) -> None:
-    from pstoolkit.registry import Registry
+    from pstoolkit.plugin.registry import Registry
 
     registry = Registry("solver")
     with registry.registering_for("shoddy"):

@@ -12,12 +12,12 @@ import typer
 from typer.testing import CliRunner
 
 import pstoolkit
-from pstoolkit import hookspecs, plugins
+from pstoolkit.plugin import manager as plugins, spec as hookspecs
 from pstoolkit.cli import main
 from pstoolkit.errors import UserError
-from pstoolkit.options import Option
-from pstoolkit.plugins import PluginInfo, get_registries, load_failures, loaded_plugins
-from pstoolkit.registry import PluginError, Registry
+from pstoolkit.plugin.options import Option
+from pstoolkit.plugin.manager import PluginInfo, get_registries, load_failures, loaded_plugins
+from pstoolkit.plugin.registry import PluginError, Registry
 
 FAKE_PREFIX = "pskfake_"
 
@@ -61,9 +61,9 @@ def fresh(monkeypatch: pytest.MonkeyPatch):
 def solver_plugin(solver: str, *, option: bool = False) -> str:
     opts = '(Option("level", float, 0.5, "a level", minimum=0.0),)' if option else "()"
     return f"""
-        from pstoolkit import Option, hookimpl
+        from pstoolkit import Option, Solver, hookimpl
 
-        class Thing:
+        class Thing(Solver):
             name = {solver!r}
             summary = "registers {solver}"
             options = {opts}
@@ -75,40 +75,38 @@ def solver_plugin(solver: str, *, option: bool = False) -> str:
 
 
 ALL_HOOKS = """
-    from pstoolkit import hookimpl
+    from pstoolkit import BRDF, Converter, LightBackend, LightModel, ShadowDetector, Solver, hookimpl
+    from pstoolkit.sim.scenes import Scene
 
     __version__ = "9.9"
 
-    class Thing:
-        pass
-
     @hookimpl
     def pstoolkit_register_light_models(registry):
-        registry.register(Thing, name="fake-light", summary="a light model")
+        registry.register(LightModel, name="fake-light", summary="a light model")
 
     @hookimpl
     def pstoolkit_register_shadow_detectors(registry):
-        registry.register(Thing, name="fake-shadow", summary="a shadow detector")
+        registry.register(ShadowDetector, name="fake-shadow", summary="a shadow detector")
 
     @hookimpl
     def pstoolkit_register_brdfs(registry):
-        registry.register(Thing, name="fake-brdf", summary="a BRDF")
+        registry.register(BRDF, name="fake-brdf", summary="a BRDF")
 
     @hookimpl
     def pstoolkit_register_solvers(registry):
-        registry.register(Thing, name="fake-solver", summary="a solver")
+        registry.register(Solver, name="fake-solver", summary="a solver")
 
     @hookimpl
     def pstoolkit_register_backends(registry):
-        registry.register(Thing, name="fake-backend", summary="a backend")
+        registry.register(LightBackend, name="fake-backend", summary="a backend")
 
     @hookimpl
     def pstoolkit_register_converters(registry):
-        registry.register(Thing, name="fake-converter", summary="a converter")
+        registry.register(Converter, name="fake-converter", summary="a converter")
 
     @hookimpl
     def pstoolkit_register_scenes(registry):
-        registry.register(Thing, name="fake-scene", summary="a scene")
+        registry.register(Scene, name="fake-scene", summary="a scene")
 
     @hookimpl
     def pstoolkit_add_commands(app):
@@ -203,9 +201,9 @@ def test_broken_plugin_is_reported_and_the_rest_still_load(
 
 def test_a_hook_that_raises_is_reported_and_its_other_hooks_still_run(fresh: pytest.MonkeyPatch, tmp_path: Path) -> None:
     source = """
-        from pstoolkit import hookimpl
+        from pstoolkit import Solver, hookimpl
 
-        class Thing:
+        class Thing(Solver):
             name = "steady"
             summary = "still registered"
 
@@ -338,9 +336,9 @@ def test_plugins_text_without_any_plugin(fresh: pytest.MonkeyPatch, capsys: pyte
 
 
 def test_core_plugin_registers_the_builtins_through_its_entry_point(fresh: pytest.MonkeyPatch) -> None:
-    from pstoolkit.brdf import GGX, Lambertian
-    from pstoolkit.lights import NearRingLight, RingLight, SampledLight
-    from pstoolkit.scenes import SCENES
+    from pstoolkit.optics.brdf import GGX, Lambertian
+    from pstoolkit.optics.lights import NearRingLight, RingLight, SampledLight
+    from pstoolkit.sim.scenes import SCENES
 
     fresh.setenv(plugins.ALLOW_ENV, "core")
     (core,) = loaded_plugins()
@@ -394,7 +392,7 @@ BAD_NAME = "name must be a non-empty word of letters, digits, '.', '_', '+' or '
         ({"name": "two words", "summary": "s"}, f"BRDF 'two words': {BAD_NAME} 'two words'"),
         ({"name": "ok", "summary": "line one\nline two"}, "BRDF 'ok': summary must be one non-empty line, got 'line one\\nline two'"),
         ({"name": "ok", "summary": " "}, "BRDF 'ok': summary must be one non-empty line, got ' '"),
-        ({"name": "ok", "summary": "s", "options": ["k"]}, "BRDF 'ok': options must be a tuple of pstoolkit.options.Option"),
+        ({"name": "ok", "summary": "s", "options": ["k"]}, "BRDF 'ok': options must be a tuple of pstoolkit.plugin.options.Option"),
         (
             {"name": "ok", "summary": "s", "options": (Option("k", int, 1, "a"), Option("k", int, 2, "b"))},
             "BRDF 'ok': option 'k' is declared twice",
@@ -420,3 +418,43 @@ def test_the_same_plugin_registering_a_name_twice() -> None:
         registry.register(Named)
         with pytest.raises(PluginError, match=r"^scene 'ring' is registered twice by plugin 'p'$"):
             registry.register(Named)
+
+
+def test_registries_refuse_an_object_of_another_kind() -> None:
+    from pstoolkit.plugin.registry import Registries
+    from pstoolkit.solve.base import Solver
+
+    class Mistaken(Solver):
+        name = "mistaken"
+        summary = "a solver offered as a BRDF"
+
+    registries = Registries()
+    with registries.brdfs.registering_for("p"), pytest.raises(PluginError) as info:
+        registries.brdfs.register(Mistaken)
+    assert str(info.value) == (
+        f"plugin 'p': BRDF 'mistaken' is {__name__}.{Mistaken.__qualname__}, not a subclass of pstoolkit.optics.brdf.BRDF"
+    )
+    assert registries.brdfs.names() == []
+    with registries.backends.registering_for("p"), pytest.raises(PluginError, match="LightBackend or .*CameraSource$"):
+        registries.backends.register(Mistaken)
+    registries.solvers.register(Mistaken)
+    assert registries.solvers.get("mistaken").obj is Mistaken
+
+
+def test_a_plugin_registering_the_wrong_kind_gets_a_one_line_error(
+    fresh: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    install(fresh, tmp_path, {"mixed": """
+        from pstoolkit import Solver, hookimpl
+
+        class Fit(Solver):
+            name = "fit"
+            summary = "a solver"
+
+        @hookimpl
+        def pstoolkit_register_brdfs(registry):
+            registry.register(Fit)
+        """})
+    assert main(["plugins"]) == 2
+    err = capsys.readouterr().err
+    assert err == "pstoolkit: error: plugin 'mixed': BRDF 'fit' is pskfake_mixed.Fit, not a subclass of pstoolkit.optics.brdf.BRDF\n"

@@ -1,4 +1,4 @@
-"""The two refractory rules of ``pstoolkit.eventmodel`` ("reset-at-end", "rate-limited") in both event
+"""The two refractory rules of ``pstoolkit.events.rule`` ("reset-at-end", "rate-limited") in both event
 engines: against an event-by-event reference on random piecewise-linear log signals, on analytic
 ramps, steps and a lag that outlives its change; the engines against each other on a scene;
 ``exact_pairs`` against the true log change; the rule through the simulator, the semi-real converter
@@ -14,17 +14,17 @@ from diligent_fixture import write_diligent
 
 import psfmt
 from psfmt import EventArray
-from pstoolkit import simkernel
-from pstoolkit.brdf import GGX
+from pstoolkit.sim import ring_engine as simkernel
+from pstoolkit.optics.brdf import GGX
 from pstoolkit.cli import main
 from pstoolkit.errors import UserError
-from pstoolkit.esim import _PacedPixels, simulate_events
-from pstoolkit.eventmodel import LOG_EPS, REFRACTORY_RULES, exact_pairs, log_irradiance
-from pstoolkit.lights import RingLight
-from pstoolkit.options import defaults
-from pstoolkit.render import Renderer, exposure_samples
-from pstoolkit.scenes import Blobs
-from pstoolkit.simulator import SHADOW_STEP_DEG
+from pstoolkit.sim.esim import _PacedPixels, simulate_events
+from pstoolkit.events.rule import LOG_EPS, REFRACTORY_RULES, exact_pairs, log_irradiance
+from pstoolkit.optics.lights import RingLight
+from pstoolkit.plugin.options import defaults
+from pstoolkit.sim.render import Renderer, exposure_samples
+from pstoolkit.sim.scenes import Blobs
+from pstoolkit.sim.simulator import SHADOW_STEP_DEG
 
 C = 0.15
 RESET, PACED = REFRACTORY_RULES
@@ -89,7 +89,7 @@ def random_signals(seed: int, count: int = 6, knots: int = 40) -> tuple[np.ndarr
 
 
 def esim_events(t: np.ndarray, level: np.ndarray, rule: str, r_us: float) -> list[tuple[np.ndarray, np.ndarray]]:
-    """``pstoolkit.esim`` on the signals, one pixel each, with samples at every knot (the log is
+    """``pstoolkit.sim.esim`` on the signals, one pixel each, with samples at every knot (the log is
     linear between them, so the generator's lines are the signal's)."""
 
     def render(times: np.ndarray) -> np.ndarray:
@@ -103,7 +103,7 @@ def esim_events(t: np.ndarray, level: np.ndarray, rule: str, r_us: float) -> lis
 
 
 def kernel_events(t: np.ndarray, level: np.ndarray, rule: str, r_us: float) -> list[tuple[np.ndarray, np.ndarray]]:
-    """``pstoolkit.simkernel``'s firing and emission code on the signals, one lane each, stepped as
+    """``pstoolkit.sim.ring_engine``'s firing and emission code on the signals, one lane each, stepped as
     its pixels step: lines changing L by at most C/2, jumps whole (as a step at ``min_dt_us``)."""
     lanes = len(level)
     times = [t[:1]]
@@ -298,7 +298,7 @@ def kernel_scene(r: Renderer, rule: str, r_us: float) -> EventArray:
 
 @pytest.mark.parametrize("rule", REFRACTORY_RULES)
 def test_the_engines_agree_on_a_scene(blobs: Renderer, rule: str) -> None:
-    """Blobs under a ring light, R = 1.5 ms: the compiled engine and ``pstoolkit.esim`` (whole-frame
+    """Blobs under a ring light, R = 1.5 ms: the compiled engine and ``pstoolkit.sim.esim`` (whole-frame
     renders refined per pixel) give event counts within 1 % and within one event for most pixels."""
     events = kernel_scene(blobs, rule, 1500.0)
     reference = EventArray.concatenate(list(simulate_events(

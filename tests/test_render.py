@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from scipy.ndimage import distance_transform_edt, map_coordinates
 
-from pstoolkit.equivalent import equivalent_lights, sample_times
-from pstoolkit.lights import NearRingLight, RingLight
-from pstoolkit.options import defaults
-from pstoolkit.plugins import get_registries
-from pstoolkit.render import (
+from pstoolkit.optics.equivalent import equivalent_lights, sample_times
+from pstoolkit.optics.lights import NearRingLight, RingLight
+from pstoolkit.plugin.options import defaults
+from pstoolkit.plugin.manager import get_registries
+from pstoolkit.sim.render import (
     Renderer,
     ShadowCaster,
     area_weights,
@@ -18,7 +18,7 @@ from pstoolkit.render import (
     exposure_samples,
     integrate,
 )
-from pstoolkit.scenes import Blobs, SceneMaps, Sphere
+from pstoolkit.sim.scenes import Blobs, SceneMaps, Sphere
 
 LAMBERTIAN = get_registries().brdfs.get("lambertian").obj
 GGX = get_registries().brdfs.get("ggx").obj

@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 
 from psfmt import EventArray
-from pstoolkit.brdf import GGX, Lambertian
+from pstoolkit.optics.brdf import GGX, Lambertian
 from pstoolkit.errors import UserError
-from pstoolkit.esim import simulate_events
-from pstoolkit.lights import RingLight
-from pstoolkit.options import defaults
-from pstoolkit.render import Renderer, exposure_samples, integrate
-from pstoolkit.scenes import Blobs, Relief, Sphere
+from pstoolkit.sim.esim import simulate_events
+from pstoolkit.optics.lights import RingLight
+from pstoolkit.plugin.options import defaults
+from pstoolkit.sim.render import Renderer, exposure_samples, integrate
+from pstoolkit.sim.scenes import Blobs, Relief, Sphere
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_esim import PERIOD_US, SIZE, sine_scene, threshold_residuals

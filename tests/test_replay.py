@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import psfmt
-from pstoolkit.backend import (
+from pstoolkit.hardware.backend import (
     CameraSource,
     EventBlock,
     FrameBlock,
@@ -20,8 +20,8 @@ from pstoolkit.backend import (
     backend_class,
 )
 from pstoolkit.errors import UserError
-from pstoolkit.lights import RingLight
-from pstoolkit.plugins import get_registries
+from pstoolkit.optics.lights import RingLight
+from pstoolkit.plugin.manager import get_registries
 
 PERIOD_US = 6000
 

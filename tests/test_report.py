@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import psfmt
-from pstoolkit.batch import Outcome, plan, run_pair, solver_options, write_log
+from pstoolkit.solve.batch import Outcome, plan, run_pair, solver_options, write_log
 from pstoolkit.cli import main
 from test_batch import session_captures
 

@@ -33,12 +33,12 @@ from pstoolkit_ringlight.protocol import (
 from pstoolkit_ringlight.protocol_ringlightsim import device
 from pstoolkit_ringlight.ptysim import PtyRingLight
 
-from pstoolkit.backend import Sweep
+from pstoolkit.hardware.backend import Sweep
 from pstoolkit.errors import UserError
-from pstoolkit.lights import RingLight as RingModel
-from pstoolkit.lights import build_light_model
-from pstoolkit.options import defaults
-from pstoolkit.registry import Registry
+from pstoolkit.optics.lights import RingLight as RingModel
+from pstoolkit.optics.lights import build_light_model
+from pstoolkit.plugin.options import defaults
+from pstoolkit.plugin.registry import Registry
 
 FAST = 0.05  # reply deadline of the tests' tries, seconds
 

@@ -21,9 +21,10 @@ import pytest
 
 import psfmt
 import pstoolkit
-from pstoolkit import demo, plugins
+from pstoolkit.plugin import manager as plugins
+from pstoolkit.sim import demo
 from pstoolkit.cli import main
-from pstoolkit.metrics import angular_error_deg
+from pstoolkit.evaluation.metrics import angular_error_deg
 from test_plugins import fake_distribution
 
 SIZE = 32

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from pstoolkit.errors import UserError
-from pstoolkit.options import defaults
-from pstoolkit.plugins import get_registries
-from pstoolkit.scenes import (
+from pstoolkit.plugin.options import defaults
+from pstoolkit.plugin.manager import get_registries
+from pstoolkit.sim.scenes import (
     SCENES,
     Blobs,
     Geometry,

@@ -11,13 +11,13 @@ import pytest
 from pstoolkit_dualres.preprocess import PreprocessOptions, preprocess
 
 import psfmt
-from pstoolkit.plugins import get_registries
+from pstoolkit.plugin.manager import get_registries
 from pstoolkit.shadows import ShadowDetector, ShadowEvidence, ShadowIntervals, ShadowMask, ShadowTable, interval_profile
 from pstoolkit.shadows.intervals import grid_times, intervals_from_grid, rasterize
 from pstoolkit.shadows.score import score, true_shadows
 from pstoolkit.shadows.silences import dark_spans
 from pstoolkit.shadows.spikes import find_shadows, spike_threshold
-from pstoolkit.simulator import SimulationConfig, simulate
+from pstoolkit.sim.simulator import SimulationConfig, simulate
 
 from event_rows import event_stream, shading
 

@@ -1,5 +1,5 @@
-"""The simulator's compiled engine (``pstoolkit.simkernel``) against the event rule, the reference
-engine (``Renderer`` + ``pstoolkit.esim``) and dense frame integrals."""
+"""The simulator's compiled engine (``pstoolkit.sim.ring_engine``) against the event rule, the reference
+engine (``Renderer`` + ``pstoolkit.sim.esim``) and dense frame integrals."""
 
 from __future__ import annotations
 
@@ -13,16 +13,16 @@ import pytest
 
 import psfmt
 from psfmt import EventArray
-from pstoolkit import simkernel
-from pstoolkit.brdf import GGX, Lambertian
+from pstoolkit.sim import ring_engine as simkernel
+from pstoolkit.optics.brdf import GGX, Lambertian
 from pstoolkit.errors import UserError
-from pstoolkit.esim import simulate_events
-from pstoolkit.eventmodel import LOG_EPS, reference_time_us
-from pstoolkit.lights import RingLight
-from pstoolkit.options import defaults
-from pstoolkit.render import Renderer, exposure_samples, integrate
-from pstoolkit.scenes import Blobs, Sphere
-from pstoolkit.simulator import SHADOW_STEP_DEG, SimulationConfig, simulate
+from pstoolkit.sim.esim import simulate_events
+from pstoolkit.events.rule import LOG_EPS, reference_time_us
+from pstoolkit.optics.lights import RingLight
+from pstoolkit.plugin.options import defaults
+from pstoolkit.sim.render import Renderer, exposure_samples, integrate
+from pstoolkit.sim.scenes import Blobs, Sphere
+from pstoolkit.sim.simulator import SHADOW_STEP_DEG, SimulationConfig, simulate
 
 PERIOD_US = 30000.0
 C = 0.15
@@ -78,7 +78,7 @@ def test_every_event_obeys_the_threshold_rule_against_the_true_irradiance(refrac
 
 
 def test_events_match_the_reference_engine() -> None:
-    """The same scene through ``pstoolkit.esim`` with whole-frame renders and per-pixel refinement:
+    """The same scene through ``pstoolkit.sim.esim`` with whole-frame renders and per-pixel refinement:
     the event counts agree within 1 % in total and within one event for most pixels."""
     r = renderer(Blobs(), GGX())
     events, _ = run(r)

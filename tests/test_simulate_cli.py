@@ -10,12 +10,12 @@ import pytest
 
 import psfmt
 from pstoolkit.cli import main
-from pstoolkit.demo import demo_capture_path, demo_key
-from pstoolkit.layouts import grid_directions
-from pstoolkit.options import defaults
-from pstoolkit.render import shadow_margin, visibility_from_margin
-from pstoolkit.scenes import Sphere
-from pstoolkit.simulator import DIFFUSE_LEVEL, SimulationConfig
+from pstoolkit.sim.demo import demo_capture_path, demo_key
+from pstoolkit.optics.layouts import grid_directions
+from pstoolkit.plugin.options import defaults
+from pstoolkit.sim.render import shadow_margin, visibility_from_margin
+from pstoolkit.sim.scenes import Sphere
+from pstoolkit.sim.simulator import DIFFUSE_LEVEL, SimulationConfig
 
 FAST = ["--size", "32", "--period-ms", "5", "--quiet"]
 

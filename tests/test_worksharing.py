@@ -1,4 +1,4 @@
-"""``pstoolkit.worksharing``: every task is taken exactly once, from any number of threads."""
+"""``pstoolkit._shared.worksharing``: every task is taken exactly once, from any number of threads."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numba
 import numpy as np
 import pytest
 
-from pstoolkit.worksharing import take_task
+from pstoolkit._shared.worksharing import take_task
 
 
 @numba.njit(parallel=True)

@@ -7,13 +7,12 @@ and the command line starts without loading torch.
 
 from __future__ import annotations
 
-from pstoolkit import hookimpl
-from pstoolkit.registry import Registry
+from pstoolkit import Registry, hookimpl
 
 
 @hookimpl
 def pstoolkit_register_light_models(registry: Registry) -> None:
-    from pstoolkit.lights import NearRingLight, RingLight, SampledLight
+    from pstoolkit.optics.lights import NearRingLight, RingLight, SampledLight
 
     for model in (RingLight, SampledLight, NearRingLight):
         registry.register(model)
@@ -33,7 +32,7 @@ def pstoolkit_register_shadow_detectors(registry: Registry) -> None:
 
 @hookimpl
 def pstoolkit_register_brdfs(registry: Registry) -> None:
-    from pstoolkit.brdf import BRDFS
+    from pstoolkit.optics.brdf import BRDFS
 
     for brdf in BRDFS:
         registry.register(brdf)
@@ -41,7 +40,7 @@ def pstoolkit_register_brdfs(registry: Registry) -> None:
 
 @hookimpl
 def pstoolkit_register_scenes(registry: Registry) -> None:
-    from pstoolkit.scenes import SCENES
+    from pstoolkit.sim.scenes import SCENES
 
     for scene in SCENES:
         registry.register(scene)

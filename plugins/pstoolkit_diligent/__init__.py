@@ -5,8 +5,7 @@ The import sits inside the hook, so the command line starts without loading this
 
 from __future__ import annotations
 
-from pstoolkit import hookimpl
-from pstoolkit.registry import Registry
+from pstoolkit import Registry, hookimpl
 
 
 @hookimpl

@@ -24,11 +24,8 @@ import numpy as np
 
 import psfmt
 import pstoolkit
-from pstoolkit.converter import Converter
-from pstoolkit.errors import UserError
-from pstoolkit.eventmodel import REFRACTORY_RULES
-from pstoolkit.options import Option
-from pstoolkit.solver import Progress
+from pstoolkit import Converter, Option, Progress, UserError
+from pstoolkit.events.rule import REFRACTORY_RULES
 from pstoolkit_diligent.folder import FILENAMES, ObjectFolder, scan_object
 from pstoolkit_diligent.geometry import (
     Square,

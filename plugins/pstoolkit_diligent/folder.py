@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import scipy.io
 
-from pstoolkit.diligentlayout import (
+from pstoolkit.io.diligent_layout import (
     DIRECTIONS,
     FILENAMES,
     INTENSITIES,
@@ -34,7 +34,7 @@ from pstoolkit.diligentlayout import (
     require_file,
     text_lines,
 )
-from pstoolkit.errors import UserError
+from pstoolkit import UserError
 from pstoolkit_diligent.png import check_png, decode
 
 

@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pstoolkit.errors import UserError
-from pstoolkit.render import area_weights
+from pstoolkit import UserError
+from pstoolkit.sim.render import area_weights
 
 
 @dataclass(frozen=True)

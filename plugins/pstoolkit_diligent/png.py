@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pstoolkit.errors import UserError
-from pstoolkit.normalmap import decode_image
+from pstoolkit import UserError
+from pstoolkit.io.normalmap import decode_image
 
 SIGNATURE = b"\x89PNG\r\n\x1a\n"
 CHANNELS = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}

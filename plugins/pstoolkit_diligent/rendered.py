@@ -15,10 +15,9 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from pstoolkit.diligentexport import export_diligent
-from pstoolkit.errors import UserError
-from pstoolkit.options import defaults
-from pstoolkit.solver import Progress, no_progress
+from pstoolkit.io.diligent_export import export_diligent
+from pstoolkit import Progress, UserError, no_progress
+from pstoolkit.plugin.options import defaults
 from pstoolkit_diligent.converters import DiLiGenT
 
 SELECTION = ("object", "all", "semi_real")

@@ -28,16 +28,14 @@ import numpy as np
 from scipy.special import exprel
 
 import psfmt
-from pstoolkit.errors import UserError
-from pstoolkit.esim import Render, simulate_events
-from pstoolkit.eventmodel import LOG_EPS, log_irradiance
-from pstoolkit.lights import SampledLight
-from pstoolkit.render import GREY_WEIGHTS, area_weights, event_shape
-from pstoolkit.simulator import CaptureTiming, append_event_chunks
+from pstoolkit import Progress, SampledLight, UserError
+from pstoolkit.sim.esim import Render, simulate_events
+from pstoolkit.events.rule import LOG_EPS, log_irradiance
+from pstoolkit.sim.render import GREY_WEIGHTS, area_weights, event_shape
+from pstoolkit.sim.simulator import CaptureTiming, append_event_chunks
 
 # Share of the progress bar given to reading and normalising the key images; the events take the rest.
 FRAMES_SHARE = 0.25
-from pstoolkit.solver import Progress
 from pstoolkit_diligent.folder import ObjectFolder
 from pstoolkit_diligent.geometry import area_resize, crop, resize_truth, square_around
 

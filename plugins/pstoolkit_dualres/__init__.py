@@ -5,8 +5,7 @@ The solver module (and torch) is imported inside the hook so listing plugins sta
 
 from __future__ import annotations
 
-from pstoolkit import hookimpl
-from pstoolkit.registry import Registry
+from pstoolkit import Registry, hookimpl
 
 
 @hookimpl

@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from pstoolkit.eventnormals import (
+from pstoolkit.events.relation import (
     Constraints,
     accumulate,
     grey_light,
     smallest_eigenvectors,
 )
-from pstoolkit.lights import LightModel
+from pstoolkit import LightModel
 
 MIN_PAIRS = 3
 

@@ -28,9 +28,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pstoolkit.equivalent import equivalent_lights, sample_times
-from pstoolkit.lights import LightModel
-from pstoolkit.render import GREY_WEIGHTS
+from pstoolkit.optics.equivalent import equivalent_lights, sample_times
+from pstoolkit import GREY_WEIGHTS, LightModel
 
 EFFECTIVE_SHARE = 0.01
 # Gaussian widths (pixels) of the normalised convolution that fills pixels from their neighbours.

@@ -5,7 +5,7 @@
     L_k = Σ_{κ ≤ k} (log α_κ + p_κ C^{p_κ}),
 
 α_κ compensates the change the sensor missed in its refractory period R after event κ−1 (it is
-blind then and resets its reference at the end, ``pstoolkit.eventmodel``): assuming the log changed
+blind then and resets its reference at the end, ``pstoolkit.events.rule``): assuming the log changed
 at a constant rate over the interval, log α_κ = p_κ C · R / (Δt_κ − R), with the denominator floored
 at R so at most one more threshold is credited. L is linear between events (that same constant
 rate), and the residual drift over the period is removed linearly in time so L is periodic.
@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pstoolkit.lights import US_PER_S
+from pstoolkit import US_PER_S
 
 # Midpoint-rule samples per exposure window when fitting the scale s.
 SCALE_SAMPLES = 96

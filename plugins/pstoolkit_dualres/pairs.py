@@ -1,7 +1,7 @@
 """The event samples of DualResPS eq. 25: pairs of times at one super pixel whose log irradiance
 differs by a known amount, with a confidence weight.
 
-The capture's refractory rule (``pstoolkit.eventmodel``) decides the pairs, so that the relation is
+The capture's refractory rule (``pstoolkit.events.rule``) decides the pairs, so that the relation is
 exact rather than compensated after the fact (the paper's α = 1): with "reset-at-end" each event k
 is paired with the reference level taken at t_{k−1} + R, ln I(t_k) − ln I(t_{k−1} + R) = p_k·C^{p_k};
 with "rate-limited" consecutive events that fired at a crossing are paired with the sum of the
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import psfmt
-from pstoolkit.eventmodel import REFRACTORY_RULE, check_rule, exact_pairs
+from pstoolkit.events.rule import REFRACTORY_RULE, check_rule, exact_pairs
 from pstoolkit_dualres.irradiance import Irradiance
 
 

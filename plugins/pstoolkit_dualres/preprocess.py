@@ -30,12 +30,9 @@ from typing import Any
 import numpy as np
 
 import psfmt
-from pstoolkit.errors import UserError
-from pstoolkit.eventmodel import GREY_WEIGHTS
-from pstoolkit.lights import LightModel, build_light_model
+from pstoolkit import GREY_WEIGHTS, LightModel, Progress, UserError, build_light_model, no_progress
 from pstoolkit.shadows import ShadowEvidence, ShadowMask, interval_profile
 from pstoolkit.shadows.spikes import spike_threshold
-from pstoolkit.solver import Progress, no_progress
 from pstoolkit_dualres.eventnormal import event_normals
 from pstoolkit_dualres.grid import nearest_super_pixel, to_frames
 from pstoolkit_dualres.init import Init, closed_form

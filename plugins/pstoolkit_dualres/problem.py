@@ -4,7 +4,7 @@ applied to it (``Problem.apply_mask``).
 Units: frame values in units of saturation; radiometric maps (albedo, F0) in units of
 ``albedo_scale`` (a bright albedo of the capture, in frame units per unit light per second), which
 the frame sample weights carry; the event irradiance is e·f_r·[n·l]₊ in those units, so a bright lit
-pixel is ≈ 1 as the event model's ε assumes (``pstoolkit.eventmodel``).
+pixel is ≈ 1 as the event model's ε assumes (``pstoolkit.events.rule``).
 
 The mask m_c enters all three places the paper names (eq. 14, 21–22, 25): the closed-form start
 (``preprocess.Preprocessed.closed_form``), the frames — each frame sample of the shared time grid is
@@ -23,11 +23,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pstoolkit.equivalent import sample_times
-from pstoolkit.eventmodel import GREY_WEIGHTS
-from pstoolkit.lights import US_PER_S
-from pstoolkit.render import area_weights
-from pstoolkit.shadows import ShadowMask
+from pstoolkit.optics.equivalent import sample_times
+from pstoolkit import GREY_WEIGHTS, US_PER_S, ShadowMask
+from pstoolkit.sim.render import area_weights
 from pstoolkit_dualres.grid import bilinear_taps, frame_to_event
 from pstoolkit_dualres.init import Init
 from pstoolkit_dualres.preprocess import Preprocessed
@@ -133,7 +131,7 @@ def _positions(pixels: np.ndarray, size: int) -> np.ndarray:
 
 def footprints(event_shape: tuple[int, int], frame_shape: tuple[int, int], event_scale: float) -> tuple[np.ndarray, np.ndarray]:
     """Frame pixels under each event pixel of the grid ``psfmt.scale_affine(event_scale)``: (He·We, F)
-    flat frame indices and area weights (the simulator's area average, ``pstoolkit.render.area_weights``)."""
+    flat frame indices and area weights (the simulator's area average, ``pstoolkit.sim.render.area_weights``)."""
     (he, we), (h, w) = event_shape, frame_shape
     rows = [area_weights(n_e, n_f, event_scale) for n_e, n_f in ((he, h), (we, w))]
     bands = []

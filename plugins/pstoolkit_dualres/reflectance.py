@@ -1,4 +1,4 @@
-"""A registered BRDF (``pstoolkit.brdf``) as DualResPS fits it (supplement §2.3).
+"""A registered BRDF (``pstoolkit.optics.brdf``) as DualResPS fits it (supplement §2.3).
 
 The BRDF's ``fit`` specification splits its maps into the per-pixel ones (``smooth`` False: the
 diffuse albedo, the high-frequency unknowns the frames resolve) and the smooth materials (F0,
@@ -15,7 +15,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from pstoolkit.brdf import BRDF, FitParam
+from pstoolkit import BRDF, FitParam
 
 
 def raw_value(param: FitParam, value: float) -> float:

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pstoolkit.lights import US_PER_S
+from pstoolkit import US_PER_S
 from pstoolkit_dualres.irradiance import Irradiance
 
 # Fraction of a segment kept away from its ends when reading Î there: the scale jumps at segment

@@ -26,11 +26,7 @@ import torch
 from torch import nn
 
 import psfmt
-from pstoolkit import Option, Solver, SolverResult, get_registries
-from pstoolkit.brdf import BRDF
-from pstoolkit.errors import UserError
-from pstoolkit.shadows import ShadowDetector, ShadowMask
-from pstoolkit.solver import Progress
+from pstoolkit import BRDF, Option, Progress, ShadowDetector, ShadowMask, Solver, SolverResult, UserError, get_registries
 from pstoolkit_dualres.fields import NeuralField, PyramidField
 from pstoolkit_dualres.preprocess import SCALE_RULES, PreprocessOptions, Preprocessed, preprocess
 from pstoolkit_dualres.presets import PRESETS, Preset, resolve

@@ -16,9 +16,8 @@ from typing import Any
 import numpy as np
 
 import psfmt
-from pstoolkit.errors import UserError
-from pstoolkit.normalmap import decode_image
-from pstoolkit.options import Option
+from pstoolkit import Option, UserError
+from pstoolkit.io.normalmap import decode_image
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm")
 

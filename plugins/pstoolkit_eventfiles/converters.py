@@ -25,10 +25,7 @@ from psfmt.evt2 import Evt2File
 from psfmt.evt3 import Evt3File
 from psfmt.limits import MAX_SENSOR_SIDE
 from psfmt.rawheader import concat_triggers, read_header
-from pstoolkit.converter import Converter
-from pstoolkit.errors import UserError
-from pstoolkit.options import Option
-from pstoolkit.solver import Progress
+from pstoolkit import Converter, Option, Progress, UserError
 from pstoolkit_eventfiles.attach import (
     ATTACH_OPTIONS,
     load_calibration,

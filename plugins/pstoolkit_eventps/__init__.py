@@ -6,8 +6,7 @@ imported inside the hook so listing plugins stays cheap.
 
 from __future__ import annotations
 
-from pstoolkit import hookimpl
-from pstoolkit.registry import Registry
+from pstoolkit import Registry, hookimpl
 
 
 @hookimpl

@@ -5,10 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 import psfmt
-from pstoolkit.equivalent import equivalent_lights
-from pstoolkit.errors import UserError
-from pstoolkit.eventmodel import GREY_WEIGHTS
-from pstoolkit.lights import build_light_model
+from pstoolkit.optics.equivalent import equivalent_lights
+from pstoolkit import GREY_WEIGHTS, UserError, build_light_model
 
 
 def channel_weights(channels: int) -> np.ndarray:

@@ -32,9 +32,7 @@ from typing import Any
 import numpy as np
 
 import psfmt
-from pstoolkit import Option, Solver, SolverResult
-from pstoolkit.errors import UserError
-from pstoolkit.solver import Progress
+from pstoolkit import Option, Progress, Solver, SolverResult, UserError
 from pstoolkit_frameps.leastsq import robust_weights, solve_shading
 from pstoolkit_frameps.lights import (
     channel_weights,

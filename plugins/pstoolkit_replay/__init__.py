@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-from pstoolkit import hookimpl
-from pstoolkit.registry import Registry
+from pstoolkit import Registry, hookimpl
 
 
 @hookimpl

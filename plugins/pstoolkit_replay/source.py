@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 import psfmt
-from pstoolkit.backend import (
+from pstoolkit.hardware.backend import (
     CameraSource,
     EventBlock,
     EventSensor,
@@ -26,8 +26,7 @@ from pstoolkit.backend import (
     Sweep,
     TriggerBlock,
 )
-from pstoolkit.errors import UserError
-from pstoolkit.options import Option
+from pstoolkit import Option, UserError
 
 PULSE_US = 10
 

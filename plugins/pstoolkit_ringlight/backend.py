@@ -8,10 +8,8 @@ from typing import Any
 import numpy as np
 
 import psfmt
-from pstoolkit.backend import LightBackend, Sweep
-from pstoolkit.errors import UserError
-from pstoolkit.lights import SampledLight
-from pstoolkit.options import Option
+from pstoolkit.hardware.backend import LightBackend, Sweep
+from pstoolkit import Option, SampledLight, UserError
 from pstoolkit_ringlight.client import DeviceError, RingLightClient
 from pstoolkit_ringlight.protocol import TRIGGERS
 

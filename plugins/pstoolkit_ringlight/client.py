@@ -10,7 +10,7 @@ from typing import Any
 
 import serial
 
-from pstoolkit.errors import UserError
+from pstoolkit import UserError
 from pstoolkit_ringlight.protocol import (
     E_CRC,
     FIRMWARE_NAME,

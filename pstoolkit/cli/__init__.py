@@ -18,7 +18,7 @@ def _commands() -> Callable[[list[str] | None], int]:
     if not _main:
         from pstoolkit.cli import batch, calibrate, capture, convert, eval, export, info, plugins, report, run, simulate, validate  # noqa: F401
         from pstoolkit.cli.app import app, main as app_main
-        from pstoolkit.plugins import add_commands
+        from pstoolkit.plugin.manager import add_commands
 
         add_commands(app)
         _main.append(app_main)

@@ -9,9 +9,9 @@ import typer
 from psfmt import FormatError
 from psfmt.isolate import isolated
 from psfmt.text import printable
-from pstoolkit.allocator import keep_freed_memory
+from pstoolkit._shared.allocator import keep_freed_memory
 from pstoolkit.errors import Interrupted, UserError
-from pstoolkit.solver import Progress, no_progress
+from pstoolkit.solve.base import Progress, no_progress
 
 app = typer.Typer(
     name="pstoolkit",

@@ -7,7 +7,7 @@ from typing import Any
 
 import typer
 
-from pstoolkit.batch import (
+from pstoolkit.solve.batch import (
     check_output_folder,
     expand_captures,
     is_complete,
@@ -22,7 +22,7 @@ from pstoolkit.batch import (
 )
 from pstoolkit.cli.app import app, echo, progress_bar
 from pstoolkit.errors import UserError
-from pstoolkit.solver import DEVICES
+from pstoolkit.solve.base import DEVICES
 
 
 def _client(scheduler: str | None, workers: int | None) -> tuple[Any, Any]:

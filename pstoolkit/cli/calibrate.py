@@ -8,7 +8,7 @@ import numpy as np
 import typer
 
 import psfmt
-from pstoolkit.calibrate import (
+from pstoolkit.hardware.calibrate import (
     AffineFit,
     calibrate_target,
     fit_affine,

@@ -17,7 +17,7 @@ import typer
 
 import psfmt
 import pstoolkit
-from pstoolkit.backend import (
+from pstoolkit.hardware.backend import (
     TRIGGER_MODES,
     CameraSource,
     LightBackend,
@@ -27,8 +27,8 @@ from pstoolkit.backend import (
 )
 from pstoolkit.cli.app import app, echo, progress_bar
 from pstoolkit.errors import Interrupted, UserError
-from pstoolkit.options import parse_assignments
-from pstoolkit.plugins import get_registries
+from pstoolkit.plugin.options import parse_assignments
+from pstoolkit.plugin.manager import get_registries
 
 DEFAULT_PERIOD_MS = 1000.0 / 30.0
 DIRECTIONS = {"ccw": 1, "cw": -1}

@@ -14,11 +14,11 @@ from pathlib import Path
 import typer
 
 from pstoolkit.cli.app import app, echo, progress_bar
-from pstoolkit.converter import run_converter
+from pstoolkit.io.converter import run_converter
 from pstoolkit.errors import UserError
-from pstoolkit.options import Option
-from pstoolkit.plugins import get_registries
-from pstoolkit.registry import Entry
+from pstoolkit.plugin.options import Option
+from pstoolkit.plugin.manager import get_registries
+from pstoolkit.plugin.registry import Entry
 
 HELP_FLAGS = ("-h", "--help")
 

@@ -9,7 +9,7 @@ import typer
 import psfmt
 from pstoolkit.cli.app import app, echo
 from pstoolkit.errors import UserError
-from pstoolkit.evaluation import CSV_COLUMNS, collect, csv_text, json_text, markdown
+from pstoolkit.evaluation.scoring import CSV_COLUMNS, collect, csv_text, json_text, markdown
 
 
 @app.command("eval")

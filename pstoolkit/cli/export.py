@@ -44,7 +44,7 @@ def export(
 
 
 def _export_frames(capture_file: Path, fmt: str, out: Path, force: bool, quiet: bool) -> None:
-    from pstoolkit.diligentexport import export_diligent
+    from pstoolkit.io.diligent_export import export_diligent
 
     if fmt not in FRAME_FORMATS:
         raise UserError(f"--frames {fmt!r} is not one of {', '.join(FRAME_FORMATS)}")

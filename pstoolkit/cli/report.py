@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 from pstoolkit.cli.app import app, echo
-from pstoolkit.report import write_report
+from pstoolkit.evaluation.report import write_report
 
 
 @app.command()

@@ -11,16 +11,16 @@ import psfmt
 from pstoolkit import __version__
 from pstoolkit.cli.app import app, echo, progress_bar
 from pstoolkit.errors import UserError
-from pstoolkit.outputs import result_summary, solve_capture, write_result_folder
-from pstoolkit.plugins import get_registries
-from pstoolkit.solver import Progress, resolve_device
+from pstoolkit.solve.results import result_summary, solve_capture, write_result_folder
+from pstoolkit.plugin.manager import get_registries
+from pstoolkit.solve.base import Progress, resolve_device
 
 _RESULT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
 
 
 def _demo_capture(progress: Progress) -> Path:
     # Deferred: the demo module loads the simulator (and torch), which a run on a given file never needs.
-    from pstoolkit import demo
+    from pstoolkit.sim import demo
 
     echo("no CAPTURE given: running on the built-in demo capture (simulated on first use, then cached)", err=True)
     return demo.demo_capture_path(demo.DEMO_CONFIG, progress)

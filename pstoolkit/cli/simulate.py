@@ -8,9 +8,9 @@ import typer
 
 from pstoolkit.cli.app import app, progress_bar
 from pstoolkit.errors import UserError
-from pstoolkit.plugins import get_registries
-from pstoolkit.simulator import SimulationConfig, simulate
-from pstoolkit.solver import resolve_device
+from pstoolkit.plugin.manager import get_registries
+from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit.solve.base import resolve_device
 
 _DEFAULTS = SimulationConfig()
 

@@ -23,8 +23,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pstoolkit.lights import LightModel
-from pstoolkit.options import Option
+from pstoolkit.optics.lights import LightModel
+from pstoolkit.plugin.options import Option
 from pstoolkit.shadows.intervals import ShadowIntervals, ShadowTable
 from pstoolkit.shadows.profile import Profile
 
@@ -82,7 +82,7 @@ class ShadowEvidence:
     pixel nearest each frame pixel (through the calibrated event→frame affine); ``mask`` (H, W) the
     frame pixels on the object. Light: ``light`` (directional and periodic), ``t0_us`` the phase
     origin (the first exposure's start), ``period_us``. Sensor: ``contrast_pos``/``contrast_neg``
-    (log units), ``refractory_us`` and ``refractory_rule`` (``pstoolkit.eventmodel``). Data:
+    (log units), ``refractory_us`` and ``refractory_rule`` (``pstoolkit.events.rule``). Data:
     ``profile`` the events of one period from ``t0_us`` at the event pixels (eq. 20);
     ``frames`` (J, H, W, 3) the mean frame of each of the period's exposure windows ``windows_us``
     (J, 2) phases, in units of saturation. Surface: ``normal`` (H, W, 3) the current estimate of

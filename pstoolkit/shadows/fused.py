@@ -15,7 +15,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pstoolkit.options import Option
+from pstoolkit.plugin.options import Option
 from pstoolkit.shadows.base import ShadowDetector, ShadowEvidence, ShadowMask
 from pstoolkit.shadows.geometry import GEOMETRY_OPTIONS, surface_shadows
 from pstoolkit.shadows.intervals import intervals_from_grid, rasterize

@@ -1,6 +1,6 @@
 """Cast shadows of the estimated surface (``geometry``): the solver's current normals integrated into
 a height map (``pstoolkit.surface``), then marched towards the light on a time grid with the
-simulator's shadow sweep (``pstoolkit.render.shadow_margin``), at frame resolution.
+simulator's shadow sweep (``pstoolkit.sim.render.shadow_margin``), at frame resolution.
 
 Cast shadows are a function of the shape and the light alone, so a good normal map predicts them
 exactly and at the frame pixels' own resolution; what it cannot see are depth steps at occluding
@@ -14,7 +14,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pstoolkit.options import Option
+from pstoolkit.plugin.options import Option
 from pstoolkit.shadows.base import ShadowDetector, ShadowEvidence, ShadowMask
 from pstoolkit.shadows.intervals import grid_times, intervals_from_grid
 
@@ -31,7 +31,7 @@ def surface_shadows(evidence: ShadowEvidence, time_steps: int, margin_px: float)
     ``evidence.normal`` (H, W, 3; not None) at the bin centres of ``intervals.grid_times`` from
     ``evidence.t0_us``."""
     # deferred: the sweep is compiled with numba, which `pstoolkit plugins` need not load
-    from pstoolkit.render import shadow_margin
+    from pstoolkit.sim.render import shadow_margin
     from pstoolkit.surface import integrate_normals
 
     mask = np.asarray(evidence.mask, dtype=bool)

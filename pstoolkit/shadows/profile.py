@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from psfmt import EventArray
-from pstoolkit.lights import US_PER_S
+from pstoolkit.optics.lights import US_PER_S
 
 MIN_INTERVAL_US = 1.0
 

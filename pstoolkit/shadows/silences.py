@@ -2,7 +2,7 @@
 bursts Algorithm 1 looks for (``silences``).
 
 A cast shadow drops a pixel's irradiance to almost nothing and brings it back at its exit. Whatever
-the refractory rule (``pstoolkit.eventmodel``), the events of one turn then show a run of falling
+the refractory rule (``pstoolkit.events.rule``), the events of one turn then show a run of falling
 (negative) events ending the lit time and a rising (positive) event at the exit:
 
 - reset-at-end: the edge fires one negative event, the pixel resets to the dark level after R and
@@ -25,7 +25,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pstoolkit.options import Option
+from pstoolkit.plugin.options import Option
 from pstoolkit.shadows.base import ShadowDetector, ShadowEvidence, ShadowMask
 from pstoolkit.shadows.intervals import ShadowIntervals
 from pstoolkit.shadows.profile import Profile

@@ -22,7 +22,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pstoolkit.options import Option
+from pstoolkit.plugin.options import Option
 from pstoolkit.shadows.base import ShadowDetector, ShadowEvidence, ShadowMask
 from pstoolkit.shadows.intervals import ShadowIntervals, ShadowTable
 from pstoolkit.shadows.profile import Profile

@@ -11,9 +11,7 @@ from typing import Any
 import numpy as np
 
 import psfmt
-from pstoolkit import Option, Solver, SolverResult
-from pstoolkit.errors import UserError
-from pstoolkit.solver import Progress
+from pstoolkit import Option, Progress, Solver, SolverResult, UserError
 
 
 def frames_mask(frames: psfmt.Frames, threshold: float, progress: Progress) -> np.ndarray:

@@ -14,7 +14,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from pstoolkit.brdf import BRDF, FitParam
+from pstoolkit import BRDF, FitParam
 
 
 class BlinnPhong(BRDF):

@@ -16,8 +16,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pstoolkit import Option
-from pstoolkit.shadows import ShadowDetector, ShadowEvidence, ShadowIntervals, ShadowMask
+from pstoolkit import Option, ShadowDetector, ShadowEvidence, ShadowIntervals, ShadowMask
 
 
 class QuietDetector(ShadowDetector):

@@ -7,8 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from psfmt import LightSpec
-from pstoolkit.errors import UserError
-from pstoolkit.lights import LightModel
+from pstoolkit import LightModel, UserError
 
 
 def _vector3(key: str, value: object) -> np.ndarray:

@@ -20,8 +20,8 @@ import numpy as np
 
 import psfmt
 from pstoolkit.errors import UserError
-from pstoolkit.markup import md
-from pstoolkit.metrics import SHARE_KEYS, THRESHOLDS_DEG, angular_error_deg, error_stats
+from pstoolkit.evaluation.markup import md
+from pstoolkit.evaluation.metrics import SHARE_KEYS, THRESHOLDS_DEG, angular_error_deg, error_stats
 
 MISSING = "–"
 RESULT_FILE = "result.json"

@@ -1,0 +1,1 @@
+"""Process-level helpers shared across subpackages (not part of the public API)."""

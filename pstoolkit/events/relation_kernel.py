@@ -1,0 +1,217 @@
+"""Compiled loops of the EventPS relation (numba): the pairing of consecutive same-pixel events into
+constraints as a stream goes by, and each pixel's robust fit of its constraints. They run on one core
+and release the GIL.
+
+Constraints follow ``pstoolkit.events.relation``: a pair of consecutive events k−1, k of a pixel with
+polarity p_k gives n·v = 0 with v = e^{C⁺} l(t_ref) − l(t_k) for p = +1 and v = l(t_ref) − e^{C⁻} l(t_k)
+for p = −1, where t_ref = t_{k−1} + R (the reference rule of ``pstoolkit.events.rule``) and l(t) the
+grey light. The callers give the light at each event's time and at the end of its refractory
+period, so the loops know nothing of light models.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+NO_EVENT = np.iinfo(np.int64).min
+"""``last_t`` of a pixel that has not fired yet."""
+RANK_ONE = 1e-12
+"""Adjugate columns shorter than this share of the trace² are rounding noise of a rank-1 matrix."""
+SETTLED = 1e-8
+"""Reweighting stops once a pass moves the normal by less than √SETTLED (1e-4 rad, 0.006°)."""
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def pair_events(
+    x: np.ndarray,
+    y: np.ndarray,
+    t_us: np.ndarray,
+    polarity: np.ndarray,
+    width: int,
+    light: np.ndarray,
+    motion: np.ndarray,
+    period_us: int,
+    refractory_us: int,
+    last_t: np.ndarray,
+    last_light: np.ndarray,
+    min_interval_us: float,
+    max_interval_us: float,
+    exp_pos: float,
+    exp_neg: float,
+    fired: np.ndarray,
+    swing: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Unit constraint vectors of the time-ordered events (``x``, ``y``, ``t_us``, ``polarity``) of a
+    sensor ``width`` pixels wide. The grey light (rows of ``light``) and the unit direction of the
+    light's motion across the image plane (rows of ``motion``): with ``period_us`` > 0 both tabulate
+    one period per µs, and an event at t reads row t mod period, its light after the refractory
+    period row (t + refractory_us) mod period (the times must not decrease); with ``period_us`` = 0 they hold a row per event k,
+    the light after its refractory period in row n + k. ``last_t`` (P,) and ``last_light`` (P, 3)
+    hold each pixel's previous event (``NO_EVENT`` for none) and its light after the refractory
+    period; they are updated, so the next call continues the stream. A pair whose interval lies
+    outside [min_interval_us, max_interval_us] or whose v is zero gives no constraint. Also adds
+    each event to ``fired`` (P,) and p·motion to ``swing`` (P, 2). Returns the constraints' flat
+    pixels y·width + x (m,), v/|v| (m, 3) in event order, and the number of pairs."""
+    count = t_us.shape[0]
+    out_pixel = np.empty(count, np.int64)
+    out_v = np.empty((count, 3))
+    used = 0
+    pairs = 0
+    # the start of the period holding the current event; times increase, so it only moves forward
+    turn_start = t_us[0] - t_us[0] % period_us if period_us > 0 and count > 0 else 0
+    for k in range(count):
+        i = np.int64(y[k]) * width + np.int64(x[k])
+        p = polarity[k]
+        if period_us > 0:
+            while t_us[k] - turn_start >= period_us:
+                turn_start += period_us
+            now = t_us[k] - turn_start
+            after = now + refractory_us
+            while after >= period_us:
+                after -= period_us
+        else:
+            now, after = k, count + k
+        fired[i] += 1
+        swing[i, 0] += p * motion[now, 0]
+        swing[i, 1] += p * motion[now, 1]
+        previous = last_t[i]
+        if previous != NO_EVENT:
+            pairs += 1
+            interval = t_us[k] - previous
+            if min_interval_us <= interval <= max_interval_us:
+                # v and −v give the same constraint, so p = −1's v is written as l_ref − e^{C⁻} l_now
+                scale_ref, scale_now = (exp_pos, 1.0) if p > 0 else (1.0, exp_neg)
+                v0 = scale_ref * last_light[i, 0] - scale_now * light[now, 0]
+                v1 = scale_ref * last_light[i, 1] - scale_now * light[now, 1]
+                v2 = scale_ref * last_light[i, 2] - scale_now * light[now, 2]
+                length = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+                if length > 0:
+                    out_pixel[used] = i
+                    out_v[used, 0], out_v[used, 1], out_v[used, 2] = v0 / length, v1 / length, v2 / length
+                    used += 1
+        last_t[i] = t_us[k]
+        last_light[i, 0], last_light[i, 1], last_light[i, 2] = light[after, 0], light[after, 1], light[after, 2]
+    return out_pixel[:used], out_v[:used], pairs
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _pixel_sums(u: np.ndarray, lo: int, hi: int, nx: float, ny: float, nz: float, inv_scale2: float) -> tuple[float, float, float, float, float, float]:
+    """Σ w u uᵀ (its six unique entries) of the unit constraints ``u[lo:hi]`` with the Cauchy weight
+    w = 1 / (1 + (n·u)² / σ²) of the residual at n (w = 1 with ``inv_scale2`` = 0)."""
+    s0 = s1 = s2 = s3 = s4 = s5 = 0.0
+    for j in range(lo, hi):
+        x, y, z = u[j, 0], u[j, 1], u[j, 2]
+        residual = nx * x + ny * y + nz * z
+        w = 1.0 / (1.0 + residual * residual * inv_scale2)
+        wx, wy = w * x, w * y
+        s0 += wx * x
+        s1 += wx * y
+        s2 += wx * z
+        s3 += wy * y
+        s4 += wy * z
+        s5 += w * z * z
+    return s0, s1, s2, s3, s4, s5
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _adjugate_steps(
+    s: tuple[float, float, float, float, float, float], x: float, y: float, z: float, steps: int
+) -> tuple[float, float, float]:
+    """``steps`` steps of power iteration on the adjugate of the symmetric matrix ``s`` (six unique
+    entries) from (x, y, z): the adjugate has the eigenvectors of the matrix with eigenvalues
+    λ_j·λ_k, so the iteration converges to the smallest eigenvector at the rate λ0/λ1."""
+    a, b, c, d, e, f = s
+    m0, m1, m2 = d * f - e * e, c * e - b * f, b * e - c * d
+    m3, m4, m5 = a * f - c * c, b * c - a * e, a * d - b * b
+    for _ in range(steps):
+        x, y, z = m0 * x + m1 * y + m2 * z, m1 * x + m3 * y + m4 * z, m2 * x + m4 * y + m5 * z
+        length = math.sqrt(x * x + y * y + z * z)
+        if length == 0:
+            break
+        x, y, z = x / length, y / length, z / length
+    return x, y, z
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _smallest_by_adjugate(
+    s: tuple[float, float, float, float, float, float], steps: int
+) -> tuple[float, float, float, float, float, float]:
+    """Eigenvalues (ascending) of the positive semi-definite matrix ``s`` (six unique entries) and the
+    unit eigenvector of the smallest, without trigonometry: the longest column of the adjugate
+    (λ1λ2·n0n0ᵀ + λ0λ2·n1n1ᵀ + λ0λ1·n2n2ᵀ, so within about λ0/λ1 of n0) refined by ``steps`` power
+    steps; λ0 is the Rayleigh quotient and λ1, λ2 follow from the trace and the sum of the principal
+    2×2 minors. A matrix of rank ≤ 1 has a zero adjugate (up to ``RANK_ONE`` of trace²): zero
+    vector, λ0 = λ1 = 0."""
+    a, b, c, d, e, f = s
+    m0, m1, m2 = d * f - e * e, c * e - b * f, b * e - c * d
+    m3, m4, m5 = a * f - c * c, b * c - a * e, a * d - b * b
+    x, y, z = m0, m1, m2
+    best = x * x + y * y + z * z
+    if m1 * m1 + m3 * m3 + m4 * m4 > best:
+        x, y, z = m1, m3, m4
+        best = x * x + y * y + z * z
+    if m2 * m2 + m4 * m4 + m5 * m5 > best:
+        x, y, z = m2, m4, m5
+        best = x * x + y * y + z * z
+    trace = a + d + f
+    if best <= (RANK_ONE * trace * trace) ** 2:
+        return 0.0, 0.0, trace, 0.0, 0.0, 0.0
+    length = math.sqrt(best)
+    x, y, z = _adjugate_steps(s, x / length, y / length, z / length, steps)
+    smallest = a * x * x + d * y * y + f * z * z + 2.0 * (b * x * y + c * x * z + e * y * z)
+    rest = trace - smallest
+    product = m0 + m3 + m5 - smallest * rest
+    spread = math.sqrt(max(rest * rest - 4.0 * product, 0.0))
+    return smallest, 0.5 * (rest - spread), 0.5 * (rest + spread), x, y, z
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def robust_fit(
+    constraint_pixel: np.ndarray, u: np.ndarray, n_pixels: int, min_pairs: int, reweight: int, scale: float, steps: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each pixel's normal from its unit constraints (``constraint_pixel`` (m,), ``u`` (m, 3)) for pixels
+    with at least ``min_pairs``: the smallest eigenvector of Σ u uᵀ (``_smallest_by_adjugate``), then
+    up to ``reweight`` passes of iteratively reweighted least squares with Cauchy weights of scale
+    ``scale`` on the residuals n·u, each moving n by ``steps`` adjugate power steps, until a pass moves
+    it by less than √``SETTLED``; flipped to n_z ≥ 0. Returns normals (P, 3) (zero for the others),
+    the eigenvalues (P, 3) of Σ u uᵀ (for the rank test), its six unique entries (P, 6) (for every
+    pixel with a constraint, for the neighbours) and the number of constraints per pixel (P,)."""
+    m = constraint_pixel.shape[0]
+    count = np.zeros(n_pixels, np.int64)
+    for j in range(m):
+        count[constraint_pixel[j]] += 1
+    start = np.zeros(n_pixels + 1, np.int64)
+    for i in range(n_pixels):
+        start[i + 1] = start[i] + count[i]
+    # each pixel's constraints side by side, in event order (a stable counting sort)
+    grouped = np.empty((m, 3))
+    fill = start[:n_pixels].copy()
+    for j in range(m):
+        i = constraint_pixel[j]
+        grouped[fill[i], 0], grouped[fill[i], 1], grouped[fill[i], 2] = u[j, 0], u[j, 1], u[j, 2]
+        fill[i] += 1
+    normal = np.zeros((n_pixels, 3))
+    values = np.zeros((n_pixels, 3))
+    sums = np.zeros((n_pixels, 6))
+    inv_scale2 = 1.0 / (scale * scale)
+    for i in range(n_pixels):
+        lo, hi = start[i], start[i + 1]
+        if hi == lo:
+            continue
+        s = _pixel_sums(grouped, lo, hi, 0.0, 0.0, 0.0, 0.0)
+        sums[i, 0], sums[i, 1], sums[i, 2], sums[i, 3], sums[i, 4], sums[i, 5] = s
+        if hi - lo < min_pairs:
+            continue
+        values[i, 0], values[i, 1], values[i, 2], x, y, z = _smallest_by_adjugate(s, steps)
+        for _ in range(reweight):
+            nx, ny, nz = _adjugate_steps(_pixel_sums(grouped, lo, hi, x, y, z, inv_scale2), x, y, z, steps)
+            moved = (nx - x) ** 2 + (ny - y) ** 2 + (nz - z) ** 2
+            x, y, z = nx, ny, nz
+            if moved < SETTLED:
+                break
+        sign = -1.0 if z < 0 else 1.0
+        normal[i, 0], normal[i, 1], normal[i, 2] = sign * x, sign * y, sign * z
+    return normal, values, sums, count

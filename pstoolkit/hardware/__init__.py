@@ -1,0 +1,1 @@
+"""Hardware: the light-rig and camera backend interface, event→frame calibration."""

@@ -1,0 +1,2 @@
+"""Files the toolkit reads and writes besides the capture format: normal maps, DiLiGenT folders,
+converters, folders written as a unit."""

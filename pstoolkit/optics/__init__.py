@@ -1,0 +1,1 @@
+"""Light and reflectance: light models, equivalent lights of an exposure, light layouts, BRDFs."""

@@ -1,0 +1,1 @@
+"""The plugin machinery: hook specifications, the plugin manager, registries and typed options."""

@@ -1,0 +1,1 @@
+"""The simulator: scenes, the renderer, the event engines and the capture writer."""

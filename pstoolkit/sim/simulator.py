@@ -1,0 +1,524 @@
+"""The simulator: renders a registered scene under a ring light and writes a hybrid capture.
+
+A hybrid capture (the default) holds ``frames`` long exposures per light period, each integrating the
+irradiance over a third (for 3) of the turn, and the events of a sensor at ``event_scale`` event pixels
+per frame pixel over the same time; a classic capture (``discrete_lights=N``) holds N frames under
+instantaneous lights spread evenly over one period and no events, or — with ``lights`` ``grid`` or a
+light-table file (``pstoolkit.optics.layouts``) — one frame under each light of that layout, cast shadows
+swept exactly for every light. Both carry the light model and the ground truth (normal, mask, albedo,
+depth in frame pixels, F0, roughness, metallic).
+
+Speed: with the built-in BRDFs on the CPU the compiled engine ``pstoolkit.sim.ring_engine`` renders each
+event pixel at its own adaptive times and integrates the frames on the same samples, in parallel
+over event pixels (numba); cast shadows are swept every ``SHADOW_STEP_DEG`` of the light's path and
+interpolated in between. Other BRDFs (plugins) and other devices take the reference engine:
+whole-frame renders on the frames' midpoint-rule samples (``simulate_events(sample_times_us=…)``),
+each adding to its frame as it feeds the events, with per-pixel refinement (``render_pixels``).
+Both follow the event rule of ``pstoolkit.events.rule``. Memory stays bounded: time is processed in
+blocks.
+
+Frames: exposure (irradiance × seconds) times a gain that puts the brightest diffuse value of any
+frame at ``DIFFUSE_LEVEL`` of saturation, so specular highlights may clip as in an LDR camera
+(``auto_gain="peak"`` puts the brightest value of all there instead, so nothing clips); optional
+shot and read noise; quantised to 8, 12 or 16 bits. The same configuration and seed give the same data.
+
+    config = SimulationConfig(scene="blobs", size=128, seed=0)
+    summary = simulate(config, "blobs.h5", progress=lambda fraction, message: ...)
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import asdict, dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+import psfmt
+import pstoolkit
+from pstoolkit.sim import ring_engine as simkernel
+from pstoolkit.optics.brdf import GGX
+from pstoolkit.errors import UserError
+from pstoolkit.sim.esim import simulate_events
+from pstoolkit.events.rule import REFRACTORY_RULE, REFRACTORY_RULES
+from pstoolkit.optics.layouts import RING, layout_light, layout_lights
+from pstoolkit.optics.lights import RingLight, SampledLight
+from pstoolkit.plugin.options import parse_assignments
+from pstoolkit.plugin.manager import get_registries
+from pstoolkit.sim.render import Renderer, event_shape, exposure_plan, exposure_samples
+from pstoolkit.sim.scenes import SceneMaps
+from pstoolkit.solve.base import Progress, no_progress
+
+DIFFUSE_LEVEL = 0.8
+# Shortest render step of the event simulation, as a fraction of a light turn: a shadow edge or the
+# terminator is resolved to 0.25° of the turn (23 µs at 30 turns/s) instead of ESIM's 1 µs floor, which
+# cuts render calls ~10× at the same event count; crossings inside a step are still placed exactly
+# on the interpolated log-irradiance.
+EVENT_MIN_STEP_TURNS = 0.25 / 360.0
+BIT_DEPTHS = {8: np.uint8, 12: np.uint16, 16: np.uint16}
+AUTO_GAINS = ("diffuse", "peak")
+"""What the automatic gain puts at ``DIFFUSE_LEVEL`` of saturation: the brightest diffuse value of any
+frame (highlights may clip) or the brightest value of all (nothing clips)."""
+# Step of the light (degrees of its path) between the cast-shadow sweeps, interpolated in between
+# (``Renderer(shadow_step_us=…)``): one sweep serves all frame and event samples near it.
+SHADOW_STEP_DEG = 1.0
+
+
+@dataclass
+class CaptureTiming:
+    """The sensor and timing options every synthetic hybrid capture shares (the simulator's and the
+    DiLiGenT semi-real converter's): frame size (pixels, square), event pixels per frame pixel,
+    contrast threshold, refractory period and rule (``eventmodel.REFRACTORY_RULES``), long exposures
+    per light period, periods and their length, the seed, and ``discrete_lights`` K > 0 for a
+    frames-only capture of K instantaneous lights."""
+
+    size: int = 128
+    event_scale: float = 0.5
+    contrast: float = 0.15
+    refractory_us: float = 2000.0
+    refractory_rule: str = REFRACTORY_RULE
+    frames: int = 3
+    periods: int = 1
+    period_ms: float = 1000.0 / 30.0
+    seed: int = 0
+    discrete_lights: int = 0
+
+    @property
+    def period_us(self) -> int:
+        return int(round(self.period_ms * 1000.0))
+
+    @property
+    def duration_us(self) -> int:
+        """All periods, µs."""
+        return self.periods * self.period_us
+
+    @property
+    def min_step_us(self) -> float:
+        """Shortest render step of the event simulation (``EVENT_MIN_STEP_TURNS`` of a turn, ≥ 1 µs)."""
+        return max(1.0, self.period_us * EVENT_MIN_STEP_TURNS)
+
+    def event_rule(self) -> dict[str, Any]:
+        """The event options both event engines (``simkernel.simulate_ring``, ``esim.simulate_events``)
+        take from the capture: symmetric contrast, refractory period and rule, seed and shortest step."""
+        return {
+            "contrast_pos": self.contrast,
+            "contrast_neg": self.contrast,
+            "refractory_us": self.refractory_us,
+            "refractory_rule": self.refractory_rule,
+            "seed": self.seed,
+            "min_dt_us": self.min_step_us,
+        }
+
+    def exposure_bounds_us(self) -> list[int]:
+        """Where the long exposures of one period start, then the period's end (µs): ``frames`` equal
+        windows tiling the period, rounded to whole µs."""
+        return [int(round(k * self.period_us / self.frames)) for k in range(self.frames + 1)]
+
+    def check_with(self, limits: list[tuple[str, bool, str]]) -> None:
+        """Raise UserError naming the first option out of range: the shared ones, then ``limits``."""
+        shared = [
+            ("--size", 8 <= self.size <= 8192, "must be between 8 and 8192 pixels"),
+            ("--event-scale", 0 < self.event_scale <= 1, "must be in (0, 1] event pixels per frame pixel"),
+            ("--periods", 1 <= self.periods <= 10000, "must be between 1 and 10000"),
+            ("--contrast", 0.01 <= self.contrast <= 5, "must be between 0.01 and 5"),
+            ("--refractory-us", 0 <= self.refractory_us <= self.period_us, "must be between 0 and the period"),
+            ("--refractory-rule", self.refractory_rule in REFRACTORY_RULES, f"must be {' or '.join(REFRACTORY_RULES)}"),
+            ("--seed", 0 <= self.seed < 2**63, "must be a non-negative integer"),
+        ]
+        check_limits(self, [*shared, *limits])
+        check_event_grid(self.size, self.event_scale)
+
+
+@dataclass
+class SimulationConfig(CaptureTiming):
+    """Everything that decides a simulated capture (``CaptureTiming`` and the scene, light, sensor and
+    renderer). ``scene_options`` are ``key=value`` strings checked against the scene's typed options;
+    ``lights`` is the layout of a classic capture (``pstoolkit.optics.layouts``: ``ring``, ``grid`` or a
+    light-table path; anything but ``ring`` writes a classic capture of all its K lights, and
+    ``discrete_lights`` must then be K or 0); ``noise`` is the read-noise standard deviation as a
+    fraction of saturation, with Poisson shot noise of a full well of 1/noise² electrons (0 = none);
+    ``exposure_gain`` (pixel units per irradiance·second) overrides the automatic gain, which
+    ``auto_gain`` (``AUTO_GAINS``) sets from the brightest diffuse or the brightest value."""
+
+    scene: str = "sphere"
+    scene_options: list[str] = field(default_factory=list)
+    lights: str = RING
+    elevation_deg: float = 45.0
+    contrast_sigma: float = 0.0
+    noise: float = 0.0
+    brdf: str = "ggx"
+    bit_depth: int = 8
+    exposure_gain: float | None = None
+    auto_gain: str = AUTO_GAINS[0]
+    shadows: bool = True
+    device: str = "cpu"
+
+    def event_rule(self) -> dict[str, Any]:
+        """``CaptureTiming.event_rule`` with the per-pixel contrast mismatch."""
+        return {**super().event_rule(), "sigma": self.contrast_sigma}
+
+    @property
+    def discrete(self) -> bool:
+        """Whether the capture is a classic one (instantaneous lights, no events)."""
+        return self.discrete_lights > 0 or self.lights != RING
+
+    def check(self) -> None:
+        """Raise UserError naming the first option out of range (a light-table file is read)."""
+        limits: list[tuple[str, bool, str]] = [
+            ("--frames", 1 <= self.frames <= 1000, "must be between 1 and 1000"),
+            ("--discrete-lights", 0 <= self.discrete_lights <= 10000, "must be between 0 (hybrid capture) and 10000"),
+            ("--period-ms", self.period_us >= 10 * max(self.frames, 1), "is too short for the frames (at least 10 µs per frame)"),
+            ("--elevation-deg", 0 < self.elevation_deg <= 90, "must be in (0, 90] degrees"),
+            ("--contrast-sigma", 0 <= self.contrast_sigma <= 1, "must be between 0 and 1"),
+            ("--noise", 0 <= self.noise <= 0.5, "must be between 0 and 0.5"),
+            ("--bit-depth", self.bit_depth in BIT_DEPTHS, "must be 8, 12 or 16"),
+            ("--auto-gain", self.auto_gain in AUTO_GAINS, f"must be {' or '.join(AUTO_GAINS)}"),
+        ]
+        layout = layout_lights(self.lights)
+        if layout is not None:
+            k = len(layout[0])
+            limits.append(("--lights", k <= 10000, f"holds {k} lights, more than the 10000 of a capture"))
+            limits.append(("--discrete-lights", self.discrete_lights in (0, k), f"must be {k} or 0 (all of them) with --lights {self.lights}"))
+        if self.exposure_gain is not None:
+            limits.append(("--exposure-gain", self.exposure_gain > 0, "must be positive"))
+        self.check_with(limits)
+
+
+def check_limits(config: object, limits: list[tuple[str, bool, str]]) -> None:
+    """Raise UserError for the first ``(flag, ok, message)`` that is not ok, naming the flag and the
+    configured value (the attribute the flag names, ``--period-ms`` → ``period_ms``)."""
+    for flag, ok, message in limits:
+        if not ok:
+            raise UserError(f"{flag} {getattr(config, flag[2:].replace('-', '_'))!r} {message}")
+
+
+def check_event_grid(size: int, event_scale: float) -> None:
+    """UserError unless ``size`` frame pixels at ``event_scale`` make a whole number of event pixels."""
+    pixels = size * event_scale
+    if abs(pixels - round(pixels)) > 1e-9:
+        raise UserError(f"--size {size} × --event-scale {event_scale:g} = {pixels:g} is not a whole number of event pixels")
+
+
+@dataclass
+class SimulationSummary:
+    path: Path
+    frames: int
+    events: int
+    event_size: tuple[int, int] | None
+    seconds: float
+
+
+def build_scene(config: SimulationConfig) -> SceneMaps:
+    """The scene's maps at the configured size, from the scene registry."""
+    entry = get_registries().scenes.get(config.scene)
+    try:
+        options = parse_assignments(config.scene_options, entry.options, owner=f"scene {config.scene!r}")
+        return entry.obj().build(config.size, config.seed, **options)
+    except UserError as exc:
+        raise UserError(f"scene {config.scene!r}: {exc}") from None
+
+
+def build_renderer(config: SimulationConfig, maps: SceneMaps, brdf: Any) -> Renderer:
+    """The scene under the configured ring light, with cast shadows on the simulator's shadow grid, or
+    under the lights of a grid or file layout, with cast shadows swept exactly for each of them."""
+    layout = layout_lights(config.lights)
+    if layout is not None:
+        return Renderer(maps, layout_light(*layout), brdf, shadows=config.shadows, device=config.device)
+    light = RingLight(elevation_deg=config.elevation_deg, period_us=config.period_us)
+    shadow_step_us = config.period_us / exposure_samples(light, 0, config.period_us, SHADOW_STEP_DEG)
+    return Renderer(maps, light, brdf, shadows=config.shadows, device=config.device, shadow_step_us=shadow_step_us)
+
+
+def compiled_blocks(config: SimulationConfig, renderer: Renderer) -> Iterator[simkernel.Block]:
+    """``simkernel.simulate_ring`` over all periods of ``config``, with the first period's windows."""
+    return simkernel.simulate_ring(
+        renderer,
+        event_scale=config.event_scale,
+        t1_us=config.duration_us,
+        window_ends_us=config.exposure_bounds_us()[1:],
+        **config.event_rule(),
+    )
+
+
+def quantise(exposure: np.ndarray, gain: float, bit_depth: int, noise: float, rng: np.random.Generator) -> np.ndarray:
+    """Pixel values of a linear sensor: gain·exposure plus shot and read noise, clipped at saturation
+    and rounded to the integer type of ``bit_depth``."""
+    saturation = float(2**bit_depth - 1)
+    value = gain * np.asarray(exposure, dtype=np.float64)
+    if noise > 0:
+        full_well = 1.0 / (noise * noise)
+        electrons = rng.poisson(np.clip(value, 0.0, None) / saturation * full_well)
+        value = electrons * (saturation / full_well) + rng.normal(0.0, noise * saturation, value.shape)
+    return np.clip(np.rint(value), 0.0, saturation).astype(BIT_DEPTHS[bit_depth])
+
+
+def _auto_gain(peak: float, bit_depth: int) -> float:
+    """The gain that puts ``peak`` (the brightest value the gain is set by) at ``DIFFUSE_LEVEL``."""
+    if not peak > 0:
+        raise UserError("the scene receives no light (every frame is black); check --elevation-deg or --lights")
+    return DIFFUSE_LEVEL * float(2**bit_depth - 1) / peak
+
+
+def _gain_brdfs(config: SimulationConfig, renderer: Renderer, diffuse: Any) -> list[Any]:
+    """The BRDFs the frames are shaded with: the renderer's, then the diffuse one when the automatic
+    gain is set by the diffuse part; the gain is set by the last one's values."""
+    fixed = config.exposure_gain is not None or config.auto_gain == "peak"
+    return [renderer.brdf] if fixed else [renderer.brdf, diffuse]
+
+
+def _description(config: SimulationConfig) -> str:
+    return f"pstoolkit simulate {config.scene}: " + json.dumps(asdict(config), sort_keys=True)
+
+
+def simulate(config: SimulationConfig, path: str | os.PathLike[str], progress: Progress = no_progress) -> SimulationSummary:
+    """Render ``config`` and write the capture to ``path`` atomically; ``progress(fraction, message)``
+    is called as work advances. ``config.device`` is a torch device ("cpu", "cuda").
+
+    On the CPU torch runs single-threaded here: the reference engine's render steps are many small
+    tensor operations, where handing work between threads costs more than it saves (15 s per period
+    with 2 threads against 2.3 s with 1 on a busy 2-core machine); the compiled engine runs on numba's
+    threads (``NUMBA_NUM_THREADS``)."""
+    threads = torch.get_num_threads()
+    if torch.device(config.device).type == "cpu":
+        torch.set_num_threads(1)
+    try:
+        return _simulate(config, path, progress)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _simulate(config: SimulationConfig, path: str | os.PathLike[str], progress: Progress) -> SimulationSummary:
+    started = time.perf_counter()
+    config.check()
+    report = progress
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise UserError(f"{path}: folder {path.parent} does not exist")
+    registries = get_registries()
+    brdf = registries.brdfs.get(config.brdf).obj()
+    diffuse = registries.brdfs.get("lambertian").obj()
+    maps = build_scene(config)
+    renderer = build_renderer(config, maps, brdf)
+    noise_rng, _ = (np.random.default_rng(s) for s in np.random.SeedSequence(config.seed).spawn(2))
+    n_events = 0
+    event_size: tuple[int, int] | None = None
+    with psfmt.CaptureWriter(
+        path, description=_description(config), creator="pstoolkit", creator_version=pstoolkit.__version__
+    ) as writer:
+        # first, so the writer's threads compress the maps while the engine is set up
+        writer.set_ground_truth(
+            psfmt.GroundTruth(
+                normal=maps.normal, mask=maps.mask, albedo=maps.albedo, depth=maps.depth, materials=maps.materials()
+            )
+        )
+        dtype = BIT_DEPTHS[config.bit_depth]
+        writer.begin_frames(config.size, config.size, 3, dtype, bit_depth=config.bit_depth)
+        if config.discrete:
+            n_frames = _write_discrete(config, renderer, diffuse, writer, noise_rng, report)
+        else:
+            n_events, event_size = _write_hybrid(config, renderer, diffuse, writer, noise_rng, report)
+            n_frames = config.frames * config.periods
+            writer.set_calibration(
+                psfmt.Calibration(
+                    event_to_frame=psfmt.scale_affine(config.event_scale),
+                    contrast_pos=config.contrast,
+                    contrast_neg=config.contrast,
+                    refractory_us=config.refractory_us,
+                    refractory_rule=config.refractory_rule,
+                )
+            )
+        writer.set_lights(renderer.light.to_spec())
+    return SimulationSummary(path, n_frames, n_events, event_size, time.perf_counter() - started)
+
+
+class _FrameSums:
+    """The long exposures of one period, ∫ I dt by ``exposure_plan``'s midpoint rule, on the time grid
+    the event simulation renders whole frames at (``sample_times_us``): each such render also adds
+    its time's irradiance to its frame (``render``), so one period is shaded once for both, and the
+    cast-shadow sweeps cached for one time serve its neighbours. The light repeats every period, so
+    the frames of the first period are reused for the others."""
+
+    def __init__(self, config: SimulationConfig, renderer: Renderer, brdfs: list[Any], bounds: list[int]) -> None:
+        self.bounds = bounds
+        plans = [exposure_plan(renderer.light, a, b) for a, b in zip(self.bounds[:-1], self.bounds[1:])]
+        self.times = np.concatenate([times for times, _ in plans])
+        self.window = np.repeat(np.arange(config.frames), [len(times) for times, _ in plans])
+        self.dt_s = [dt_s for _, dt_s in plans]
+        self.done = np.zeros(len(self.times), dtype=bool)
+        self.totals = [[torch.zeros((renderer.pixels, 3), dtype=torch.float64) for _ in brdfs] for _ in plans]
+        self.renderer, self.brdfs, self.config = renderer, brdfs, config
+
+    def sample_times_us(self) -> np.ndarray:
+        """The frame samples of every period, inside (0, periods × period)."""
+        period = self.config.period_us
+        times = np.concatenate([self.times + p * period for p in range(self.config.periods)])
+        return times[(times > 0) & (times < self.config.duration_us)]
+
+    def _add(self, index: np.ndarray, sums: list[torch.Tensor]) -> None:
+        for total, part in zip(self.totals[int(self.window[index[0]])], sums):
+            total += part.cpu()
+        self.done[index] = True
+
+    def render(self, t_us: np.ndarray, event_scale: float) -> np.ndarray:
+        """``event_grey`` at ``t_us``; the frame samples among them not seen before join their frame."""
+        t_us = np.asarray(t_us, dtype=np.float64)
+        slot = np.minimum(np.searchsorted(self.times, t_us), len(self.times) - 1)
+        new = (self.times[slot] == t_us) & ~self.done[slot]
+        if not new.any():
+            return self.renderer.event_grey(t_us, event_scale)
+        he, we = event_shape(self.config.size, self.config.size, event_scale)
+        out = np.empty((len(t_us), he, we))
+        if not new.all():
+            out[~new] = self.renderer.event_grey(t_us[~new], event_scale)
+        for k in np.unique(self.window[slot[new]]):
+            take = new & (self.window[slot] == k)
+            out[take], sums = self.renderer.event_grey_and_sums(t_us[take], event_scale, self.brdfs)
+            self._add(slot[take], sums)
+        return out
+
+    def exposures(self) -> list[list[np.ndarray]]:
+        """Per frame, (H, W, 3) radiant exposure per BRDF (dt in seconds); samples the event
+        simulation did not render are shaded here."""
+        for k in np.unique(self.window[~self.done]):
+            index = np.flatnonzero(~self.done & (self.window == k))
+            self._add(index, self.renderer.shade_sum(self.times[index], self.brdfs))
+        return [
+            [self.renderer.scatter(total[None].to(self.renderer.device) * dt_s)[0].cpu().numpy() for total in totals]
+            for totals, dt_s in zip(self.totals, self.dt_s)
+        ]
+
+
+def _write_hybrid(
+    config: SimulationConfig,
+    renderer: Renderer,
+    diffuse: Any,
+    writer: psfmt.CaptureWriter,
+    rng: np.random.Generator,
+    report: Progress,
+) -> tuple[int, tuple[int, int]]:
+    """Events and long exposures tiling each period, in one pass over time."""
+    brdfs = _gain_brdfs(config, renderer, diffuse)
+    event_size = event_shape(config.size, config.size, config.event_scale)
+    period = config.period_us
+    bounds = config.exposure_bounds_us()
+    if simkernel.supported(renderer):
+        n_events, exposures = _write_compiled(config, renderer, event_size, writer, report, brdfs)
+    else:
+        sums = _FrameSums(config, renderer, brdfs, bounds)
+        n_events = _write_events(config, renderer, event_size, writer, report, sums)
+        exposures = sums.exposures()
+    gain = config.exposure_gain or _auto_gain(max(float(e[-1].max()) for e in exposures), config.bit_depth)
+    for p in range(config.periods):
+        for k, exposure in enumerate(exposures):
+            writer.append_frames(
+                quantise(exposure[0], gain, config.bit_depth, config.noise, rng),
+                t_start_us=[p * period + bounds[k]],
+                t_end_us=[p * period + bounds[k + 1]],
+            )
+    return n_events, event_size
+
+
+def _write_compiled(
+    config: SimulationConfig,
+    renderer: Renderer,
+    event_size: tuple[int, int],
+    writer: psfmt.CaptureWriter,
+    report: Progress,
+    brdfs: list[Any],
+) -> tuple[int, list[list[np.ndarray]]]:
+    """Events over all periods and the first period's exposures per BRDF, from ``simkernel``."""
+    window_sums = []
+
+    def chunks() -> Iterator[tuple[psfmt.EventArray, float]]:
+        for block in compiled_blocks(config, renderer):
+            if block.window_sums is not None:
+                window_sums.append(block.window_sums)
+            yield block.events, block.t_end_us
+
+    count = append_event_chunks(writer, event_size, chunks(), config.duration_us, report)
+    exposures = []
+    for sums in window_sums:
+        diffuse, gloss = simkernel.window_exposures(renderer, sums)
+        exposures.append([gloss if isinstance(b, GGX) else diffuse for b in brdfs])
+    return count, exposures
+
+
+def _write_discrete(
+    config: SimulationConfig,
+    renderer: Renderer,
+    diffuse: Any,
+    writer: psfmt.CaptureWriter,
+    rng: np.random.Generator,
+    report: Progress,
+) -> int:
+    """One frame per instantaneous light: each light of a grid or file layout (at its sample time),
+    or ``discrete_lights`` ring lights evenly spaced over the first period. Returns the frame count."""
+    if isinstance(renderer.light, SampledLight):
+        t_us = renderer.light.times_us
+    else:
+        t_us = np.arange(config.discrete_lights, dtype=np.float64) * config.period_us / config.discrete_lights
+    shaded = renderer.shade(t_us, _gain_brdfs(config, renderer, diffuse))
+    images = renderer.scatter(shaded[0]).cpu().numpy()
+    report(1.0, "frames")
+    gain = config.exposure_gain or _auto_gain(float(shaded[-1].max()), config.bit_depth)
+    direction, intensity = renderer.light.evaluate(t_us)
+    writer.append_frames(
+        quantise(images, gain, config.bit_depth, config.noise, rng),
+        light_direction=direction,
+        light_intensity=intensity,
+    )
+    return len(t_us)
+
+
+def _write_events(
+    config: SimulationConfig,
+    renderer: Renderer,
+    event_size: tuple[int, int],
+    writer: psfmt.CaptureWriter,
+    report: Progress,
+    sums: _FrameSums,
+) -> int:
+    """Events over all periods; their whole-frame renders go through ``sums``, which adds the
+    frames' samples among them to the exposures."""
+    height, width = event_size
+    scale = config.event_scale
+    render_pixels = partial(renderer.event_pixels, event_scale=scale) if renderer.event_pixels_supported else None
+    chunks = simulate_events(
+        partial(sums.render, event_scale=scale),
+        0,
+        config.duration_us,
+        width=width,
+        height=height,
+        **config.event_rule(),
+        render_pixels=render_pixels,
+        sample_times_us=sums.sample_times_us(),
+    )
+    return append_event_chunks(writer, event_size, ((c, float(c.t[-1])) for c in chunks), config.duration_us, report)
+
+
+def append_event_chunks(
+    writer: psfmt.CaptureWriter,
+    event_size: tuple[int, int],
+    chunks: Iterable[tuple[psfmt.EventArray, float]],
+    t1_us: float,
+    report: Progress,
+) -> int:
+    """Start the writer's events for a sensor of ``event_size`` (height, width) and append each
+    (events, time reached in µs) of ``chunks``, reporting the share of ``t1_us`` reached; returns the
+    number of events."""
+    height, width = event_size
+    writer.begin_events(width, height)
+    count = 0
+    for events, t_us in chunks:
+        if len(events):
+            writer.append_events(events)
+            count += len(events)
+        report(min(1.0, t_us / t1_us), "events")
+    report(1.0, "events")
+    return count

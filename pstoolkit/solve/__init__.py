@@ -1,0 +1,1 @@
+"""Running solvers: the solver interface, result folders and batch runs."""

@@ -1,0 +1,56 @@
+"""The package layout: subpackages by job, light imports, and the old flat module paths as aliases."""
+
+from __future__ import annotations
+
+import importlib
+import subprocess
+import sys
+
+import pytest
+
+MOVED = {
+    "pstoolkit.hookspecs": "pstoolkit.plugin.spec",
+    "pstoolkit.plugins": "pstoolkit.plugin.manager",
+    "pstoolkit.registry": "pstoolkit.plugin.registry",
+    "pstoolkit.lights": "pstoolkit.optics.lights",
+    "pstoolkit.eventmodel": "pstoolkit.events.rule",
+    "pstoolkit.render": "pstoolkit.sim.render",
+    "pstoolkit.solver": "pstoolkit.solve.base",
+    "pstoolkit.outputs": "pstoolkit.solve.results",
+    "pstoolkit.metrics": "pstoolkit.evaluation.metrics",
+    "pstoolkit.backend": "pstoolkit.hardware.backend",
+    "pstoolkit.normalmap": "pstoolkit.io.normalmap",
+}
+
+
+@pytest.mark.parametrize(("old", "new"), sorted(MOVED.items()))
+def test_an_old_module_path_is_the_moved_module(old: str, new: str) -> None:
+    # the same module object, so patching either name patches both
+    assert importlib.import_module(old) is importlib.import_module(new)
+
+
+def test_the_old_evaluation_module_names_still_import() -> None:
+    from pstoolkit.evaluation import RESULT_FILE, score
+    from pstoolkit.evaluation import scoring
+
+    assert (score, RESULT_FILE) == (scoring.score, scoring.RESULT_FILE)
+
+
+def test_pstoolkit_exports_what_a_plugin_needs() -> None:
+    import pstoolkit
+    from pstoolkit.optics.brdf import BRDF
+    from pstoolkit.solve.base import Progress
+
+    assert pstoolkit.BRDF is BRDF and pstoolkit.Progress is Progress
+    missing = [name for name in pstoolkit.__all__ if not hasattr(pstoolkit, name)]
+    assert missing == []
+    with pytest.raises(AttributeError, match="has no attribute 'nothing'"):
+        pstoolkit.nothing  # noqa: B018
+
+
+def test_the_package_and_its_subpackages_load_neither_torch_nor_numba() -> None:
+    packages = ["pstoolkit", "pstoolkit.plugin", "pstoolkit.optics", "pstoolkit.events", "pstoolkit.sim", "pstoolkit.solve",
+                "pstoolkit.shadows", "pstoolkit.surface", "pstoolkit.evaluation", "pstoolkit.hardware", "pstoolkit.io"]
+    code = f"import sys\nfor p in {packages!r}: __import__(p)\nprint(sorted({{'torch', 'numba'}} & set(sys.modules)))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
