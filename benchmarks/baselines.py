@@ -50,16 +50,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from results_io import write_results
 
 import psfmt
-from pstoolkit.events import eventps
 from pstoolkit.evaluation.scoring import score
+from pstoolkit.events import eventps
 from pstoolkit.optics.lights import build_light_model
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.sim.simulator import SimulationConfig, simulate
 from pstoolkit.solve.base import no_progress, run_solver
 from pstoolkit_eventps.resample import Resampler
-from results_io import write_results
 
 RESULTS = Path(__file__).resolve().parent / "results" / "baselines.json"
 GEOMETRY_ROOT = Path("/work/shared/data/diligent-geometry")
@@ -166,7 +166,7 @@ def eventps_speed(size: int, event_scale: float, turns: int, repeat: int, folder
 
     rates: dict[str, Any] = {}
     for threads in STREAM_THREADS:
-        wall, cpu, best = _timed(lambda: windows(threads), repeat)
+        wall, cpu, best = _timed(lambda threads=threads: windows(threads), repeat)
         maps = counted[-1]
         rates[f"stream_{threads}_threads"] = {"maps_per_s": maps / wall, "maps_per_cpu_s": maps / cpu, "best_maps_per_s": maps / best}
     entry = get_registries().solvers.get("eventps")

@@ -58,18 +58,18 @@ from typing import Any
 import numpy as np
 import torch
 from baselines import GEOMETRY_ROOT, run_row, scenes
-from pstoolkit_diligent.rendered import semi_real_from_capture
 from results_io import write_results
 
 import psfmt
-from pstoolkit.optics.lights import build_light_model
 from pstoolkit.evaluation.metrics import angular_error_deg, highlight_band, rim_band
 from pstoolkit.evaluation.scoring import score as score_normals
+from pstoolkit.optics.lights import build_light_model
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.shadows import ShadowEvidence, ShadowMask
 from pstoolkit.shadows.geometry import GeometryDetector
 from pstoolkit.shadows.score import score, true_shadows
 from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit_diligent.rendered import semi_real_from_capture
 
 RESULTS = Path(__file__).resolve().parent / "results" / "dualres.json"
 DILIGENT_LIGHTS = Path("/work/shared/data/diligent-lights/light_directions.txt")

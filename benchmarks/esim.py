@@ -25,9 +25,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from results_io import write_results
 
 from pstoolkit.sim.esim import simulate_events
-from results_io import write_results
 
 RESULTS = Path(__file__).resolve().parent / "results" / "esim.json"
 PERIOD_US = 33_333.0

@@ -23,11 +23,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from results_io import write_results
 
 import psfmt
 from psfmt import evt3
 from psfmt.rawheader import read_header
-from results_io import write_results
 
 RESULTS = Path(__file__).resolve().parent / "results" / "event_io.json"
 SENSOR_W, SENSOR_H = 1280, 720

@@ -23,9 +23,9 @@ from typing import Any
 
 import h5py
 import numpy as np
+from results_io import write_results
 
 import psfmt
-from results_io import write_results
 
 RESULTS = Path(__file__).resolve().parent / "results" / "format_io.json"
 SENSOR_W, SENSOR_H = 1280, 720
@@ -106,7 +106,7 @@ def run(n_events: int, n_windows: int, seed: int, folder: Path) -> dict[str, Any
     with psfmt.read(ev_path) as capture:
         times, sizes = [], []
         for t0 in starts:
-            seconds, window = timed(lambda: capture.events.window(int(t0), int(t0) + 1000))
+            seconds, window = timed(lambda t0=t0: capture.events.window(int(t0), int(t0) + 1000))
             times.append(seconds)
             sizes.append(len(window))
     lo, hi = np.searchsorted(events.t, [starts[-1], starts[-1] + 1000])

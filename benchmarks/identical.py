@@ -29,7 +29,6 @@ from typing import Any
 
 import numpy as np
 from baselines import GEOMETRY_ROOT, scenes
-from pstoolkit_diligent.rendered import semi_real_from_capture
 from results_io import write_results
 
 import psfmt
@@ -37,6 +36,7 @@ from pstoolkit.evaluation.scoring import score
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.sim.simulator import SimulationConfig, simulate
 from pstoolkit.solve.base import run_solver
+from pstoolkit_diligent.rendered import semi_real_from_capture
 
 RESULTS = Path(__file__).resolve().parent / "results" / "identical.json"
 SOLVERS: tuple[tuple[str, str, list[str]], ...] = (

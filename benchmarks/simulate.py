@@ -38,10 +38,10 @@ import torch
 from results_io import write_results
 
 import psfmt
-from pstoolkit.sim import ring_engine as simkernel
 from pstoolkit._shared.allocator import keep_freed_memory
 from pstoolkit.events.rule import REFRACTORY_RULES
 from pstoolkit.plugin.manager import get_registries
+from pstoolkit.sim import ring_engine as simkernel
 from pstoolkit.sim.simulator import (
     SimulationConfig,
     build_renderer,

@@ -342,7 +342,9 @@ class Decoder:
         _advance_space(w, typ, self.state)
 
 
-def decode(data: bytes | np.ndarray, width: int = MAX_COORD + 1, height: int = MAX_COORD + 1, *, engine: str = "auto") -> tuple[EventArray, Triggers, DecodeStats]:
+def decode(
+    data: bytes | np.ndarray, width: int = MAX_COORD + 1, height: int = MAX_COORD + 1, *, engine: str = "auto"
+) -> tuple[EventArray, Triggers, DecodeStats]:
     """Decode EVT 3.0 words (bytes without header, or a uint16 array) in one go."""
     words = np.frombuffer(data, dtype="<u2", count=len(data) // 2) if isinstance(data, (bytes, bytearray, memoryview)) else data
     decoder = Decoder(width, height, engine)

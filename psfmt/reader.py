@@ -25,8 +25,8 @@ from psfmt.limits import Limits
 from psfmt.model import (
     Calibration,
     Capture,
-    FrameStack,
     Frames,
+    FrameStack,
     GroundTruth,
     LightSpec,
     Result,

@@ -283,7 +283,8 @@ def _check_frames(f: h5py.File, limits: Limits, out: _Collector) -> None:
     if k == 0:
         out.error(f"{where}/data", "holds no frames")
     elif _check_pixels(f"{where}/data", h, w, limits, out) and h * w * c * ds.dtype.itemsize > limits.max_array_bytes:
-        out.error(f"{where}/data", f"has frames of {h * w * c * ds.dtype.itemsize:,} bytes, more than the limit of {limits.max_array_bytes:,} read at once (PSFMT_MAX_ARRAY_BYTES)")
+        out.error(f"{where}/data", f"has frames of {h * w * c * ds.dtype.itemsize:,} bytes, more than the limit of {limits.max_array_bytes:,} "
+                  "read at once (PSFMT_MAX_ARRAY_BYTES)")
     order = attr(g, "color_order")
     if order not in COLOR_ORDERS:
         out.error(where, f"color_order {order!r} is not one of {sorted(COLOR_ORDERS)}")

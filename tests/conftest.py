@@ -8,6 +8,8 @@ import pytest
 
 from pstoolkit.sim.simulator import SimulationConfig, simulate
 
+pytest_plugins = ["pstoolkit.testing"]
+
 
 @pytest.fixture(scope="session")
 def sphere_48(tmp_path_factory: pytest.TempPathFactory) -> Path:

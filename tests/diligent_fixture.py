@@ -2,7 +2,7 @@
 
 A Lambertian sphere cap with a Gaussian bump and a smooth RGB albedo, rendered under DiLiGenT's
 12×8 light grid (id = 8·column + row) with per-light RGB intensities, written exactly as the
-datasets lay it out (facts §1–2): 16-bit PNGs written by OpenCV (so BGR on disk), ``filenames.txt``,
+datasets lay it out (Shi et al. 2016; docs/converters.md): 16-bit PNGs written by OpenCV (so BGR on disk), ``filenames.txt``,
 ``light_directions.txt``, ``light_intensities.txt`` (RGB order), ``mask.png`` (uint8, 3 channels,
 0/255) and ``Normal_gt.mat`` (float64 (H, W, 3), 0 outside the mask). The cap stays within 50° of
 the view and the lights within 33° of it, so no pixel is in attached shadow under any light.
@@ -38,7 +38,7 @@ class Fixture:
 
 
 def diligent_directions() -> np.ndarray:
-    """(96, 3) unit directions of a 12×8 grid in front of the object. The boundary loop of facts §1
+    """(96, 3) unit directions of a 12×8 grid in front of the object. The boundary loop of the semi-real recipe
     (88…95, 87, 79, …, 80) runs around the grid's physical edge, which places index column c at
     physical column 11 − c for c ≥ 6 and 6 + c for c < 6; row 0 is at the top."""
     ids = np.arange(GRID_COLUMNS * GRID_ROWS)

@@ -27,12 +27,12 @@ import numpy as np
 import pytest
 from distributed import Client
 
-from pstoolkit.plugin import manager as plugins
-from pstoolkit.solve.batch import expand_captures, is_complete, local_cluster, Outcome, plan, run_batch, run_pair, solver_options
 from pstoolkit.cli import main
 from pstoolkit.errors import UserError
+from pstoolkit.plugin import manager as plugins
 from pstoolkit.sim.simulator import SimulationConfig, simulate
-from test_plugins import fake_distribution
+from pstoolkit.solve.batch import Outcome, expand_captures, is_complete, local_cluster, plan, run_batch, run_pair, solver_options
+from pstoolkit.testing import fake_distribution
 
 SIZE = 32
 SOLVERS = ("frameps", "eventps")

@@ -23,7 +23,7 @@ def _upper_hemisphere(rng: np.random.Generator, n: int) -> np.ndarray:
 
 
 def _ggx_reference(n, l, v, albedo, f0, r):
-    """facts §7 term by term: f_r = ρ_d + D·F0·G / (4 (n·l)(n·v)), shaded by n·l."""
+    """The Cook–Torrance GGX BRDF term by term: f_r = ρ_d + D·F0·G / (4 (n·l)(n·v)), shaded by n·l."""
     h = _unit(l + v)
     nl, nv, nh = (np.sum(n * x, -1, keepdims=True) for x in (l, v, h))
     alpha = r**2
@@ -54,7 +54,8 @@ def test_ggx_matches_float64_reference() -> None:
     want = _ggx_reference(n, l, v, albedo, f0, r)
     got = GGX().shade(*(torch.from_numpy(a) for a in (n, l, v)), albedo=torch.from_numpy(albedo), f0=torch.from_numpy(f0), roughness=torch.from_numpy(r[:, 0]))
     np.testing.assert_allclose(got.numpy(), want, rtol=1e-5, atol=1e-8)
-    got32 = GGX().shade(*(torch.from_numpy(a).float() for a in (n, l, v)), albedo=torch.from_numpy(albedo).float(), f0=torch.from_numpy(f0).float(), roughness=torch.from_numpy(r).float())
+    got32 = GGX().shade(*(torch.from_numpy(a).float() for a in (n, l, v)), albedo=torch.from_numpy(albedo).float(), f0=torch.from_numpy(f0).float(),
+                        roughness=torch.from_numpy(r).float())
     assert got32.dtype == torch.float32
     np.testing.assert_allclose(got32.numpy(), want, rtol=1e-3, atol=1e-5)
 
@@ -87,7 +88,8 @@ def test_ggx_specular_energy_bounded() -> None:
 def test_ggx_reciprocal_in_light_and_view() -> None:
     rng = np.random.default_rng(5)
     n, l, v = (torch.from_numpy(_upper_hemisphere(rng, 300)) for _ in range(3))
-    maps = dict(albedo=torch.tensor([0.3, 0.2, 0.1], dtype=torch.float64), f0=torch.tensor([0.9, 0.5, 0.04], dtype=torch.float64), roughness=torch.full((300, 1), 0.35, dtype=torch.float64))
+    maps = dict(albedo=torch.tensor([0.3, 0.2, 0.1], dtype=torch.float64), f0=torch.tensor([0.9, 0.5, 0.04], dtype=torch.float64),
+                roughness=torch.full((300, 1), 0.35, dtype=torch.float64))
     nl = torch.clamp((n * l).sum(-1, keepdim=True), min=0)
     nv = torch.clamp((n * v).sum(-1, keepdim=True), min=0)
     # shade = f_r·(n·l): f_r(l, v) = f_r(v, l) means shade(l, v)·(n·v) = shade(v, l)·(n·l).
@@ -136,7 +138,8 @@ def test_ggx_roughness_clamp_and_batch_shapes() -> None:
 def test_ggx_on_cuda_matches_cpu() -> None:
     rng = np.random.default_rng(6)
     n, l, v = (torch.from_numpy(_upper_hemisphere(rng, 100)) for _ in range(3))
-    maps = dict(albedo=torch.full((3,), 0.3, dtype=torch.float64), f0=torch.full((3,), 0.5, dtype=torch.float64), roughness=torch.full((100,), 0.4, dtype=torch.float64))
+    maps = dict(albedo=torch.full((3,), 0.3, dtype=torch.float64), f0=torch.full((3,), 0.5, dtype=torch.float64),
+                roughness=torch.full((100,), 0.4, dtype=torch.float64))
     cpu = GGX().shade(n, l, v, **maps)
     gpu = GGX().shade(n.cuda(), l.cuda(), v.cuda(), **{k: m.cuda() for k, m in maps.items()})
     np.testing.assert_allclose(gpu.cpu().numpy(), cpu.numpy(), rtol=1e-10)

@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 
 import psfmt
+from pstoolkit.cli import main
+from pstoolkit.errors import UserError
 from pstoolkit.hardware.calibrate import (
     apply_affine,
     blob_centres,
@@ -16,8 +18,6 @@ from pstoolkit.hardware.calibrate import (
     fit_affine,
     match_affine,
 )
-from pstoolkit.cli import main
-from pstoolkit.errors import UserError
 
 # event → frame: about 2× (a half-resolution event sensor), rotated 2°, slightly sheared, shifted
 TRUE_AFFINE = np.array([[2.03 * np.cos(0.035), -2.03 * np.sin(0.035), 1.3], [2.01 * np.sin(0.035) + 0.02, 2.01 * np.cos(0.035), -0.8]])

@@ -11,19 +11,19 @@ from typing import Any
 
 import numpy as np
 import pytest
-from pstoolkit_replay.source import Replay
-from pstoolkit_ringlight.protocol_ringlightsim import device
 from test_calibrate import led_target
 from test_replay import PERIOD_US, write_recording
 
 import psfmt
 from pstoolkit import hookimpl
-from pstoolkit.plugin import manager as plugins
 from pstoolkit.cli import main
 from pstoolkit.evaluation.metrics import angular_error_deg
+from pstoolkit.plugin import manager as plugins
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.plugin.registry import Registry
 from pstoolkit.solve.base import run_solver
+from pstoolkit_replay.source import Replay
+from pstoolkit_ringlight.protocol_ringlightsim import device
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +84,8 @@ def test_a_disconnect_mid_capture_leaves_no_file_and_the_watchdog_turns_the_ligh
     code = capture(recording, out, port, "--periods", "2", "--set", "watchdog_ms=100", "--set", "timeout_ms=20", "--source-set", "speed=0.1")
     assert code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == [f"pstoolkit: error: ring light on {port}: connection lost during PING and the port cannot be reopened (could not open port {port}: [Errno 2] No such file or directory)"]
+    assert err == [f"pstoolkit: error: ring light on {port}: connection lost during PING and the port cannot be reopened "
+                   f"(could not open port {port}: [Errno 2] No such file or directory)"]
     assert out.read_bytes() == b"an earlier file" and sorted(p.name for p in tmp_path.iterdir()) == ["out.h5"]
     dev = device(tmp_path.name)
     time.sleep(0.15)
@@ -156,7 +157,8 @@ def test_ctrl_c_leaves_the_lights_off_and_no_file(recording: Path, tmp_path: Pat
         (["--direction", "up"], "--direction 'up': expected ccw or cw"),
         (["--trigger", "always"], "--trigger 'always': expected one of off, period, exposure"),
         (["--calibration", "{rec}.missing"], "--calibration {rec}.missing: does not exist"),
-        (["--port", "ringlightsim://{tmp}?firmware=blinky"], "ring light on ringlightsim://{tmp}?firmware=blinky: wrong firmware blinky 1.0.0 (protocol 1); expected pstoolkit-ringlight with protocol 1 (flash examples/firmware/ringlight)"),
+        (["--port", "ringlightsim://{tmp}?firmware=blinky"], "ring light on ringlightsim://{tmp}?firmware=blinky: wrong firmware blinky 1.0.0 "
+         "(protocol 1); expected pstoolkit-ringlight with protocol 1 (flash examples/firmware/ringlight)"),
     ],
 )
 def test_bad_input_is_one_line(recording: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], message: str) -> None:

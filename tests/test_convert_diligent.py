@@ -15,12 +15,12 @@ import cv2
 import numpy as np
 import pytest
 from diligent_fixture import Fixture, write_diligent, write_diligent_pi
-from pstoolkit_diligent.semireal import BOUNDARY_LOOP
 
 import psfmt
 from pstoolkit.cli import main
 from pstoolkit.errors import UserError
 from pstoolkit.plugin.options import Option, parse_assignments
+from pstoolkit_diligent.semireal import BOUNDARY_LOOP
 
 SEMI_SIZE = 32
 

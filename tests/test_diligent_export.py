@@ -13,17 +13,17 @@ import h5py
 import numpy as np
 import pytest
 import scipy.io
-from pstoolkit_diligent.folder import scan_object
-from pstoolkit_diligent.rendered import semi_real_from_capture
-from pstoolkit_diligent.semireal import BOUNDARY_LOOP
 
 import psfmt
 import pstoolkit.io.diligent_export
 from pstoolkit.cli import main
-from pstoolkit.io.diligent_export import export_diligent
 from pstoolkit.errors import UserError
+from pstoolkit.io.diligent_export import export_diligent
 from pstoolkit.optics.layouts import grid_directions
 from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit_diligent.folder import scan_object
+from pstoolkit_diligent.rendered import semi_real_from_capture
+from pstoolkit_diligent.semireal import BOUNDARY_LOOP
 
 
 @pytest.fixture(scope="module")

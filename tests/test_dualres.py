@@ -12,18 +12,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from pstoolkit_dualres.fields import NeuralField, positional_encoding
 
 import psfmt
 from pstoolkit import hookimpl
-from pstoolkit.plugin import manager as plugins
 from pstoolkit.cli import main
 from pstoolkit.errors import UserError
 from pstoolkit.evaluation.metrics import angular_error_deg
+from pstoolkit.plugin import manager as plugins
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.shadows import ShadowDetector
 from pstoolkit.shadows.score import true_shadows
 from pstoolkit.solve.base import SolverResult, run_solver
+from pstoolkit_dualres.fields import NeuralField, positional_encoding
 
 SIZE = 48
 

@@ -8,13 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+import psfmt
+from pstoolkit.evaluation.metrics import angular_error_deg
 from pstoolkit_dualres.eventnormal import event_normals
 from pstoolkit_dualres.grid import bilinear_taps, to_frames
 from pstoolkit_dualres.init import closed_form
 from pstoolkit_dualres.preprocess import Preprocessed, PreprocessOptions, preprocess
-
-import psfmt
-from pstoolkit.evaluation.metrics import angular_error_deg
 
 
 @pytest.fixture(scope="module")

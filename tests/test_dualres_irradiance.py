@@ -8,13 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pstoolkit_dualres.irradiance import Irradiance, approximate
-from pstoolkit_dualres.preprocess import PreprocessOptions, preprocess
 
 import psfmt
 from pstoolkit.errors import UserError
 from pstoolkit.shadows import interval_profile
 from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit_dualres.irradiance import Irradiance, approximate
+from pstoolkit_dualres.preprocess import PreprocessOptions, preprocess
 
 T = 33_333.0
 C = 0.15

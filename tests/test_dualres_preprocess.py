@@ -8,18 +8,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pstoolkit_dualres.irradiance import approximate
-from pstoolkit_dualres.preprocess import Preprocessed, PreprocessOptions, preprocess
-from pstoolkit_dualres.sampling import Samples, importance_samples, segment_counts
+from event_rows import event_stream, shading
 
 import psfmt
+from pstoolkit import LightModel
 from pstoolkit.errors import UserError
 from pstoolkit.events.rule import consecutive_pairs
 from pstoolkit.shadows import interval_profile
 from pstoolkit.shadows.score import true_shadows
 from pstoolkit.sim.simulator import SimulationConfig, simulate
-
-from event_rows import event_stream, shading
+from pstoolkit_dualres.irradiance import approximate
+from pstoolkit_dualres.preprocess import Preprocessed, PreprocessOptions, preprocess
+from pstoolkit_dualres.sampling import Samples, importance_samples, segment_counts
 
 T = 33_333.0
 C = 0.15
@@ -122,6 +122,15 @@ def test_preprocessed_contract(sphere: tuple[psfmt.Capture, Preprocessed]) -> No
     assert len(evidence.profile) > 0 and evidence.profile.pixel.max() < 32 * 32
 
 
+def true_level(gt: psfmt.GroundTruth, light: LightModel, t: np.ndarray, pixel: np.ndarray) -> np.ndarray:
+    """ln of the true grey Lambertian irradiance of event pixel ``pixel`` (2×2 frame pixels of a
+    32 px capture) at ``t``."""
+    grey_albedo = gt.albedo @ np.array([0.299, 0.587, 0.114])
+    shade = np.clip(np.einsum("hwc,tc->thw", gt.normal, light.evaluate(t)[0]), 0.0, None) * grey_albedo
+    blocks = shade.reshape(len(t), 16, 2, 16, 2).mean(axis=(2, 4)).reshape(len(t), -1)
+    return np.log(blocks[np.arange(len(t)), pixel] + 1e-3)
+
+
 def test_event_pairs_follow_the_capture_refractory_rule(tmp_path: Path) -> None:
     """Each rule's pairs relate the true log irradiance of their super pixel exactly (up to the
     simulator's render steps)."""
@@ -135,16 +144,9 @@ def test_event_pairs_follow_the_capture_refractory_rule(tmp_path: Path) -> None:
         events = pre.events
         np.testing.assert_array_equal(events.weight, 1.0)
         gt = capture.ground_truth
-        grey_albedo = gt.albedo @ np.array([0.299, 0.587, 0.114])
-
-        def level(t: np.ndarray, pixel: np.ndarray) -> np.ndarray:
-            """ln of the super pixel's true grey Lambertian irradiance (2×2 frame pixels) at ``t``."""
-            shade = np.clip(np.einsum("hwc,tc->thw", gt.normal, pre.light.evaluate(t)[0]), 0.0, None) * grey_albedo
-            blocks = shade.reshape(len(t), 16, 2, 16, 2).mean(axis=(2, 4)).reshape(len(t), -1)
-            return np.log(blocks[np.arange(len(t)), pixel] + 1e-3)
-
         pick = np.arange(0, events.pixel.size, max(1, events.pixel.size // 300))
-        change = level(events.t_us[pick], events.pixel[pick]) - level(events.t_ref_us[pick], events.pixel[pick])
+        change = (true_level(gt, pre.light, events.t_us[pick], events.pixel[pick])
+                  - true_level(gt, pre.light, events.t_ref_us[pick], events.pixel[pick]))
         assert np.median(np.abs(change - events.target[pick])) < 0.01  # measured 0.0002 for both rules
         if rule == "rate-limited":
             assert np.any(np.abs(events.target) > C + 1e-9)  # pairs across events fired at the end of a blind time

@@ -11,19 +11,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+
+import psfmt
+from pstoolkit.evaluation.metrics import angular_error_deg
+from pstoolkit.optics.brdf import GGX, MetallicGGX
+from pstoolkit.shadows import ShadowIntervals, ShadowMask
+from pstoolkit.shadows.score import true_shadows
+from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit.solve.base import no_progress
 from pstoolkit_dualres.fields import NeuralField, PyramidField, collapse, decompose
 from pstoolkit_dualres.preprocess import Preprocessed, PreprocessOptions, preprocess
 from pstoolkit_dualres.problem import Problem, build_problem
 from pstoolkit_dualres.reflectance import FitModel
 from pstoolkit_dualres.train import StageConfig, Tiling, mini_batches, train
-
-import psfmt
-from pstoolkit.optics.brdf import GGX, MetallicGGX
-from pstoolkit.evaluation.metrics import angular_error_deg
-from pstoolkit.shadows import ShadowIntervals, ShadowMask
-from pstoolkit.shadows.score import true_shadows
-from pstoolkit.sim.simulator import SimulationConfig, simulate
-from pstoolkit.solve.base import no_progress
 
 STAGE = StageConfig(epochs=1, lr=1e-3, material_lr=1e-3, frame_weight=1.0, event_weight=0.05, tv_weight=0.02,
                     tv_fraction=0.3, event_batch=0, batch_pixels=256, tile=8, seed=0)

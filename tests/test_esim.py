@@ -8,8 +8,8 @@ import pytest
 
 from psfmt import EventArray
 from pstoolkit.errors import UserError
-from pstoolkit.sim.esim import simulate_events
 from pstoolkit.events.rule import LOG_EPS, consecutive_pairs, log_irradiance, reference_time_us
+from pstoolkit.sim.esim import simulate_events
 
 SIZE = 16
 PERIOD_US = 1_000_000.0

@@ -11,12 +11,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_run_cli import lsq_plugin, simulate_sphere
 
 import psfmt
 from pstoolkit.cli import main
-from pstoolkit.evaluation.scoring import Record, collect, markdown_table
 from pstoolkit.evaluation.metrics import angular_error_deg
-from test_run_cli import lsq_plugin, simulate_sphere
+from pstoolkit.evaluation.scoring import Record, collect, markdown_table
 
 
 @dataclass(frozen=True)

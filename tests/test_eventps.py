@@ -10,12 +10,13 @@ import pytest
 
 import psfmt
 from psfmt import EventArray
-from pstoolkit.events import eventps, fill as eventfill
 from pstoolkit.errors import UserError
-from pstoolkit.sim.esim import simulate_events
-from pstoolkit.optics.lights import RingLight, SampledLight, build_light_model
 from pstoolkit.evaluation.metrics import angular_error_deg
+from pstoolkit.events import eventps
+from pstoolkit.events import fill as eventfill
+from pstoolkit.optics.lights import RingLight, SampledLight, build_light_model
 from pstoolkit.plugin.manager import get_registries
+from pstoolkit.sim.esim import simulate_events
 from pstoolkit.sim.simulator import SimulationConfig, simulate
 from pstoolkit.solve.base import SolverResult, run_solver
 

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import importlib
+import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
+ROOT = Path(__file__).resolve().parents[1]
 MOVED = {
     "pstoolkit.hookspecs": "pstoolkit.plugin.spec",
     "pstoolkit.plugins": "pstoolkit.plugin.manager",
@@ -30,8 +33,7 @@ def test_an_old_module_path_is_the_moved_module(old: str, new: str) -> None:
 
 
 def test_the_old_evaluation_module_names_still_import() -> None:
-    from pstoolkit.evaluation import RESULT_FILE, score
-    from pstoolkit.evaluation import scoring
+    from pstoolkit.evaluation import RESULT_FILE, score, scoring
 
     assert (score, RESULT_FILE) == (scoring.score, scoring.RESULT_FILE)
 
@@ -48,9 +50,17 @@ def test_pstoolkit_exports_what_a_plugin_needs() -> None:
         pstoolkit.nothing  # noqa: B018
 
 
-def test_the_package_and_its_subpackages_load_neither_torch_nor_numba() -> None:
-    packages = ["pstoolkit", "pstoolkit.plugin", "pstoolkit.optics", "pstoolkit.events", "pstoolkit.sim", "pstoolkit.solve",
+def test_the_package_its_subpackages_and_the_cli_load_neither_torch_nor_numba() -> None:
+    packages = ["pstoolkit", "pstoolkit.cli", "pstoolkit.plugin", "pstoolkit.optics", "pstoolkit.events", "pstoolkit.sim", "pstoolkit.solve",
                 "pstoolkit.shadows", "pstoolkit.surface", "pstoolkit.evaluation", "pstoolkit.hardware", "pstoolkit.io"]
-    code = f"import sys\nfor p in {packages!r}: __import__(p)\nprint(sorted({{'torch', 'numba'}} & set(sys.modules)))"
+    code = f"import sys\nfor p in {packages!r}: __import__(p)\nprint(sorted({{'torch', 'numba', 'matplotlib'}} & set(sys.modules)))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_ruff_finds_nothing_with_the_configured_rules() -> None:
+    ruff = shutil.which("ruff") or str(Path(sys.executable).with_name("ruff"))
+    if not Path(ruff).exists():
+        pytest.skip("ruff is not installed (pip install -e '.[test]')")
+    done = subprocess.run([ruff, "check", "--no-cache", str(ROOT)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stdout[-3000:]

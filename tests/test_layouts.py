@@ -7,10 +7,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pstoolkit_diligent.semireal import BOUNDARY_LOOP
 
 from pstoolkit.errors import UserError
 from pstoolkit.optics.layouts import GRID_COLUMN_TAN, GRID_COLUMNS, GRID_ROWS, grid_directions, layout_light, layout_lights
+from pstoolkit_diligent.semireal import BOUNDARY_LOOP
 
 
 def grid_places() -> tuple[np.ndarray, np.ndarray]:

@@ -4,8 +4,6 @@ run end to end through ``pstoolkit run --solver flat``; the solver interface it 
 from __future__ import annotations
 
 import json
-import sys
-import tomllib
 from pathlib import Path
 
 import cv2
@@ -13,15 +11,15 @@ import numpy as np
 import pytest
 
 import psfmt
-from pstoolkit.plugin import manager as plugins
 from pstoolkit.cli import main
 from pstoolkit.cli.app import terminal_progress
 from pstoolkit.errors import UserError
 from pstoolkit.optics.lights import build_light_model
+from pstoolkit.plugin import manager as plugins
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.plugin.registry import PluginError
 from pstoolkit.solve.base import SolverResult, check_inputs, resolve_device, run_solver
-from test_plugins import fake_distribution
+from pstoolkit.testing import install_project, sphere
 
 TEMPLATE = Path(__file__).resolve().parents[1] / "examples" / "plugin-template"
 SIZE = 48
@@ -29,37 +27,16 @@ RADIUS_PX = 20.0
 
 
 @pytest.fixture
-def template(monkeypatch: pytest.MonkeyPatch, tmp_path: Path):
+def template(pstoolkit_plugins: pytest.MonkeyPatch, tmp_path: Path) -> pytest.MonkeyPatch:
     """The template installed the way pip would: its dist-info (name, version and entry points read
-    from its pyproject.toml) and its source folder on sys.path."""
-    project = tomllib.loads((TEMPLATE / "pyproject.toml").read_text())["project"]
-    site = tmp_path / "site"
-    fake_distribution(site, project["name"], project["version"], project["entry-points"]["pstoolkit"])
-    monkeypatch.syspath_prepend(str(site))
-    monkeypatch.syspath_prepend(str(TEMPLATE / "src"))
-    monkeypatch.delenv(plugins.DISABLE_ENV, raising=False)
-    monkeypatch.setenv(plugins.ALLOW_ENV, "template")
-    plugins.reset()
-    yield monkeypatch
-    plugins.reset()
-    for name in [m for m in sys.modules if m.split(".")[0] == "pstoolkit_template"]:
-        del sys.modules[name]
-
-
-def sphere(size: int = SIZE, radius_px: float = RADIUS_PX) -> tuple[np.ndarray, np.ndarray]:
-    """Ground-truth normals (camera frame, y up) and mask of a sphere centred in the image."""
-    v, u = np.mgrid[0:size, 0:size].astype(np.float64)
-    c = (size - 1) / 2.0
-    x, y = (u - c) / radius_px, (c - v) / radius_px
-    mask = x * x + y * y < 1.0
-    normal = np.stack([x, y, np.sqrt(np.clip(1.0 - x * x - y * y, 0.0, None))], axis=-1)
-    normal[~mask] = 0.0
-    return normal, mask
+    from its pyproject.toml) and its source folder on sys.path, loaded alone."""
+    install_project(pstoolkit_plugins, TEMPLATE, tmp_path / "site")
+    return pstoolkit_plugins
 
 
 def sphere_capture(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """One frame of a white Lambertian sphere (albedo 0.8) under the template's static frontal light."""
-    normal, mask = sphere()
+    normal, mask = sphere(SIZE, RADIUS_PX)
     direction = np.array([0.0, 0.0, 1.0])
     image = 0.8 * np.clip(normal @ direction, 0.0, None)
     frames = psfmt.Frames(

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import sys
-import textwrap
 from pathlib import Path
 
 import pytest
@@ -12,29 +11,16 @@ import typer
 from typer.testing import CliRunner
 
 import pstoolkit
-from pstoolkit.plugin import manager as plugins, spec as hookspecs
 from pstoolkit.cli import main
 from pstoolkit.errors import UserError
-from pstoolkit.plugin.options import Option
+from pstoolkit.plugin import manager as plugins
+from pstoolkit.plugin import spec as hookspecs
 from pstoolkit.plugin.manager import PluginInfo, get_registries, load_failures, loaded_plugins
+from pstoolkit.plugin.options import Option
 from pstoolkit.plugin.registry import PluginError, Registry
+from pstoolkit.testing import fake_distribution
 
 FAKE_PREFIX = "pskfake_"
-
-
-def fake_distribution(
-    root: Path, name: str, version: str, entry_points: dict[str, str], modules: dict[str, str] | None = None
-) -> Path:
-    """Lay out an installed distribution the way importlib.metadata reads it: ``*.dist-info`` with
-    METADATA and entry_points.txt (group ``pstoolkit``), plus top-level modules, under ``root``."""
-    info = root / f"{name.replace('-', '_')}-{version}.dist-info"
-    info.mkdir(parents=True)
-    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: {version}\n")
-    lines = "".join(f"{key} = {value}\n" for key, value in entry_points.items())
-    (info / "entry_points.txt").write_text(f"[{plugins.ENTRY_POINT_GROUP}]\n{lines}")
-    for module, source in (modules or {}).items():
-        (root / f"{module}.py").write_text(textwrap.dedent(source))
-    return root
 
 
 def install(monkeypatch: pytest.MonkeyPatch, root: Path, sources: dict[str, str], version: str = "1.0") -> None:

@@ -14,14 +14,14 @@ from diligent_fixture import write_diligent
 
 import psfmt
 from psfmt import EventArray
-from pstoolkit.sim import ring_engine as simkernel
-from pstoolkit.optics.brdf import GGX
 from pstoolkit.cli import main
 from pstoolkit.errors import UserError
-from pstoolkit.sim.esim import _PacedPixels, simulate_events
 from pstoolkit.events.rule import LOG_EPS, REFRACTORY_RULES, exact_pairs, log_irradiance
+from pstoolkit.optics.brdf import GGX
 from pstoolkit.optics.lights import RingLight
 from pstoolkit.plugin.options import defaults
+from pstoolkit.sim import ring_engine as simkernel
+from pstoolkit.sim.esim import _PacedPixels, simulate_events
 from pstoolkit.sim.render import Renderer, exposure_samples
 from pstoolkit.sim.scenes import Blobs
 from pstoolkit.sim.simulator import SHADOW_STEP_DEG

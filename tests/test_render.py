@@ -8,8 +8,8 @@ from scipy.ndimage import distance_transform_edt, map_coordinates
 
 from pstoolkit.optics.equivalent import equivalent_lights, sample_times
 from pstoolkit.optics.lights import NearRingLight, RingLight
-from pstoolkit.plugin.options import defaults
 from pstoolkit.plugin.manager import get_registries
+from pstoolkit.plugin.options import defaults
 from pstoolkit.sim.render import (
     Renderer,
     ShadowCaster,

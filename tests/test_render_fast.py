@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from psfmt import EventArray
-from pstoolkit.optics.brdf import GGX, Lambertian
 from pstoolkit.errors import UserError
-from pstoolkit.sim.esim import simulate_events
+from pstoolkit.optics.brdf import GGX, Lambertian
 from pstoolkit.optics.lights import RingLight
 from pstoolkit.plugin.options import defaults
+from pstoolkit.sim.esim import simulate_events
 from pstoolkit.sim.render import Renderer, exposure_samples, integrate
 from pstoolkit.sim.scenes import Blobs, Relief, Sphere
 

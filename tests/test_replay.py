@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import psfmt
+from pstoolkit.errors import UserError
 from pstoolkit.hardware.backend import (
     CameraSource,
     EventBlock,
@@ -19,7 +20,6 @@ from pstoolkit.hardware.backend import (
     TriggerBlock,
     backend_class,
 )
-from pstoolkit.errors import UserError
 from pstoolkit.optics.lights import RingLight
 from pstoolkit.plugin.manager import get_registries
 

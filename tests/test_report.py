@@ -14,11 +14,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from test_batch import session_captures
 
 import psfmt
-from pstoolkit.solve.batch import Outcome, plan, run_pair, solver_options, write_log
 from pstoolkit.cli import main
-from test_batch import session_captures
+from pstoolkit.solve.batch import Outcome, plan, run_pair, solver_options, write_log
 
 SOLVERS = ["frameps", "eventps"]
 

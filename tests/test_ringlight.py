@@ -9,11 +9,18 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pstoolkit_ringlight
 import pytest
 import serial
 from hypothesis import given
 from hypothesis import strategies as st
+
+import pstoolkit_ringlight
+from pstoolkit.errors import UserError
+from pstoolkit.hardware.backend import Sweep
+from pstoolkit.optics.lights import RingLight as RingModel
+from pstoolkit.optics.lights import build_light_model
+from pstoolkit.plugin.options import defaults
+from pstoolkit.plugin.registry import Registry
 from pstoolkit_ringlight.backend import RingLight, ring_light_spec
 from pstoolkit_ringlight.client import (
     DeviceError,
@@ -32,13 +39,6 @@ from pstoolkit_ringlight.protocol import (
 )
 from pstoolkit_ringlight.protocol_ringlightsim import device
 from pstoolkit_ringlight.ptysim import PtyRingLight
-
-from pstoolkit.hardware.backend import Sweep
-from pstoolkit.errors import UserError
-from pstoolkit.optics.lights import RingLight as RingModel
-from pstoolkit.optics.lights import build_light_model
-from pstoolkit.plugin.options import defaults
-from pstoolkit.plugin.registry import Registry
 
 FAST = 0.05  # reply deadline of the tests' tries, seconds
 

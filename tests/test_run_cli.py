@@ -21,11 +21,11 @@ import pytest
 
 import psfmt
 import pstoolkit
-from pstoolkit.plugin import manager as plugins
-from pstoolkit.sim import demo
 from pstoolkit.cli import main
 from pstoolkit.evaluation.metrics import angular_error_deg
-from test_plugins import fake_distribution
+from pstoolkit.plugin import manager as plugins
+from pstoolkit.sim import demo
+from pstoolkit.testing import fake_distribution
 
 SIZE = 32
 LIGHTS = 8

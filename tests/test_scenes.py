@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from pstoolkit.errors import UserError
-from pstoolkit.plugin.options import defaults
 from pstoolkit.plugin.manager import get_registries
+from pstoolkit.plugin.options import defaults
 from pstoolkit.sim.scenes import (
     SCENES,
     Blobs,

@@ -4,11 +4,9 @@ every registered detector's precision and recall per pixel-time against a simula
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
-from pstoolkit_dualres.preprocess import PreprocessOptions, preprocess
+from event_rows import event_stream, shading
 
 import psfmt
 from pstoolkit.plugin.manager import get_registries
@@ -18,8 +16,7 @@ from pstoolkit.shadows.score import score, true_shadows
 from pstoolkit.shadows.silences import dark_spans
 from pstoolkit.shadows.spikes import find_shadows, spike_threshold
 from pstoolkit.sim.simulator import SimulationConfig, simulate
-
-from event_rows import event_stream, shading
+from pstoolkit_dualres.preprocess import PreprocessOptions, preprocess
 
 T = 33_333.0
 C = 0.15

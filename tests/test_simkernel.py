@@ -13,13 +13,13 @@ import pytest
 
 import psfmt
 from psfmt import EventArray
-from pstoolkit.sim import ring_engine as simkernel
-from pstoolkit.optics.brdf import GGX, Lambertian
 from pstoolkit.errors import UserError
-from pstoolkit.sim.esim import simulate_events
 from pstoolkit.events.rule import LOG_EPS, reference_time_us
+from pstoolkit.optics.brdf import GGX, Lambertian
 from pstoolkit.optics.lights import RingLight
 from pstoolkit.plugin.options import defaults
+from pstoolkit.sim import ring_engine as simkernel
+from pstoolkit.sim.esim import simulate_events
 from pstoolkit.sim.render import Renderer, exposure_samples, integrate
 from pstoolkit.sim.scenes import Blobs, Sphere
 from pstoolkit.sim.simulator import SHADOW_STEP_DEG, SimulationConfig, simulate

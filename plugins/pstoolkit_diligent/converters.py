@@ -169,7 +169,8 @@ class DiLiGenT(_Folders):
         Option("event_scale", float, _SEMI.event_scale, "semi-real: event pixels per frame pixel", minimum=0.0, maximum=1.0),
         Option("contrast", float, _SEMI.contrast, "semi-real: event contrast threshold C (log units)", minimum=0.01, maximum=5.0),
         Option("refractory_us", float, _SEMI.refractory_us, "semi-real: event refractory period, µs", minimum=0.0),
-        Option("refractory_rule", str, _SEMI.refractory_rule, "semi-real: what an event pixel does after its refractory period (docs/sensors.md)", choices=REFRACTORY_RULES),
+        Option("refractory_rule", str, _SEMI.refractory_rule, "semi-real: what an event pixel does after its refractory period (docs/sensors.md)",
+               choices=REFRACTORY_RULES),
         Option("frames", int, _SEMI.frames, "semi-real: long-exposure frames per light period", minimum=1, maximum=36),
         Option("periods", int, _SEMI.periods, "semi-real: light periods to record", minimum=1, maximum=1000),
         Option("period_ms", float, _SEMI.period_ms, "semi-real: one loop of the 36 boundary lights, ms", minimum=0.0),
@@ -178,8 +179,10 @@ class DiLiGenT(_Folders):
     options = (
         *SELECTION_OPTIONS,
         Option("semi_real", bool, False, "write the semi-real hybrid capture (36 boundary lights as one period, frames and events)"),
-        Option("discrete_lights", int, 0, "write the frame-based comparison: K of the 36 boundary lights as 8-bit instantaneous frames (0: off)", minimum=0, maximum=36),
-        Option("size", int, 0, "frame width and height: crop a square around the mask and resize (0: full resolution, 256 for semi-real)", minimum=0, maximum=8192),
+        Option("discrete_lights", int, 0, "write the frame-based comparison: K of the 36 boundary lights as 8-bit instantaneous frames (0: off)",
+               minimum=0, maximum=36),
+        Option("size", int, 0, "frame width and height: crop a square around the mask and resize (0: full resolution, 256 for semi-real)",
+               minimum=0, maximum=8192),
         *semi_real_options,
     )
     folder_suffix = "PNG"

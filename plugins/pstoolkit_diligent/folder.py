@@ -1,4 +1,4 @@
-"""One DiLiGenT-layout object folder (facts §1–2), checked completely before anything is converted.
+"""One DiLiGenT-layout object folder (Shi et al. 2016; docs/converters.md), checked completely before anything is converted.
 
     obj = scan_object(Path("pmsData/ballPNG"), require_normal=True)   # UserError on any problem
     rgb = obj.image(0)                                                 # (H, W, 3) uint16, RGB order
@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import scipy.io
 
+from pstoolkit import UserError
 from pstoolkit.io.diligent_layout import (
     DIRECTIONS,
     FILENAMES,
@@ -34,7 +35,6 @@ from pstoolkit.io.diligent_layout import (
     require_file,
     text_lines,
 )
-from pstoolkit import UserError
 from pstoolkit_diligent.png import check_png, decode
 
 

@@ -15,8 +15,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from pstoolkit.io.diligent_export import export_diligent
 from pstoolkit import Progress, UserError, no_progress
+from pstoolkit.io.diligent_export import export_diligent
 from pstoolkit.plugin.options import defaults
 from pstoolkit_diligent.converters import DiLiGenT
 

@@ -1,4 +1,4 @@
-"""Semi-real hybrid captures from a DiLiGenT object (facts §3, the EventPS recipe with DualResPS's
+"""Semi-real hybrid captures from a DiLiGenT object (the EventPS paper's semi-real recipe with DualResPS's
 frames).
 
 The 36 lights on the boundary of DiLiGenT's 12×8 light grid, in loop order, are the key lights of
@@ -28,16 +28,16 @@ import numpy as np
 from scipy.special import exprel
 
 import psfmt
-from pstoolkit import Progress, SampledLight, UserError
-from pstoolkit.sim.esim import Render, simulate_events
+from pstoolkit import GREY_WEIGHTS, Progress, SampledLight, UserError
 from pstoolkit.events.rule import LOG_EPS, log_irradiance
-from pstoolkit.sim.render import GREY_WEIGHTS, area_weights, event_shape
+from pstoolkit.sim.esim import Render, simulate_events
+from pstoolkit.sim.render import area_weights, event_shape
 from pstoolkit.sim.simulator import CaptureTiming, append_event_chunks
+from pstoolkit_diligent.folder import ObjectFolder
+from pstoolkit_diligent.geometry import area_resize, crop, resize_truth, square_around
 
 # Share of the progress bar given to reading and normalising the key images; the events take the rest.
 FRAMES_SHARE = 0.25
-from pstoolkit_diligent.folder import ObjectFolder
-from pstoolkit_diligent.geometry import area_resize, crop, resize_truth, square_around
 
 GRID_LIGHTS = 96
 BOUNDARY_LOOP: tuple[int, ...] = (

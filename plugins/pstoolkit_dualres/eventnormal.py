@@ -1,4 +1,4 @@
-"""Coarse normals at the super pixels from their events alone (the EventPS relation, facts §5), the
+"""Coarse normals at the super pixels from their events alone (the EventPS relation, Yu et al., CVPR 2024), the
 "from super pixels" source of supplement Table 1 for frame pixels with fewer than three effective
 lights.
 
@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from pstoolkit import LightModel
 from pstoolkit.events.relation import (
     Constraints,
     accumulate,
     grey_light,
     smallest_eigenvectors,
 )
-from pstoolkit import LightModel
 
 MIN_PAIRS = 3
 

@@ -28,8 +28,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pstoolkit.optics.equivalent import equivalent_lights, sample_times
 from pstoolkit import GREY_WEIGHTS, LightModel
+from pstoolkit.optics.equivalent import equivalent_lights, sample_times
 
 EFFECTIVE_SHARE = 0.01
 # Gaussian widths (pixels) of the normalised convolution that fills pixels from their neighbours.
@@ -141,7 +141,7 @@ def closed_form(
     # only pixels whose normal still moves are iterated again
     active = np.arange(len(pixels))
     done = 0
-    for done in range(1, max(iterations, 1) + 1):
+    for done in range(1, max(iterations, 1) + 1):  # noqa: B007 -- the count after the loop is the record
         vis = None if masks is None else [m[:, active] for m in masks]
         lights[:, active] = window_lights(light, windows_us, active.size, normals=normal[active], visibility=vis, n_samples=n_samples)
         effective[:, active] = np.linalg.norm(_grey(lights[:, active]), axis=-1) >= EFFECTIVE_SHARE * free_norm[:, None]

@@ -5,10 +5,11 @@ The capture's refractory rule (``pstoolkit.events.rule``) decides the pairs, so 
 exact rather than compensated after the fact (the paper's α = 1): with "reset-at-end" each event k
 is paired with the reference level taken at t_{k−1} + R, ln I(t_k) − ln I(t_{k−1} + R) = p_k·C^{p_k};
 with "rate-limited" consecutive events that fired at a crossing are paired with the sum of the
-thresholds of the events between them (``eventmodel.exact_pairs``). Pairs longer than ``max_pair_share`` of the period are dropped (a pixel that was dark that long
-carries no shading). The weight is min(1, Î/(dark_level·Î₉₉)) with Î the approximated irradiance at
-the pair's darker end (Î₉₉ its 99th percentile over all pairs): events in dark regions are sensitive
-to noise and unmodelled inter-reflections (main §3.3).
+thresholds of the events between them (``pstoolkit.events.rule.exact_pairs``). Pairs longer than
+``max_pair_share`` of the period are dropped (a pixel that was dark that long carries no shading).
+The weight is min(1, Î/(dark_level·Î₉₉)) with Î the approximated irradiance at the pair's darker end
+(Î₉₉ its 99th percentile over all pairs): events in dark regions are sensitive to noise and
+unmodelled inter-reflections (main §3.3).
 """
 
 from __future__ import annotations

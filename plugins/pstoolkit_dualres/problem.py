@@ -23,8 +23,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pstoolkit.optics.equivalent import sample_times
 from pstoolkit import GREY_WEIGHTS, US_PER_S, ShadowMask
+from pstoolkit.optics.equivalent import sample_times
 from pstoolkit.sim.render import area_weights
 from pstoolkit_dualres.grid import bilinear_taps, frame_to_event
 from pstoolkit_dualres.init import Init

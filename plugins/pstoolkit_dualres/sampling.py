@@ -1,6 +1,7 @@
 """Asynchronous importance sampling of the exposure integrals (DualResPS eq. 21 and 23).
 
-Each super pixel's period is cut at its events and at the exposure window bounds. A segment of Δt seconds over which the approximated irradiance Î changes by ΔÎ gets
+Each super pixel's period is cut at its events and at the exposure window bounds. A segment of Δt
+seconds over which the approximated irradiance Î changes by ΔÎ gets
 
     N = ⌈round(σ·√(ΔÎ·Δt)) − 1⌉₊      extra samples (eq. 23),
 

@@ -28,7 +28,7 @@ from torch import nn
 import psfmt
 from pstoolkit import BRDF, Option, Progress, ShadowDetector, ShadowMask, Solver, SolverResult, UserError, get_registries
 from pstoolkit_dualres.fields import NeuralField, PyramidField
-from pstoolkit_dualres.preprocess import SCALE_RULES, PreprocessOptions, Preprocessed, preprocess
+from pstoolkit_dualres.preprocess import SCALE_RULES, Preprocessed, PreprocessOptions, preprocess
 from pstoolkit_dualres.presets import PRESETS, Preset, resolve
 from pstoolkit_dualres.problem import Problem, build_problem, start_values
 from pstoolkit_dualres.reflectance import FitModel

@@ -16,8 +16,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from pstoolkit.events.rule import LOG_EPS
 from pstoolkit import Progress
+from pstoolkit.events.rule import LOG_EPS
 from pstoolkit_dualres.losses import event_loss, frame_loss, tv_loss
 from pstoolkit_dualres.problem import Problem
 from pstoolkit_dualres.reflectance import FitModel

@@ -22,10 +22,9 @@ from typing import Any
 import numpy as np
 
 import psfmt
-from pstoolkit import Option, Solver, SolverResult
+from pstoolkit import Option, Progress, Solver, SolverResult, UserError, build_light_model
 from pstoolkit.events import eventps
 from pstoolkit.solve.batch import available_cpus
-from pstoolkit import Progress, UserError, build_light_model
 from pstoolkit_eventps.resample import Resampler, event_to_frame_affine
 
 MAX_SEQUENCE_BYTES = 4 << 30

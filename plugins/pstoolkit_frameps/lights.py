@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 import psfmt
-from pstoolkit.optics.equivalent import equivalent_lights
 from pstoolkit import GREY_WEIGHTS, UserError, build_light_model
+from pstoolkit.optics.equivalent import equivalent_lights
 
 
 def channel_weights(channels: int) -> np.ndarray:

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 import psfmt
+from pstoolkit import Option, UserError
 from pstoolkit.hardware.backend import (
     CameraSource,
     EventBlock,
@@ -26,7 +27,6 @@ from pstoolkit.hardware.backend import (
     Sweep,
     TriggerBlock,
 )
-from pstoolkit import Option, UserError
 
 PULSE_US = 10
 

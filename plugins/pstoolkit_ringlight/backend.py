@@ -8,8 +8,8 @@ from typing import Any
 import numpy as np
 
 import psfmt
-from pstoolkit.hardware.backend import LightBackend, Sweep
 from pstoolkit import Option, SampledLight, UserError
+from pstoolkit.hardware.backend import LightBackend, Sweep
 from pstoolkit_ringlight.client import DeviceError, RingLightClient
 from pstoolkit_ringlight.protocol import TRIGGERS
 

@@ -173,5 +173,6 @@ class RingLightClient:
                 raise DeviceError(f"ring light on {self.port}: {op} {' '.join(map(str, args))}".rstrip() + f" refused: {reply.error} (code {reply.code})")
             return list(reply.fields)
         if garbage is not None:
-            raise DeviceError(f"ring light on {self.port}: answers garbage, not the ring-light protocol (last reply {garbage[:24]!r}); wrong port or baud rate?")
+            raise DeviceError(f"ring light on {self.port}: answers garbage, not the ring-light protocol (last reply {garbage[:24]!r}); "
+                              "wrong port or baud rate?")
         raise DeviceError(f"ring light on {self.port}: no reply to {op} within {self.timeout_s * 1000:.0f} ms after {self.retries + 1} tries")

@@ -7,6 +7,9 @@ from typing import Any
 
 import typer
 
+from pstoolkit.cli.app import app, echo, progress_bar
+from pstoolkit.errors import UserError
+from pstoolkit.solve.base import DEVICES
 from pstoolkit.solve.batch import (
     check_output_folder,
     expand_captures,
@@ -20,9 +23,6 @@ from pstoolkit.solve.batch import (
     status_counts,
     write_log,
 )
-from pstoolkit.cli.app import app, echo, progress_bar
-from pstoolkit.errors import UserError
-from pstoolkit.solve.base import DEVICES
 
 
 def _client(scheduler: str | None, workers: int | None) -> tuple[Any, Any]:

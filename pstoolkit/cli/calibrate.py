@@ -8,6 +8,8 @@ import numpy as np
 import typer
 
 import psfmt
+from pstoolkit.cli.app import app, echo
+from pstoolkit.errors import UserError
 from pstoolkit.hardware.calibrate import (
     AffineFit,
     calibrate_target,
@@ -15,8 +17,6 @@ from pstoolkit.hardware.calibrate import (
     read_pairs,
     store_affine,
 )
-from pstoolkit.cli.app import app, echo
-from pstoolkit.errors import UserError
 
 
 def _affine_text(affine: np.ndarray) -> str:

@@ -17,6 +17,8 @@ import typer
 
 import psfmt
 import pstoolkit
+from pstoolkit.cli.app import app, echo, progress_bar
+from pstoolkit.errors import Interrupted, UserError
 from pstoolkit.hardware.backend import (
     TRIGGER_MODES,
     CameraSource,
@@ -25,10 +27,8 @@ from pstoolkit.hardware.backend import (
     backend_class,
     record,
 )
-from pstoolkit.cli.app import app, echo, progress_bar
-from pstoolkit.errors import Interrupted, UserError
-from pstoolkit.plugin.options import parse_assignments
 from pstoolkit.plugin.manager import get_registries
+from pstoolkit.plugin.options import parse_assignments
 
 DEFAULT_PERIOD_MS = 1000.0 / 30.0
 DIRECTIONS = {"ccw": 1, "cw": -1}

@@ -14,10 +14,10 @@ from pathlib import Path
 import typer
 
 from pstoolkit.cli.app import app, echo, progress_bar
-from pstoolkit.io.converter import run_converter
 from pstoolkit.errors import UserError
-from pstoolkit.plugin.options import Option
+from pstoolkit.io.converter import run_converter
 from pstoolkit.plugin.manager import get_registries
+from pstoolkit.plugin.options import Option
 from pstoolkit.plugin.registry import Entry
 
 HELP_FLAGS = ("-h", "--help")

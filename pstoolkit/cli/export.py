@@ -23,7 +23,10 @@ FRAME_FORMATS = ("diligent",)
 def export(
     capture_file: Path = typer.Argument(..., metavar="CAPTURE", help="A hybrid-capture HDF5 file."),
     events: str | None = typer.Option(None, "--events", help="Write the events: evt3 or evt2 (Prophesee RAW) or dsec (HDF5) file OUT."),
-    frames: str | None = typer.Option(None, "--frames", help="Write the frames of a classic capture (instantaneous lights): diligent, a DiLiGenT object folder OUT (16-bit PNGs, filenames.txt, light_directions.txt, light_intensities.txt, mask.png, Normal_gt.mat with ground truth)."),
+    frames: str | None = typer.Option(None, "--frames", help=(
+        "Write the frames of a classic capture (instantaneous lights): diligent, a DiLiGenT object folder OUT (16-bit "
+        "PNGs, filenames.txt, light_directions.txt, light_intensities.txt, mask.png, Normal_gt.mat with ground truth)."
+    )),
     out: Path = typer.Option(..., "-o", "--out", help="File (--events) or folder (--frames) to write."),
     compression: str = typer.Option("gzip", "--compression", help="dsec only: gzip, zstd (needs hdf5plugin) or none."),
     force: bool = typer.Option(False, "--force", help="--frames: replace a non-empty OUT folder (as a unit, once the new one is complete)."),

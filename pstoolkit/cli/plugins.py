@@ -8,8 +8,8 @@ from typing import Any
 import typer
 
 from pstoolkit.cli.app import app, echo
-from pstoolkit.plugin.options import Option
 from pstoolkit.plugin.manager import PluginInfo, get_registries, load_failures, loaded_plugins
+from pstoolkit.plugin.options import Option
 from pstoolkit.plugin.registry import Entry, Registry
 
 Holdings = list[tuple[str, Registry, list[Entry]]]

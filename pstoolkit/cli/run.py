@@ -11,9 +11,9 @@ import psfmt
 from pstoolkit import __version__
 from pstoolkit.cli.app import app, echo, progress_bar
 from pstoolkit.errors import UserError
-from pstoolkit.solve.results import result_summary, solve_capture, write_result_folder
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.solve.base import Progress, resolve_device
+from pstoolkit.solve.results import result_summary, solve_capture, write_result_folder
 
 _RESULT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
 
@@ -35,7 +35,9 @@ def run(
     device: str = typer.Option("auto", "--device", help="auto (CUDA when available), cpu or cuda."),
     as_json: bool = typer.Option(False, "--json", help="Print result.json and no progress."),
     store: bool = typer.Option(False, "--store", help="Also store the maps in the capture under /results/<name>."),
-    name: str | None = typer.Option(None, "--name", help="Name of the result: its column in `pstoolkit eval` and /results/<name> with --store (default: the solver)."),
+    name: str | None = typer.Option(None, "--name", help=(
+        "Name of the result: its column in `pstoolkit eval` and /results/<name> with --store (default: the solver)."
+    )),
     error_max: float = typer.Option(30.0, "--error-max", help="Angular error (degrees) at the top of error.png's colour scale."),
 ) -> None:
     """Estimate normals of CAPTURE with a solver. Writes to the output folder: normal.npy (float32

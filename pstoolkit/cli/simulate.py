@@ -23,24 +23,44 @@ def simulate_command(
     seed: int = typer.Option(_DEFAULTS.seed, "--seed", help="Seed of every random choice; the same seed writes the same data."),
     event_scale: float = typer.Option(_DEFAULTS.event_scale, "--event-scale", help="Event pixels per frame pixel (0.5: half the resolution per axis)."),
     frames: int = typer.Option(_DEFAULTS.frames, "--frames", help="Long-exposure frames per light period."),
-    discrete_lights: int = typer.Option(0, "--discrete-lights", help="Write a classic capture: N instantaneous lights on the same trajectory, one frame each, no events (with --lights grid|FILE: its K lights, N = K or 0)."),
-    lights: str = typer.Option(_DEFAULTS.lights, "--lights", help="Lights of a classic capture: ring (N lights over one turn of the ring), grid (DiLiGenT's 12×8 grid, 96 lights, id = 8·column + row) or a light_directions.txt FILE (K lines x y z, with the light_intensities.txt beside it, RGB, when present). grid and FILE always write a classic capture."),
+    discrete_lights: int = typer.Option(0, "--discrete-lights", help=(
+        "Write a classic capture: N instantaneous lights on the same trajectory, one frame each, no events (with "
+        "--lights grid|FILE: its K lights, N = K or 0)."
+    )),
+    lights: str = typer.Option(_DEFAULTS.lights, "--lights", help=(
+        "Lights of a classic capture: ring (N lights over one turn of the ring), grid (DiLiGenT's 12×8 grid, 96 lights,"
+        " id = 8·column + row) or a light_directions.txt FILE (K lines x y z, with the light_intensities.txt beside it,"
+        " RGB, when present). grid and FILE always write a classic capture."
+    )),
     periods: int = typer.Option(_DEFAULTS.periods, "--periods", help="Light periods to record."),
     period_ms: float = typer.Option(_DEFAULTS.period_ms, "--period-ms", help="One turn of the ring light, milliseconds."),
     elevation_deg: float = typer.Option(_DEFAULTS.elevation_deg, "--elevation-deg", help="Elevation of the ring light above the image plane, degrees."),
     contrast: float = typer.Option(_DEFAULTS.contrast, "--contrast", help="Event contrast threshold C (log units, both polarities)."),
     contrast_sigma: float = typer.Option(_DEFAULTS.contrast_sigma, "--contrast-sigma", help="Per-pixel spread of the contrast threshold."),
     refractory_us: float = typer.Option(_DEFAULTS.refractory_us, "--refractory-us", help="Event refractory period, µs."),
-    refractory_rule: str = typer.Option(_DEFAULTS.refractory_rule, "--refractory-rule", help="What an event pixel does after its refractory period: reset-at-end (its reference resets to the level it sees then) or rate-limited (the reference moves one threshold per event; a change that persists keeps firing every refractory period). See docs/sensors.md."),
-    noise: float = typer.Option(_DEFAULTS.noise, "--noise", help="Frame read noise as a fraction of saturation, with shot noise of a 1/noise² e⁻ full well (0: none)."),
+    refractory_rule: str = typer.Option(_DEFAULTS.refractory_rule, "--refractory-rule", help=(
+        "What an event pixel does after its refractory period: reset-at-end (its reference resets to the level it sees "
+        "then) or rate-limited (the reference moves one threshold per event; a change that persists keeps firing every "
+        "refractory period). See docs/sensors.md."
+    )),
+    noise: float = typer.Option(_DEFAULTS.noise, "--noise", help=(
+        "Frame read noise as a fraction of saturation, with shot noise of a 1/noise² e⁻ full well (0: none)."
+    )),
     brdf: str = typer.Option(_DEFAULTS.brdf, "--brdf", help="A registered BRDF: lambertian, ggx or a plugin's."),
     bit_depth: int = typer.Option(_DEFAULTS.bit_depth, "--bit-depth", help="Frame bits: 8 (uint8), 12 or 16 (uint16)."),
     exposure_gain: float | None = typer.Option(None, "--exposure-gain", help="Pixel units per irradiance·second (default: set by --auto-gain)."),
-    auto_gain: str = typer.Option(_DEFAULTS.auto_gain, "--auto-gain", help="The automatic gain puts at 80 % of saturation: diffuse, the brightest diffuse value of any frame (specular highlights may clip, as in an LDR camera), or peak, the brightest value of all (nothing clips: for 16-bit renders of shiny materials)."),
+    auto_gain: str = typer.Option(_DEFAULTS.auto_gain, "--auto-gain", help=(
+        "The automatic gain puts at 80 % of saturation: diffuse, the brightest diffuse value of any frame (specular "
+        "highlights may clip, as in an LDR camera), or peak, the brightest value of all (nothing clips: for 16-bit "
+        "renders of shiny materials)."
+    )),
     shadows: bool = typer.Option(True, "--shadows/--no-shadows", help="Render cast shadows."),
     source: Path | None = typer.Option(None, "--source", help="Folder of the geometry scene (normal_map.png, depth_gt.npz, mask.png, K.txt)."),
     assignments: list[str] = typer.Option([], "--set", help="A scene option as key=value (see `pstoolkit plugins`); repeat for more."),
-    device: str = typer.Option("cpu", "--device", help="cpu (the compiled engine for the ggx and lambertian BRDFs), cuda or auto (torch rendering; also any plugin BRDF)."),
+    device: str = typer.Option("cpu", "--device", help=(
+        "cpu (the compiled engine for the ggx and lambertian BRDFs), cuda or auto (torch rendering; also any plugin "
+        "BRDF)."
+    )),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no summary line."),
 ) -> None:
     """Render SCENE under a ring light and write a capture with ground truth: long-exposure frames and

@@ -15,7 +15,9 @@ from pstoolkit.cli.app import app, echo, progress_bar
 @app.command()
 def validate(
     file: Path = typer.Argument(..., help="A hybrid-capture HDF5 file."),
-    quick: bool = typer.Option(False, "--quick", help="Check the structure only (metadata, shapes and sizes against what the file stores); read none of the data."),
+    quick: bool = typer.Option(False, "--quick", help=(
+        "Check the structure only (metadata, shapes and sizes against what the file stores); read none of the data."
+    )),
     as_json: bool = typer.Option(False, "--json", help="Print the findings as JSON."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:

@@ -30,11 +30,11 @@ from matplotlib.figure import Figure
 
 from psfmt.atomic import check_target, commit, temporary_sibling
 from psfmt.text import printable
-from pstoolkit.solve.batch import read_failures
 from pstoolkit.errors import UserError
-from pstoolkit.evaluation.scoring import averages, collect, GROUND_TRUTH_METRICS, markdown_table, METRICS, Record, RESULT_FILE, TITLES
 from pstoolkit.evaluation.markup import ESCAPE, md
+from pstoolkit.evaluation.scoring import GROUND_TRUTH_METRICS, METRICS, RESULT_FILE, TITLES, Record, averages, collect, markdown_table
 from pstoolkit.io.normalmap import normal_to_rgb, read_normal_npy, read_npy
+from pstoolkit.solve.batch import read_failures
 from pstoolkit.solve.results import error_to_rgb
 
 DPI = 100

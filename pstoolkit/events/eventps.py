@@ -61,10 +61,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from psfmt import EventArray
-from pstoolkit.events import fill as eventfill
 from pstoolkit.errors import UserError
-from pstoolkit.events.relation_kernel import NO_EVENT, pair_events, robust_fit
+from pstoolkit.events import fill as eventfill
 from pstoolkit.events.relation import MIN_RANK_RATIO, grey_light
+from pstoolkit.events.relation_kernel import NO_EVENT, pair_events, robust_fit
 from pstoolkit.optics.lights import LightModel
 
 MAX_INTERVAL_PERIODS = 0.5

@@ -1,4 +1,4 @@
-"""The EventPS relation (facts §5), shared by the ``eventps`` solver and ``dualres``'s normals at
+"""The EventPS relation (Yu et al., CVPR 2024, §3), shared by the ``eventps`` solver and ``dualres``'s normals at
 the super pixels: pairs of events of a Lambertian pixel give constraints n·v = 0 (albedo and light
 strength cancel), and the normal is the eigenvector of the smallest eigenvalue of the per-pixel
 Σ w v vᵀ, in closed form for many 3×3 matrices at once.

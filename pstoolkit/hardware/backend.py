@@ -203,7 +203,7 @@ class CameraSource(ABC):
         """Start recording and yield packets in time order (by ``t_us``) until the source ends or
         the generator is closed, which stops the camera."""
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027 -- optional: a source with nothing to release keeps the no-op
         """Release the camera or file."""
 
     def __enter__(self) -> CameraSource:

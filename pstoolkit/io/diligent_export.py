@@ -32,8 +32,8 @@ import numpy as np
 import scipy.io
 
 import psfmt
-from pstoolkit.io.diligent_layout import DIRECTIONS, FILENAMES, INTENSITIES, MASK, NORMAL, NORMAL_VARIABLE
 from pstoolkit.errors import UserError
+from pstoolkit.io.diligent_layout import DIRECTIONS, FILENAMES, INTENSITIES, MASK, NORMAL, NORMAL_VARIABLE
 from pstoolkit.io.folders import atomic_folder
 from pstoolkit.io.normalmap import write_png
 from pstoolkit.solve.base import Progress, no_progress

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
 from psfmt import atomic_path
 from psfmt.text import printable
-
 from pstoolkit.errors import UserError
 
 _DTYPES = {8: np.uint8, 16: np.uint16}

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pstoolkit.io.diligent_layout import read_lights
 from pstoolkit.errors import UserError
+from pstoolkit.io.diligent_layout import read_lights
 from pstoolkit.optics.lights import SampledLight
 
 RING, GRID = "ring", "grid"

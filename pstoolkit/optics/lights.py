@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
-from psfmt import LightSpec
 
+from psfmt import LightSpec
 from pstoolkit.errors import UserError
 from pstoolkit.plugin.options import Option
 

@@ -19,8 +19,8 @@ from typing import TYPE_CHECKING, Any
 import pluggy
 
 from pstoolkit.plugin import spec as hookspecs
-from pstoolkit.plugin.spec import PROJECT, hookimpl
 from pstoolkit.plugin.registry import PluginError, Registries, Registry
+from pstoolkit.plugin.spec import PROJECT, hookimpl
 
 if TYPE_CHECKING:
     import typer

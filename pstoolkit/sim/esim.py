@@ -1,4 +1,4 @@
-"""ESIM-style event simulation (facts §4; Rebecq et al. 2018) from a render callback.
+"""ESIM-style event simulation (Rebecq et al., ESIM, CoRL 2018) from a render callback.
 
 ``render(t_us) -> (T, height, width)`` gives linear grey irradiance (≥ 0) at the event resolution;
 each pixel sees ``L = ln(I + ε)`` and fires by the rule of ``pstoolkit.events.rule``:

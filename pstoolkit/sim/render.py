@@ -24,10 +24,10 @@ import numba
 import numpy as np
 import torch
 
-from pstoolkit.optics.brdf import BRDF, GGX, MIN_ROUGHNESS, Lambertian
-from pstoolkit.optics.equivalent import sample_times
 from pstoolkit.errors import UserError
 from pstoolkit.events.rule import GREY_WEIGHTS
+from pstoolkit.optics.brdf import BRDF, GGX, MIN_ROUGHNESS, Lambertian
+from pstoolkit.optics.equivalent import sample_times
 from pstoolkit.optics.lights import US_PER_S, LightModel
 from pstoolkit.sim.scenes import SceneMaps
 

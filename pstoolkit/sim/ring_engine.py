@@ -43,13 +43,13 @@ import torch
 from numba.cpython.unsafe.numbers import trailing_zeros
 
 from psfmt import EventArray
-from pstoolkit.optics.brdf import GGX
-from pstoolkit.errors import UserError
-from pstoolkit.sim.esim import check_options, draw_thresholds, event_rngs
-from pstoolkit.events.rule import GREY_WEIGHTS, LOG_EPS, REFRACTORY_RULE, REFRACTORY_RULES, check_rule
-from pstoolkit.optics.lights import US_PER_S, RingLight
-from pstoolkit.sim.render import Renderer, event_shape
 from pstoolkit._shared.worksharing import take_task
+from pstoolkit.errors import UserError
+from pstoolkit.events.rule import GREY_WEIGHTS, LOG_EPS, REFRACTORY_RULE, REFRACTORY_RULES, check_rule
+from pstoolkit.optics.brdf import GGX
+from pstoolkit.optics.lights import US_PER_S, RingLight
+from pstoolkit.sim.esim import check_options, draw_thresholds, event_rngs
+from pstoolkit.sim.render import Renderer, event_shape
 
 # Columns of the per-frame-pixel constants (``FrameConstants.values``).
 NX, NY, NZ, GREY_DIFFUSE, GREY_SPECULAR, NORM2, ALPHA2_1, K, ONE_K, VIEW = range(10)

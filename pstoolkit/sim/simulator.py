@@ -42,15 +42,15 @@ import torch
 
 import psfmt
 import pstoolkit
-from pstoolkit.sim import ring_engine as simkernel
-from pstoolkit.optics.brdf import GGX
 from pstoolkit.errors import UserError
-from pstoolkit.sim.esim import simulate_events
 from pstoolkit.events.rule import REFRACTORY_RULE, REFRACTORY_RULES
+from pstoolkit.optics.brdf import GGX
 from pstoolkit.optics.layouts import RING, layout_light, layout_lights
 from pstoolkit.optics.lights import RingLight, SampledLight
-from pstoolkit.plugin.options import parse_assignments
 from pstoolkit.plugin.manager import get_registries
+from pstoolkit.plugin.options import parse_assignments
+from pstoolkit.sim import ring_engine as simkernel
+from pstoolkit.sim.esim import simulate_events
 from pstoolkit.sim.render import Renderer, event_shape, exposure_plan, exposure_samples
 from pstoolkit.sim.scenes import SceneMaps
 from pstoolkit.solve.base import Progress, no_progress

@@ -32,9 +32,9 @@ from psfmt.isolate import isolated
 from pstoolkit.errors import UserError
 from pstoolkit.evaluation.scoring import RESULT_FILE
 from pstoolkit.io.folders import replace_folder
-from pstoolkit.solve.results import result_summary, solve_capture, summary_json, write_result_folder
 from pstoolkit.plugin.manager import get_registries
-from pstoolkit.solve.base import no_progress, Progress, resolve_device
+from pstoolkit.solve.base import Progress, no_progress, resolve_device
+from pstoolkit.solve.results import result_summary, solve_capture, summary_json, write_result_folder
 
 LOG_FILE = "batch.json"
 CAPTURE_SUFFIXES = (".h5", ".hdf5")

@@ -31,11 +31,11 @@ import numpy as np
 
 import psfmt
 from pstoolkit import __version__
-from pstoolkit.evaluation.scoring import RESULT_FILE, Score, score
 from pstoolkit.evaluation.metrics import SHARE_KEYS
+from pstoolkit.evaluation.scoring import RESULT_FILE, Score, score
 from pstoolkit.io.normalmap import write_normal_npy, write_normal_png, write_npy, write_png
 from pstoolkit.plugin.registry import Entry, PluginError
-from pstoolkit.solve.base import input_data_rate, no_progress, Progress, run_solver
+from pstoolkit.solve.base import Progress, input_data_rate, no_progress, run_solver
 
 ROBUST_PERCENTILE = 99.0
 PNG_TOP = 65535

@@ -8,7 +8,6 @@ hooks below with its registries; copy the package and rename it to start your ow
 from __future__ import annotations
 
 from pstoolkit import Registry, hookimpl
-
 from pstoolkit_template.flat import FlatSolver
 from pstoolkit_template.phong import BlinnPhong
 from pstoolkit_template.quiet import QuietDetector

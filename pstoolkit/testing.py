@@ -1,0 +1,125 @@
+"""Test helpers for plugin authors (and pstoolkit's own tests): entry points faked the way
+``importlib.metadata`` reads them, an isolated plugin manager, and small generated captures.
+
+In a plugin's ``conftest.py``::
+
+    pytest_plugins = ["pstoolkit.testing"]
+
+gives the fixture ``pstoolkit_plugins``: a clean plugin state with no plugin environment variables,
+restored afterwards. Then, in a test::
+
+    def test_my_solver(pstoolkit_plugins, tmp_path):
+        install_project(pstoolkit_plugins, Path("."), tmp_path / "site", allow=["core", "mine"])
+        capture = sphere_capture(tmp_path / "sphere.h5", lights=8)
+        assert main(["run", str(capture), "--solver", "mine"]) == 0
+
+Nothing here imports torch or numba.
+"""
+
+from __future__ import annotations
+
+import sys
+import textwrap
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tomllib
+
+import psfmt
+from pstoolkit.plugin import manager
+
+__all__ = ["fake_distribution", "install_project", "pstoolkit_plugins", "sphere", "sphere_capture"]
+
+
+def fake_distribution(
+    root: Path, name: str, version: str, entry_points: dict[str, str], modules: dict[str, str] | None = None
+) -> Path:
+    """Lay out an installed distribution under ``root`` the way ``importlib.metadata`` reads it:
+    ``<name>-<version>.dist-info`` with METADATA and ``entry_points.txt`` (group ``pstoolkit``), plus
+    top-level modules ``modules`` (name → source, dedented). Put ``root`` on ``sys.path`` to install
+    it. Returns ``root``."""
+    info = root / f"{name.replace('-', '_')}-{version}.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: {version}\n")
+    lines = "".join(f"{key} = {value}\n" for key, value in entry_points.items())
+    (info / "entry_points.txt").write_text(f"[{manager.ENTRY_POINT_GROUP}]\n{lines}")
+    for module, source in (modules or {}).items():
+        (root / f"{module}.py").write_text(textwrap.dedent(source))
+    return root
+
+
+def install_project(
+    monkeypatch: pytest.MonkeyPatch, project: Path, site: Path, allow: Sequence[str] | None = None
+) -> list[str]:
+    """Install the plugin project at ``project`` (a ``pyproject.toml`` with ``[project]`` name, version
+    and ``pstoolkit`` entry points, sources in ``src/`` or beside it) as pip would for the duration of
+    the test: its dist-info under ``site``, both on ``sys.path``. ``allow`` (default: the project's
+    entry points) becomes ``PSTOOLKIT_PLUGINS``. Returns the project's plugin names."""
+    meta = tomllib.loads((project / "pyproject.toml").read_text())["project"]
+    points = meta.get("entry-points", {}).get(manager.ENTRY_POINT_GROUP, {})
+    fake_distribution(site, meta["name"], meta["version"], points)
+    monkeypatch.syspath_prepend(str(site))
+    src = project / "src"
+    monkeypatch.syspath_prepend(str(src if src.is_dir() else project))
+    monkeypatch.setenv(manager.ALLOW_ENV, ",".join(allow if allow is not None else points))
+    manager.reset()
+    return list(points)
+
+
+@pytest.fixture
+def pstoolkit_plugins(monkeypatch: pytest.MonkeyPatch) -> Iterator[pytest.MonkeyPatch]:
+    """A clean plugin state with no plugin environment variables; afterwards the state is reset and
+    the modules imported from paths the test added are forgotten."""
+    monkeypatch.delenv(manager.DISABLE_ENV, raising=False)
+    monkeypatch.delenv(manager.ALLOW_ENV, raising=False)
+    modules, paths = set(sys.modules), set(sys.path)
+    manager.reset()
+    yield monkeypatch
+    manager.reset()
+    added = [Path(p) for p in set(sys.path) - paths if p]
+    for name in set(sys.modules) - modules:
+        origin = getattr(sys.modules[name], "__file__", None)
+        if origin and any(Path(origin).is_relative_to(p) for p in added):
+            del sys.modules[name]
+
+
+def sphere(size: int, radius_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Normals (size, size, 3) float64, camera frame with y up, zero outside, and the mask
+    (size, size) bool of a sphere of ``radius_px`` pixels centred in the image."""
+    v, u = np.mgrid[0:size, 0:size].astype(np.float64)
+    c = (size - 1) / 2.0
+    x, y = (u - c) / radius_px, (c - v) / radius_px
+    mask = x * x + y * y < 1.0
+    normal = np.stack([x, y, np.sqrt(np.clip(1.0 - x * x - y * y, 0.0, None))], axis=-1)
+    normal[~mask] = 0.0
+    return normal, mask
+
+
+def sphere_capture(path: Path, size: int = 48, lights: int = 8, albedo: float = 0.8, elevation_deg: float = 45.0) -> Path:
+    """Write a classic capture of a Lambertian sphere (radius 0.42·size, grey ``albedo``) under
+    ``lights`` directional lights evenly round a ring at ``elevation_deg`` above the image plane
+    (``lights=1``: one frontal light), float32 frames, with ground-truth normals and mask. Returns
+    ``path``."""
+    normal, mask = sphere(size, 0.42 * size)
+    if lights == 1:
+        directions = np.array([[0.0, 0.0, 1.0]])
+    else:
+        azimuth = 2 * np.pi * np.arange(lights) / lights
+        elevation = np.radians(elevation_deg)
+        directions = np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
+                               np.full(lights, np.sin(elevation))], axis=-1)
+    shading = albedo * np.clip(np.einsum("hwc,kc->khw", normal, directions), 0.0, None)
+    frames = psfmt.Frames(
+        np.repeat(shading[..., None], 3, axis=-1).astype(np.float32),
+        light_direction=directions,
+        light_intensity=np.ones((lights, 3)),
+    )
+    capture = psfmt.Capture(
+        frames=frames,
+        ground_truth=psfmt.GroundTruth(normal=normal.astype(np.float32), mask=mask),
+        description=f"Lambertian sphere under {lights} lights",
+    )
+    psfmt.write(capture, path)
+    return path
