@@ -9,8 +9,9 @@ import sys
 from pathlib import Path
 
 import pytest
+from helpers import REPO
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = REPO
 MOVED = {
     "pstoolkit.hookspecs": "pstoolkit.plugin.spec",
     "pstoolkit.plugins": "pstoolkit.plugin.manager",

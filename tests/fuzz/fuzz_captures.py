@@ -37,7 +37,7 @@ import numpy as np
 TESTS = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(TESTS))
 
-from mutations import BASES, MUTATIONS, base_capture, category, mutate  # noqa: E402
+from helpers.mutations import BASES, MUTATIONS, base_capture, category, mutate  # noqa: E402
 
 import psfmt  # noqa: E402
 from psfmt import isolate  # noqa: E402
@@ -46,7 +46,7 @@ RESULTS = TESTS.parent / "benchmarks" / "results" / "fuzz_captures.json"
 CHILD = f"""
 import json, sys
 sys.path.insert(0, {str(TESTS)!r})
-from mutations import probe
+from helpers.mutations import probe
 print(json.dumps(probe(__import__("pathlib").Path(sys.argv[1]), isolated=False)))
 """
 
