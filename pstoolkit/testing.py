@@ -3,10 +3,12 @@
 
 In a plugin's ``conftest.py``::
 
-    pytest_plugins = ["pstoolkit.testing"]
+    from pstoolkit.testing import pstoolkit_plugins, pstoolkit_plugins_alone  # noqa: F401
 
-gives the fixture ``pstoolkit_plugins``: a clean plugin state with no plugin environment variables,
-restored afterwards. Then, in a test::
+(or ``pytest_plugins = ["pstoolkit.testing"]`` in the top-level conftest of the run) gives the
+fixtures ``pstoolkit_plugins`` (a clean plugin state with no plugin environment variables,
+restored afterwards) and ``pstoolkit_plugins_alone`` (the same, with pstoolkit's built-in plugins
+subject to ``PSTOOLKIT_PLUGINS`` like any other). Then, in a test::
 
     def test_my_solver(pstoolkit_plugins, tmp_path):
         install_project(pstoolkit_plugins, Path("."), tmp_path / "site", allow=["core", "mine"])
@@ -30,7 +32,7 @@ import tomllib
 import psfmt
 from pstoolkit.plugin import manager
 
-__all__ = ["fake_distribution", "install_project", "pstoolkit_plugins", "sphere", "sphere_capture"]
+__all__ = ["fake_distribution", "install_project", "pstoolkit_plugins", "pstoolkit_plugins_alone", "sphere", "sphere_capture"]
 
 
 def fake_distribution(
@@ -70,8 +72,22 @@ def install_project(
 
 @pytest.fixture
 def pstoolkit_plugins(monkeypatch: pytest.MonkeyPatch) -> Iterator[pytest.MonkeyPatch]:
-    """A clean plugin state with no plugin environment variables; afterwards the state is reset and
-    the modules imported from paths the test added are forgotten."""
+    """A clean plugin state with no plugin environment variables (the built-in plugins load as
+    always); afterwards the state is reset and the modules imported from paths the test added are
+    forgotten."""
+    yield from _isolated(monkeypatch)
+
+
+@pytest.fixture
+def pstoolkit_plugins_alone(monkeypatch: pytest.MonkeyPatch) -> Iterator[pytest.MonkeyPatch]:
+    """``pstoolkit_plugins``, but pstoolkit's own plugins count as third parties, so that
+    ``PSTOOLKIT_PLUGINS`` (``install_project``'s ``allow``) decides which of them load too: a test
+    sees only the plugins it names."""
+    monkeypatch.setattr(manager, "BUILT_IN_DISTRIBUTION", "")
+    yield from _isolated(monkeypatch)
+
+
+def _isolated(monkeypatch: pytest.MonkeyPatch) -> Iterator[pytest.MonkeyPatch]:
     monkeypatch.delenv(manager.DISABLE_ENV, raising=False)
     monkeypatch.delenv(manager.ALLOW_ENV, raising=False)
     modules, paths = set(sys.modules), set(sys.path)

@@ -1,9 +1,11 @@
 """The plugin manager: finds plugins through the entry-point group ``pstoolkit``, lets each one fill
 the registries through its hooks, and records who registered what and which plugins failed.
 
-First-party plugins (``plugins/``) are found exactly like third-party ones. Environment:
-``PSTOOLKIT_DISABLE_PLUGIN_AUTOLOAD=1`` loads no entry points (register plugins with
-``register_plugin``); ``PSTOOLKIT_PLUGINS=core,mine`` loads only the named entry points.
+First-party plugins (``plugins/``) are found exactly like third-party ones, through the entry points
+of the ``pstoolkit`` distribution; they are *built in*: always loaded, first, and their names win a
+clash (a third party's entry under a built-in name is ignored with a warning). Environment, for third
+parties only: ``PSTOOLKIT_DISABLE_PLUGIN_AUTOLOAD=1`` loads none of their entry points (register
+plugins with ``register_plugin``); ``PSTOOLKIT_PLUGINS=mine,other`` loads only the named ones.
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ import sys
 import types
 from contextlib import nullcontext
 from dataclasses import dataclass, field
-from importlib.metadata import entry_points
+from importlib.metadata import EntryPoint, entry_points
 from typing import TYPE_CHECKING, Any
 
 import pluggy
@@ -43,6 +45,9 @@ __all__ = [
 ENTRY_POINT_GROUP = PROJECT
 DISABLE_ENV = "PSTOOLKIT_DISABLE_PLUGIN_AUTOLOAD"
 ALLOW_ENV = "PSTOOLKIT_PLUGINS"
+BUILT_IN_DISTRIBUTION = "pstoolkit"
+"""The distribution whose entry points are the built-in plugins."""
+BUILT_IN = "built in"
 _OFF = {"", "0", "false", "no", "off"}
 
 
@@ -55,6 +60,10 @@ class PluginInfo:
     module: str
     version: str | None
     source: str
+
+    @property
+    def built_in(self) -> bool:
+        return self.source == BUILT_IN
 
 
 @dataclass(frozen=True)
@@ -103,6 +112,11 @@ def _allow_list() -> set[str] | None:
     return names or None
 
 
+def _is_built_in(ep: EntryPoint) -> bool:
+    dist = ep.dist.name if ep.dist is not None else ""
+    return dist.lower().replace("_", "-") == BUILT_IN_DISTRIBUTION
+
+
 def _add(state: _State, plugin: object, name: str, version: str | None, source: str) -> None:
     pm = state.manager
     if pm.has_plugin(name):
@@ -124,21 +138,23 @@ def _add(state: _State, plugin: object, name: str, version: str | None, source: 
 def _load() -> _State:
     state = _State(pluggy.PluginManager(PROJECT))
     state.manager.add_hookspecs(hookspecs)
-    if not _autoload_disabled():
-        allowed = _allow_list()
-        found = sorted(entry_points(group=ENTRY_POINT_GROUP), key=lambda ep: ep.name)
-        for ep in found:
-            if allowed is not None and ep.name not in allowed:
-                continue
-            try:
-                plugin = ep.load()
-            except Exception as exc:  # any import-time error of a plugin must not stop the others
-                state.fail(ep.name, f"cannot import {ep.value!r}: {_error_line(exc)}")
-                continue
-            version = ep.dist.version if ep.dist is not None else None
-            _add(state, plugin, ep.name, version, "entry point")
-        for missing in sorted((allowed or set()) - {ep.name for ep in found}):
-            state.fail(missing, f"named in {ALLOW_ENV} but no installed package provides it")
+    third_parties = not _autoload_disabled()
+    allowed = _allow_list() if third_parties else None
+    # built-in plugins first, so that their names are taken before any third party's
+    found = sorted(entry_points(group=ENTRY_POINT_GROUP), key=lambda ep: (not _is_built_in(ep), ep.name))
+    for ep in found:
+        built_in = _is_built_in(ep)
+        if not built_in and (not third_parties or (allowed is not None and ep.name not in allowed)):
+            continue
+        try:
+            plugin = ep.load()
+        except Exception as exc:  # any import-time error of a plugin must not stop the others
+            state.fail(ep.name, f"cannot import {ep.value!r}: {_error_line(exc)}")
+            continue
+        version = ep.dist.version if ep.dist is not None else None
+        _add(state, plugin, ep.name, version, BUILT_IN if built_in else "entry point")
+    for missing in sorted((allowed or set()) - {ep.name for ep in found}):
+        state.fail(missing, f"named in {ALLOW_ENV} but no installed package provides it")
     for name, (plugin, version) in _explicit.items():
         _add(state, plugin, name, version or getattr(plugin, "__version__", None), "registered")
     return state
@@ -161,13 +177,16 @@ def _call_each(state: _State, hook: str, **kwargs: Any) -> None:
     """Call ``hook`` plugin by plugin; a ``registry`` argument attributes entries to the caller."""
     registry: Registry | None = kwargs.get("registry")
     for info in state.plugins:
-        with registry.registering_for(info.name) if registry is not None else nullcontext():
+        with registry.registering_for(info.name, built_in=info.built_in) if registry is not None else nullcontext():
             try:
                 _caller(state, hook, info.name)(**kwargs)
             except PluginError:
                 raise
             except Exception as exc:  # a faulty plugin is reported and skipped, the rest still run
                 state.fail(info.name, f"{hook} failed: {_error_line(exc)}")
+        if registry is not None:
+            for plugin, message in registry.take_ignored():
+                state.fail(plugin, message)
 
 
 def get_registries() -> Registries:

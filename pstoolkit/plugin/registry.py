@@ -77,15 +77,26 @@ class Registry:
         self.base = base
         self._entries: dict[str, Entry] = {}
         self._plugin = DIRECT
+        self._built_in = False
+        self._built_in_plugins: set[str] = set()
+        self._ignored: list[tuple[str, str]] = []
 
     @contextmanager
-    def registering_for(self, plugin: str) -> Iterator[None]:
-        """Attribute everything registered inside the block to ``plugin``."""
-        previous, self._plugin = self._plugin, plugin
+    def registering_for(self, plugin: str, built_in: bool = False) -> Iterator[None]:
+        """Attribute everything registered inside the block to ``plugin``; a ``built_in`` plugin's
+        names win a clash with a third party's."""
+        previous = self._plugin, self._built_in
+        self._plugin, self._built_in = plugin, built_in
         try:
             yield
         finally:
-            self._plugin = previous
+            self._plugin, self._built_in = previous
+
+    def take_ignored(self) -> list[tuple[str, str]]:
+        """(plugin, one-line message) for each third-party entry ignored since the last call because
+        a built-in plugin holds its name."""
+        ignored, self._ignored = self._ignored, []
+        return ignored
 
     def register(
         self,
@@ -97,7 +108,8 @@ class Registry:
     ) -> Entry:
         """Add ``obj`` under ``name``; name, summary and options default to the object's attributes
         of the same names (``options`` to none). A name already taken raises PluginError naming both
-        plugins."""
+        plugins, unless a built-in plugin holds it and a third party asks: then the third party's
+        entry is ignored (``take_ignored`` reports it) and the built-in entry returned."""
         name = getattr(obj, "name", None) if name is None else name
         summary = getattr(obj, "summary", None) if summary is None else summary
         raw = getattr(obj, "options", ()) if options is None else options
@@ -109,11 +121,16 @@ class Registry:
         if previous is not None:
             if previous.plugin == plugin:
                 raise PluginError(f"{self.kind} {name!r} is registered twice by plugin {plugin!r}")
+            if previous.plugin in self._built_in_plugins and not self._built_in:
+                self._ignored.append((plugin, f"{self.kind} {name!r} is built in (plugin {previous.plugin!r}); this plugin's entry is ignored"))
+                return previous
             raise PluginError(
                 f"{self.kind} {name!r} is registered by both plugin {previous.plugin!r} and plugin {plugin!r}"
             )
         entry = Entry(name=name, obj=obj, summary=summary.strip(), options=opts, plugin=plugin, kind=self.kind)
         self._entries[name] = entry
+        if self._built_in:
+            self._built_in_plugins.add(plugin)
         return entry
 
     def _check_kind(self, plugin: str, obj: Any, name: Any) -> None:

@@ -83,6 +83,7 @@ def lsq_plugin(monkeypatch: pytest.MonkeyPatch, root: Path) -> Iterator[None]:
     site = fake_distribution(root / "site", "pskfake-lsq", "1.0", {"lsq": "pskfake_lsq"}, {"pskfake_lsq": LSQ_PLUGIN})
     monkeypatch.syspath_prepend(str(site))
     monkeypatch.delenv(plugins.DISABLE_ENV, raising=False)
+    monkeypatch.setattr(plugins, "BUILT_IN_DISTRIBUTION", "")  # the built-ins load only when named
     monkeypatch.setenv(plugins.ALLOW_ENV, "core,lsq")
     monkeypatch.setenv("XDG_CACHE_HOME", str(root / "cache"))
     plugins.reset()

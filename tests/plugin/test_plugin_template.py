@@ -28,11 +28,11 @@ RADIUS_PX = 20.0
 
 
 @pytest.fixture
-def template(pstoolkit_plugins: pytest.MonkeyPatch, tmp_path: Path) -> pytest.MonkeyPatch:
+def template(pstoolkit_plugins_alone: pytest.MonkeyPatch, tmp_path: Path) -> pytest.MonkeyPatch:
     """The template installed the way pip would: its dist-info (name, version and entry points read
     from its pyproject.toml) and its source folder on sys.path, loaded alone."""
-    install_project(pstoolkit_plugins, TEMPLATE, tmp_path / "site")
-    return pstoolkit_plugins
+    install_project(pstoolkit_plugins_alone, TEMPLATE, tmp_path / "site")
+    return pstoolkit_plugins_alone
 
 
 def sphere_capture(path: Path) -> tuple[np.ndarray, np.ndarray]:
