@@ -24,6 +24,8 @@ MOVED = {
     "pstoolkit.metrics": "pstoolkit.evaluation.metrics",
     "pstoolkit.backend": "pstoolkit.hardware.backend",
     "pstoolkit.normalmap": "pstoolkit.io.normalmap",
+    "pstoolkit.shadows.profile": "pstoolkit.shadows.period_profile",
+    "psfmt.tonic": "psfmt.structured",
 }
 
 
@@ -51,9 +53,10 @@ def test_pstoolkit_exports_what_a_plugin_needs() -> None:
         pstoolkit.nothing  # noqa: B018
 
 
-def test_the_package_its_subpackages_and_the_cli_load_neither_torch_nor_numba() -> None:
+def test_the_package_its_subpackages_the_cli_and_the_diligent_converter_load_neither_torch_nor_numba() -> None:
     packages = ["pstoolkit", "pstoolkit.cli", "pstoolkit.plugin", "pstoolkit.optics", "pstoolkit.events", "pstoolkit.sim", "pstoolkit.solve",
-                "pstoolkit.shadows", "pstoolkit.surface", "pstoolkit.evaluation", "pstoolkit.hardware", "pstoolkit.io"]
+                "pstoolkit.shadows", "pstoolkit.surface", "pstoolkit.evaluation", "pstoolkit.hardware", "pstoolkit.io", "pstoolkit.grid",
+                "pstoolkit.sim.timing", "pstoolkit_diligent.converters"]
     code = f"import sys\nfor p in {packages!r}: __import__(p)\nprint(sorted({{'torch', 'numba', 'matplotlib'}} & set(sys.modules)))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"

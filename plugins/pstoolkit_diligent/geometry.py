@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pstoolkit import UserError
-from pstoolkit.sim.render import area_weights
+from pstoolkit.grid import area_weights
 
 
 @dataclass(frozen=True)

@@ -30,9 +30,9 @@ from scipy.special import exprel
 import psfmt
 from pstoolkit import GREY_WEIGHTS, Progress, SampledLight, UserError
 from pstoolkit.events.rule import LOG_EPS, log_irradiance
+from pstoolkit.grid import area_weights, event_shape
 from pstoolkit.sim.esim import Render, simulate_events
-from pstoolkit.sim.render import area_weights, event_shape
-from pstoolkit.sim.simulator import CaptureTiming, append_event_chunks
+from pstoolkit.sim.timing import CaptureTiming, append_event_chunks
 from pstoolkit_diligent.folder import ObjectFolder
 from pstoolkit_diligent.geometry import area_resize, crop, resize_truth, square_around
 

@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from pstoolkit_dualres.init import fill
+from pstoolkit_dualres.closed_form import fill
 
 FieldOutput = tuple[Tensor, Tensor, Tensor]
 """(normal (P, 3) unit, per-pixel raw channels (P, Cp), smooth raw channels (P, Cs))."""

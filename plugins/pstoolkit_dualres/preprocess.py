@@ -31,14 +31,14 @@ import numpy as np
 
 import psfmt
 from pstoolkit import GREY_WEIGHTS, LightModel, Progress, UserError, build_light_model, no_progress
+from pstoolkit.grid import default_affine, nearest_super_pixel, to_frames
 from pstoolkit.shadows import ShadowEvidence, ShadowMask, interval_profile
 from pstoolkit.shadows.spikes import spike_threshold
-from pstoolkit_dualres.eventnormal import event_normals
-from pstoolkit_dualres.grid import nearest_super_pixel, to_frames
-from pstoolkit_dualres.init import Init, closed_form
+from pstoolkit_dualres.closed_form import ClosedFormStart, closed_form
 from pstoolkit_dualres.irradiance import approximate
 from pstoolkit_dualres.pairs import EventSamples, event_samples, refractory_rule
 from pstoolkit_dualres.sampling import Samples, importance_samples
+from pstoolkit_dualres.super_pixel_normals import event_normals
 
 SCALE_RULES = ("windows", "spikes")
 CONFIDENCE_RULES = ("linear", "none")
@@ -64,7 +64,7 @@ class PreprocessOptions:
     end (Î₉₉ the 99th percentile of that over all pairs), "none" weighs all 1; ``max_pair_share``
     drops pairs longer than this share of the period.
 
-    Init: ``init_iterations`` fixed-point steps of the attached-shadow clamp (at least 1),
+    Closed-form start: ``init_iterations`` fixed-point steps of the attached-shadow clamp (at least 1),
     ``light_samples`` per window for the equivalent lights. ``mask_threshold``: a frame pixel is on
     the object when its brightest window exceeds this share of saturation.
     """
@@ -144,11 +144,11 @@ class Preprocessed:
     samples: Samples
     events: EventSamples
     super_normal: np.ndarray
-    init: Init
+    init: ClosedFormStart
     options: PreprocessOptions
     diagnostics: dict[str, Any] = field(default_factory=dict)
 
-    def closed_form(self, shadows: ShadowMask | None) -> Init:
+    def closed_form(self, shadows: ShadowMask | None) -> ClosedFormStart:
         """The closed-form start with the equivalent lights of eq. 14/16 under the cast-shadow mask
         ``shadows`` (None: none)."""
         return start(self.per_window, self.windows_us + self.t0_us, self.mask, self.light, self.super_normal,
@@ -156,7 +156,7 @@ class Preprocessed:
 
 
 def start(per_window: np.ndarray, windows_us: np.ndarray, mask: np.ndarray, light: LightModel,
-          super_normal: np.ndarray, options: PreprocessOptions, shadows: ShadowMask | None) -> Init:
+          super_normal: np.ndarray, options: PreprocessOptions, shadows: ShadowMask | None) -> ClosedFormStart:
     """``init.closed_form`` of the window means ``per_window`` (J, H, W, 3) over absolute windows
     ``windows_us`` (J, 2) with the cast-shadow mask ``shadows`` (None or empty: none)."""
     visibility = None
@@ -233,7 +233,7 @@ def preprocess(capture: psfmt.Capture, options: PreprocessOptions, progress: Pro
     event_height, event_width = events_in.height, events_in.width
     n_events_px = event_height * event_width
     affine = capture.calibration.event_to_frame
-    affine = np.asarray(psfmt.scale_affine(event_width / width) if affine is None else affine, dtype=np.float64)
+    affine = np.asarray(default_affine(event_width, width) if affine is None else affine, dtype=np.float64)
     t0, windows, frame_window = _windows(frames_in, period, where)
     frames = frames_in.as_float().astype(np.float32)
     saturated = np.any(frames >= 1.0, axis=-1)

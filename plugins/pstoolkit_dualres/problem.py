@@ -24,10 +24,9 @@ import torch
 from torch import Tensor
 
 from pstoolkit import GREY_WEIGHTS, US_PER_S, ShadowMask
+from pstoolkit.grid import bilinear_taps, footprints, frame_to_event
 from pstoolkit.optics.equivalent import sample_times
-from pstoolkit.sim.render import area_weights
-from pstoolkit_dualres.grid import bilinear_taps, frame_to_event
-from pstoolkit_dualres.init import Init
+from pstoolkit_dualres.closed_form import ClosedFormStart
 from pstoolkit_dualres.preprocess import Preprocessed
 
 # Percentile of the initial grey albedo over the mask taken as the albedo scale: a bright albedo
@@ -129,22 +128,6 @@ def _positions(pixels: np.ndarray, size: int) -> np.ndarray:
     return position
 
 
-def footprints(event_shape: tuple[int, int], frame_shape: tuple[int, int], event_scale: float) -> tuple[np.ndarray, np.ndarray]:
-    """Frame pixels under each event pixel of the grid ``psfmt.scale_affine(event_scale)``: (He·We, F)
-    flat frame indices and area weights (the simulator's area average, ``pstoolkit.sim.render.area_weights``)."""
-    (he, we), (h, w) = event_shape, frame_shape
-    rows = [area_weights(n_e, n_f, event_scale) for n_e, n_f in ((he, h), (we, w))]
-    bands = []
-    for weights in rows:
-        taps = int((weights > 0).sum(axis=1).max())
-        index = np.argsort(-weights, axis=1, kind="stable")[:, :taps]
-        bands.append((index, np.take_along_axis(weights, index, axis=1)))
-    (r_idx, r_w), (c_idx, c_w) = bands
-    frame = (r_idx[:, None, :, None] * w + c_idx[None, :, None, :]).reshape(he * we, -1)
-    weight = (r_w[:, None, :, None] * c_w[None, :, None, :]).reshape(he * we, -1)
-    return frame, weight
-
-
 def tv_pairs(mask: np.ndarray) -> np.ndarray:
     """(Q, 2) positions among the masked pixels of right and down neighbours that are both masked."""
     h, w = mask.shape
@@ -161,7 +144,7 @@ def albedo_scale(init_albedo: np.ndarray, mask: np.ndarray) -> float:
     return float(np.percentile(grey, SCALE_PERCENTILE)) if grey.size else 1.0
 
 
-def build_problem(pre: Preprocessed, view: np.ndarray, *, device: str, frame_samples: int = 0, init: Init | None = None,
+def build_problem(pre: Preprocessed, view: np.ndarray, *, device: str, frame_samples: int = 0, init: ClosedFormStart | None = None,
                   dtype: torch.dtype = torch.float32) -> Problem:
     """Tensors of a fit from ``pre``, without a cast-shadow mask (``Problem.apply_mask`` adds one):
     the frames on ``frame_samples`` samples per frame of a shared midpoint grid (0: the importance
@@ -248,7 +231,7 @@ def build_problem(pre: Preprocessed, view: np.ndarray, *, device: str, frame_sam
 
 def start_values(normal: np.ndarray, albedo: np.ndarray, pixels: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
     """(P, 3) start normals (facing the camera where the closed form has none) and (P, 3) albedo in
-    units of ``scale`` at ``pixels``, from the (H, W, 3) maps of an ``init.Init``."""
+    units of ``scale`` at ``pixels``, from the (H, W, 3) maps of an ``init.ClosedFormStart``."""
     n = np.asarray(normal, dtype=np.float64).reshape(-1, 3)[pixels]
     bad = ~np.isfinite(n).all(axis=1) | (np.linalg.norm(n, axis=1) < 0.5)
     n[bad] = (0.0, 0.0, 1.0)

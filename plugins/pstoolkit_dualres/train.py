@@ -18,10 +18,10 @@ from torch import Tensor, nn
 
 from pstoolkit import Progress
 from pstoolkit.events.rule import LOG_EPS
+from pstoolkit_dualres.forward_model import frame_prediction, frame_prediction_grid, superpixel_grey
 from pstoolkit_dualres.losses import event_loss, frame_loss, tv_loss
 from pstoolkit_dualres.problem import Problem
 from pstoolkit_dualres.reflectance import FitModel
-from pstoolkit_dualres.render import frame_prediction, frame_prediction_grid, superpixel_grey
 
 # Final learning rate of a stage as a share of its first: an exponential decay over its epochs.
 LR_DECAY = 0.1

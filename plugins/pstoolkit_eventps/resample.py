@@ -6,16 +6,17 @@ import cv2
 import numpy as np
 
 import psfmt
+from pstoolkit.grid import default_affine
 
 
 def event_to_frame_affine(capture: psfmt.Capture, target: tuple[int, int]) -> np.ndarray:
     """The 2×3 affine from event pixel centres to target pixel coordinates: the calibrated one, or
-    ``psfmt.scale_affine`` for an event sensor that sees the target's field of view."""
+    ``pstoolkit.grid.default_affine``: an event sensor that sees the target's field of view."""
     events = capture.events
     assert events is not None
     if capture.calibration.event_to_frame is not None:
         return capture.calibration.event_to_frame
-    return psfmt.scale_affine(events.width / target[1])
+    return default_affine(events.width, target[1])
 
 
 class Resampler:

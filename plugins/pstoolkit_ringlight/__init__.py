@@ -16,6 +16,6 @@ if __name__ not in serial.protocol_handler_packages:
 
 @hookimpl
 def pstoolkit_register_backends(registry: Registry) -> None:
-    from pstoolkit_ringlight.backend import RingLight
+    from pstoolkit_ringlight.backend import RingLightBackend
 
-    registry.register(RingLight)
+    registry.register(RingLightBackend)

@@ -49,7 +49,7 @@ def ring_light_spec(leds: int, sweep: Sweep, t0_us: int, elevation_deg: float, p
     return model.to_spec()
 
 
-class RingLight(LightBackend):
+class RingLightBackend(LightBackend):
     name = "ringlight"
     summary = "serial ring-light controller (spec/ringlight-protocol.md); --port sim for the simulated one"
     options = (

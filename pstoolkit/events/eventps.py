@@ -150,7 +150,7 @@ class PairedWindow:
 
 
 class LightPath:
-    """The light as the method needs it at event times: the grey light l(t) (``eventnormals.grey_light``)
+    """The light as the method needs it at event times: the grey light l(t) (``pstoolkit.events.relation.grey_light``)
     at each event and at the end of its refractory period, and the unit direction of the light's motion
     across the image plane (for the swing). A periodic light with a whole number of µs per period is
     tabulated once per µs of one period, which gives the same values as evaluating it; other lights are

@@ -25,6 +25,7 @@ from scipy import ndimage
 
 import psfmt
 from pstoolkit.errors import UserError
+from pstoolkit.grid import default_affine
 
 NEIGHBOURS = 4
 MAX_DEPARTURE = 0.5
@@ -219,7 +220,7 @@ def calibrate_target(
     frame_points = blob_centres(grey, level)
     event_points = blob_centres(counts, level)
     assert capture.events is not None
-    prior = psfmt.scale_affine(capture.events.width / grey.shape[1])
+    prior = default_affine(capture.events.width, grey.shape[1])
     fit = match_affine(event_points, frame_points, prior, tolerance_px)
     fit.frame_blobs, fit.event_blobs = len(frame_points), len(event_points)
     return fit

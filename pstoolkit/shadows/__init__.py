@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from pstoolkit.shadows.base import NoShadows, ShadowDetector, ShadowEvidence, ShadowMask
 from pstoolkit.shadows.intervals import ShadowIntervals, ShadowTable
-from pstoolkit.shadows.profile import Profile, interval_profile
+from pstoolkit.shadows.period_profile import Profile, interval_profile
 
 __all__ = [
     "NoShadows",

@@ -26,7 +26,7 @@ import numpy as np
 from pstoolkit.optics.lights import LightModel
 from pstoolkit.plugin.options import Option
 from pstoolkit.shadows.intervals import ShadowIntervals, ShadowTable
-from pstoolkit.shadows.profile import Profile
+from pstoolkit.shadows.period_profile import Profile
 
 
 @dataclass

@@ -28,7 +28,7 @@ import numpy as np
 from pstoolkit.plugin.options import Option
 from pstoolkit.shadows.base import ShadowDetector, ShadowEvidence, ShadowMask
 from pstoolkit.shadows.intervals import ShadowIntervals
-from pstoolkit.shadows.profile import Profile
+from pstoolkit.shadows.period_profile import Profile
 
 # Slack (µs) on "one refractory period apart" for events of a rate-limited run: the timestamps'
 # resolution and the sensor's own jitter.

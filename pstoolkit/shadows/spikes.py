@@ -25,7 +25,7 @@ import numpy as np
 from pstoolkit.plugin.options import Option
 from pstoolkit.shadows.base import ShadowDetector, ShadowEvidence, ShadowMask
 from pstoolkit.shadows.intervals import ShadowIntervals, ShadowTable
-from pstoolkit.shadows.profile import Profile
+from pstoolkit.shadows.period_profile import Profile
 
 SPIKE_SHARE = 2.0 / 3.0
 SPIKE_FLOOR_PER_S = 300.0

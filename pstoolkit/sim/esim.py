@@ -25,7 +25,7 @@ each pixel sees ``L = ln(I + ε)`` and fires by the rule of ``pstoolkit.events.r
   inside a step is emitted at its own exact time on that line (float64), then rounded half up to
   int64 µs. Positive events step the reference by ``C⁺``, negative by ``C⁻``; per-pixel thresholds
   are drawn once from ``N(C, σ)`` and clamped to ≥ 0.01.
-- **Refractory** (``refractory_rule``, one of ``eventmodel.REFRACTORY_RULES``): after an event at
+- **Refractory** (``refractory_rule``, one of ``pstoolkit.events.rule.REFRACTORY_RULES``): after an event at
   ``t`` the pixel cannot fire before ``t + R``. "reset-at-end" (the default): what happens in the
   dead time is not emitted, and at ``t + R`` the reference is reset to ``L(t + R)``; on a line of
   slope ``s`` a pixel fires every ``R + C / |s|``. "rate-limited": the reference moves by one
@@ -511,9 +511,9 @@ def simulate_events(
     """Events of a ``width``×``height`` sensor watching ``render`` from ``t0_us`` to ``t1_us`` (see the
     module docstring for the model). Yields non-empty ``EventArray`` chunks in time order.
 
-    ``eps`` defaults to ``eventmodel.LOG_EPS`` (1e-3, for irradiance normalised to ≈ 1 when bright);
+    ``eps`` defaults to ``pstoolkit.events.rule.LOG_EPS`` (1e-3, for irradiance normalised to ≈ 1 when bright);
     ``sigma`` is the per-pixel threshold spread, ``refractory_us`` the dead time and
-    ``refractory_rule`` what happens in it (``eventmodel.REFRACTORY_RULES``), ``max_dlog`` the
+    ``refractory_rule`` what happens in it (``pstoolkit.events.rule.REFRACTORY_RULES``), ``max_dlog`` the
     largest log change allowed between samples (default ``0.5·min(C⁺, C⁻)``), ``initial_dt_us`` the
     first sampling step, ``chunk_samples`` the most times rendered or held at once, ``min_dt_us`` the
     shortest interval that is still split (a jump in irradiance is resolved to this), ``leak_hz`` and

@@ -26,6 +26,7 @@ import torch
 
 from pstoolkit.errors import UserError
 from pstoolkit.events.rule import GREY_WEIGHTS
+from pstoolkit.grid import area_weights, event_shape, footprints  # noqa: F401 -- area_weights: the old import path
 from pstoolkit.optics.brdf import BRDF, GGX, MIN_ROUGHNESS, Lambertian
 from pstoolkit.optics.equivalent import sample_times
 from pstoolkit.optics.lights import US_PER_S, LightModel
@@ -251,44 +252,14 @@ def cast_shadow_mask(depth: np.ndarray, mask: np.ndarray, directions: np.ndarray
     return shadow_margin(depth, mask, directions) > SHADOW_BIAS_PX + 0.5 * PENUMBRA_PX
 
 
-def area_weights(n_event: int, n_frame: int, event_scale: float) -> np.ndarray:
-    """(n_event, n_frame) weights that area-average frame pixels onto one axis of the event grid of
-    ``psfmt.scale_affine(event_scale)``: event pixel i covers frame pixel edges [i/s, (i+1)/s).
-    Rows sum to 1 (over the part of the event pixel inside the frame)."""
-    s = float(event_scale)
-    lo = np.arange(n_event, dtype=np.float64)[:, None] / s
-    edges = np.arange(n_frame, dtype=np.float64)[None, :]
-    overlap = np.clip(np.minimum(lo + 1.0 / s, edges + 1.0) - np.maximum(lo, edges), 0.0, None)
-    return overlap / np.maximum(overlap.sum(axis=1, keepdims=True), 1e-12)
-
-
-def event_shape(height: int, width: int, event_scale: float) -> tuple[int, int]:
-    """Event sensor (height, width) for a frame of height×width at ``event_scale`` event pixels per
-    frame pixel (rounded, at least 1)."""
-    return max(1, int(round(height * event_scale))), max(1, int(round(width * event_scale)))
-
-
 def _event_footprints(height: int, width: int, event_scale: float, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Which masked frame pixels each event pixel averages: (E, K) positions into the masked pixels
     ``index`` (0 where unused) and (E, K) area weights (0 for unused slots and unmasked pixels)."""
-    he, we = event_shape(height, width, event_scale)
-    av, au = area_weights(he, height, event_scale), area_weights(we, width, event_scale)
-    (r_idx, r_w), (c_idx, c_w) = _band(av), _band(au)
-    frame = (r_idx[:, None, :, None] * width + c_idx[None, :, None, :]).reshape(he * we, -1)
-    weight = (r_w[:, None, :, None] * c_w[None, :, None, :]).reshape(he * we, -1)
+    frame, weight = footprints(event_shape(height, width, event_scale), (height, width), event_scale)
     position = np.full(height * width, -1, dtype=np.int64)
     position[index] = np.arange(index.size)
     masked = position[frame]
     return np.maximum(masked, 0), np.where(masked >= 0, weight, 0.0)
-
-
-def _band(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The nonzero band of each row of an ``area_weights`` matrix: (n, B) columns and weights."""
-    nonzero = weights > 0
-    first = nonzero.argmax(axis=1)
-    width = int(nonzero.sum(axis=1).max())
-    columns = np.minimum(first[:, None] + np.arange(width), weights.shape[1] - 1)
-    return columns, np.take_along_axis(weights, columns, axis=1) * (columns == first[:, None] + np.arange(width))
 
 
 class Renderer:

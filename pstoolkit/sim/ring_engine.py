@@ -46,10 +46,11 @@ from psfmt import EventArray
 from pstoolkit._shared.worksharing import take_task
 from pstoolkit.errors import UserError
 from pstoolkit.events.rule import GREY_WEIGHTS, LOG_EPS, REFRACTORY_RULE, REFRACTORY_RULES, check_rule
+from pstoolkit.grid import event_shape
 from pstoolkit.optics.brdf import GGX
 from pstoolkit.optics.lights import US_PER_S, RingLight
 from pstoolkit.sim.esim import check_options, draw_thresholds, event_rngs
-from pstoolkit.sim.render import Renderer, event_shape
+from pstoolkit.sim.render import Renderer
 
 # Columns of the per-frame-pixel constants (``FrameConstants.values``).
 NX, NY, NZ, GREY_DIFFUSE, GREY_SPECULAR, NORM2, ALPHA2_1, K, ONE_K, VIEW = range(10)
@@ -898,7 +899,7 @@ def _ring(light: RingLight) -> tuple[float, ...]:
 
 
 def _shadow_table(renderer: Renderer, ta: float, tb: float) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
-    """Unclipped visibility (``render._openness`` of the shadow margins) of the frame pixels at the
+    """Unclipped visibility (``pstoolkit.sim.render._openness`` of the shadow margins) of the frame pixels at the
     grid times around [ta, tb]: (N, H·W) float32 rows for keys first, first + 1, … (the renderer's
     sweep buffer, valid until its next sweep), which of them are column-major (N,) (see
     ``Renderer.frame_openness``), and the grid (step µs, first key): V at a time is the linear mix
@@ -966,7 +967,7 @@ def simulate_ring(
     most ``TABLE_ROWS`` − 3);
     ``capacity`` is the first room for events per pixel and block (grown as needed; by default
     ``FIRST_ROOM`` within ``ROOM_BYTES``); ``refractory_rule`` is one of
-    ``eventmodel.REFRACTORY_RULES`` (with R = 0 both are ESIM's rule, run as "reset-at-end").
+    ``pstoolkit.events.rule.REFRACTORY_RULES`` (with R = 0 both are ESIM's rule, run as "reset-at-end").
     Thresholds are drawn as ``pstoolkit.sim.esim`` draws them for ``seed``."""
     if not supported(renderer):
         raise UserError("simulate_ring needs a ring light, the ggx or lambertian BRDF, the CPU and a shadow grid")

@@ -21,7 +21,7 @@ from pstoolkit.optics.lights import RingLight as RingModel
 from pstoolkit.optics.lights import build_light_model
 from pstoolkit.plugin.options import defaults
 from pstoolkit.plugin.registry import Registry
-from pstoolkit_ringlight.backend import RingLight, ring_light_spec
+from pstoolkit_ringlight.backend import RingLightBackend, ring_light_spec
 from pstoolkit_ringlight.client import (
     DeviceError,
     RingLightClient,
@@ -180,28 +180,28 @@ def test_a_blip_reconnects_but_an_unplugged_device_is_an_error(tmp_path: Path) -
 
 
 def test_the_backend_leaves_the_lights_off_on_errors(tmp_path: Path) -> None:
-    options = {**defaults(RingLight.options), "timeout_ms": 50}
+    options = {**defaults(RingLightBackend.options), "timeout_ms": 50}
     with pytest.raises(RuntimeError):
-        with RingLight(sim(tmp_path), options) as rig:
+        with RingLightBackend(sim(tmp_path), options) as rig:
             rig.configure(Sweep(6000))
             rig.start()
             assert device(tmp_path.name).lit()
             raise RuntimeError("camera failed")
     assert not device(tmp_path.name).lit()
     with pytest.raises(UserError, match=r"a period of 100 µs is too short for 60 LEDs$"):
-        with RingLight(sim(tmp_path.parent / (tmp_path.name + "-e")), options) as rig:
+        with RingLightBackend(sim(tmp_path.parent / (tmp_path.name + "-e")), options) as rig:
             rig.configure(Sweep(100))
 
 
 def test_led_gains_are_loaded(tmp_path: Path) -> None:
     gains = tmp_path / "gains.txt"
     gains.write_text("\n".join(f"{i} 255 {255 - i}" for i in range(4)))
-    options = {**defaults(RingLight.options), "gains": str(gains)}
-    with RingLight(sim(tmp_path, "leds=4"), options):
+    options = {**defaults(RingLightBackend.options), "gains": str(gains)}
+    with RingLightBackend(sim(tmp_path, "leds=4"), options):
         assert device(tmp_path.name).gains == [(0, 255, 255), (1, 255, 254), (2, 255, 253), (3, 255, 252)]
     gains.write_text("1 2 3\n")
     with pytest.raises(UserError, match=r"gains\.txt: expected 4 lines of 'r g b' gains for 4 LEDs, got shape \(1, 3\)$"):
-        with RingLight(sim(tmp_path, "leds=4"), options):
+        with RingLightBackend(sim(tmp_path, "leds=4"), options):
             pass
 
 
@@ -225,7 +225,7 @@ def test_the_sweep_light_model_follows_the_ring() -> None:
 def test_the_plugin_registers_the_backend() -> None:
     registry = Registry("backend")
     pstoolkit_ringlight.pstoolkit_register_backends(registry)
-    assert registry.names() == ["ringlight"] and registry.get("ringlight").obj is RingLight
+    assert registry.names() == ["ringlight"] and registry.get("ringlight").obj is RingLightBackend
 
 
 def test_the_simulated_device_on_a_pty_pair_through_the_os_serial_layer(tmp_path: Path) -> None:

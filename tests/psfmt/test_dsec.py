@@ -11,7 +11,7 @@ import pytest
 from psfmt import dsec
 from psfmt.errors import FormatError
 from psfmt.events import EventArray
-from psfmt.tonic import TONIC_DTYPE, from_structured, to_tonic
+from psfmt.structured import TONIC_DTYPE, from_structured, to_tonic
 
 
 def sample(n: int = 4000, seed: int = 0) -> EventArray:

@@ -11,10 +11,10 @@ import pytest
 
 import psfmt
 from pstoolkit.evaluation.metrics import angular_error_deg
-from pstoolkit_dualres.eventnormal import event_normals
-from pstoolkit_dualres.grid import bilinear_taps, to_frames
-from pstoolkit_dualres.init import closed_form
+from pstoolkit.grid import bilinear_taps, to_frames
+from pstoolkit_dualres.closed_form import closed_form
 from pstoolkit_dualres.preprocess import Preprocessed, PreprocessOptions, preprocess
+from pstoolkit_dualres.super_pixel_normals import event_normals
 
 
 @pytest.fixture(scope="module")

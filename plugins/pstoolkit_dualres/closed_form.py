@@ -40,7 +40,7 @@ Visibility = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
 @dataclass
-class Init:
+class ClosedFormStart:
     """``normal`` (H, W, 3) unit (zero outside the mask), ``albedo`` (H, W, 3), ``effective`` (H, W)
     int number of effective lights, ``iterations`` done."""
 
@@ -120,7 +120,7 @@ def closed_form(
     iterations: int,
     n_samples: int,
     super_normal: np.ndarray | None = None,
-) -> Init:
+) -> ClosedFormStart:
     """Initial maps from ``frames`` (J, H, W, 3) of windows ``windows_us`` (J, 2) (one per distinct
     window of the period, saturation units) inside ``mask``; ``super_normal`` (H, W, 3) the normals
     of the super pixels from their events interpolated to the frame pixels (zero where unknown)."""
@@ -183,7 +183,7 @@ def closed_form(
     normal_out[pixels] = normal
     effective_map = np.zeros(height * width, dtype=np.int64)
     effective_map[pixels] = count
-    return Init(
+    return ClosedFormStart(
         normal=normal_out.reshape(height, width, 3).astype(np.float32),
         albedo=(albedo_map * mask[..., None]).astype(np.float32),
         effective=effective_map.reshape(height, width),

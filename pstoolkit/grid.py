@@ -1,0 +1,103 @@
+"""Geometry between the frame grid and the event grid, written once for the simulator, the solvers,
+the converters and calibration (numpy only).
+
+Conventions (spec/hybrid-capture.md, ``/calibration/event_to_frame``): a (2, 3) affine maps event
+pixel centres to frame pixel coordinates; without a calibration the two cameras see the same field
+of view, ``default_affine``. The simulator's event pixel i covers frame pixel edges [i/s, (i+1)/s)
+along each axis for ``s`` event pixels per frame pixel (``psfmt.scale_affine(s)``), and its
+irradiance is the area average of the frame pixels it covers (``area_weights``, ``footprints``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+import psfmt
+
+
+def default_affine(event_width: int, frame_width: int) -> np.ndarray:
+    """(2, 3) event→frame affine of an event sensor ``event_width`` pixels wide that sees the same
+    field of view as a frame ``frame_width`` pixels wide."""
+    return psfmt.scale_affine(event_width / frame_width)
+
+
+def event_shape(height: int, width: int, event_scale: float) -> tuple[int, int]:
+    """Event sensor (height, width) for a frame of height×width at ``event_scale`` event pixels per
+    frame pixel (rounded, at least 1)."""
+    return max(1, int(round(height * event_scale))), max(1, int(round(width * event_scale)))
+
+
+def area_weights(n_event: int, n_frame: int, event_scale: float) -> np.ndarray:
+    """(n_event, n_frame) weights that area-average frame pixels onto one axis of the event grid of
+    ``psfmt.scale_affine(event_scale)``: event pixel i covers frame pixel edges [i/s, (i+1)/s).
+    Rows sum to 1 (over the part of the event pixel inside the frame)."""
+    s = float(event_scale)
+    lo = np.arange(n_event, dtype=np.float64)[:, None] / s
+    edges = np.arange(n_frame, dtype=np.float64)[None, :]
+    overlap = np.clip(np.minimum(lo + 1.0 / s, edges + 1.0) - np.maximum(lo, edges), 0.0, None)
+    return overlap / np.maximum(overlap.sum(axis=1, keepdims=True), 1e-12)
+
+
+def nonzero_band(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The nonzero band of each row of an ``area_weights`` matrix: (n, B) columns and weights, in
+    column order (weight 0 on the padding of shorter rows)."""
+    nonzero = weights > 0
+    first = nonzero.argmax(axis=1)
+    width = int(nonzero.sum(axis=1).max())
+    columns = np.minimum(first[:, None] + np.arange(width), weights.shape[1] - 1)
+    return columns, np.take_along_axis(weights, columns, axis=1) * (columns == first[:, None] + np.arange(width))
+
+
+def footprints(event_shape: tuple[int, int], frame_shape: tuple[int, int], event_scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Frame pixels under each event pixel of the grid ``psfmt.scale_affine(event_scale)``: (He·We, K)
+    flat frame indices v·W + u and (He·We, K) area weights (0 on padding slots)."""
+    (he, we), (h, w) = event_shape, frame_shape
+    (r_idx, r_w), (c_idx, c_w) = nonzero_band(area_weights(he, h, event_scale)), nonzero_band(area_weights(we, w, event_scale))
+    frame = (r_idx[:, None, :, None] * w + c_idx[None, :, None, :]).reshape(he * we, -1)
+    weight = (r_w[:, None, :, None] * c_w[None, :, None, :]).reshape(he * we, -1)
+    return frame, weight
+
+
+def frame_to_event(affine: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Event-grid coordinates (u_e, v_e) of frame coordinates (u, v) through the inverse of the
+    (2, 3) event→frame ``affine``."""
+    a = np.asarray(affine, dtype=np.float64)
+    ue, ve = np.linalg.solve(a[:, :2], np.stack([np.ravel(u) - a[0, 2], np.ravel(v) - a[1, 2]]))
+    return ue.reshape(np.shape(u)), ve.reshape(np.shape(v))
+
+
+def nearest_super_pixel(affine: np.ndarray, height: int, width: int, event_height: int, event_width: int) -> np.ndarray:
+    """(H·W,) flat event pixel whose centre is nearest each frame pixel (clipped to the sensor)."""
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    ue, ve = frame_to_event(affine, u, v)
+    ue = np.clip(np.rint(ue), 0, event_width - 1).astype(np.int64)
+    ve = np.clip(np.rint(ve), 0, event_height - 1).astype(np.int64)
+    return (ve * event_width + ue).ravel()
+
+
+def bilinear_taps(u: np.ndarray, v: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear interpolation on a height×width grid at (u, v) (grid pixel centres at integers, clamped
+    to the grid): (P, 4) flat grid indices and (P, 4) weights."""
+    u = np.clip(u, 0.0, width - 1.0)
+    v = np.clip(v, 0.0, height - 1.0)
+    u0 = np.minimum(np.floor(u).astype(np.int64), max(width - 2, 0))
+    v0 = np.minimum(np.floor(v).astype(np.int64), max(height - 2, 0))
+    u1, v1 = np.minimum(u0 + 1, width - 1), np.minimum(v0 + 1, height - 1)
+    fu, fv = u - u0, v - v0
+    index = np.stack([v0 * width + u0, v0 * width + u1, v1 * width + u0, v1 * width + u1], axis=1)
+    weight = np.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv], axis=1)
+    return index, weight
+
+
+def to_frames(values: np.ndarray, known: np.ndarray, affine: np.ndarray, height: int, width: int,
+              event_height: int, event_width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Event-grid ``values`` (He·We, C) known at ``known`` (He·We,) bilinearly interpolated to every
+    frame pixel from the known ones among its four neighbouring super pixels (weights renormalised):
+    (H·W, C) values and (H·W,) bool where any neighbour was known."""
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    ue, ve = frame_to_event(affine, u.ravel(), v.ravel())
+    index, weight = bilinear_taps(ue, ve, event_width, event_height)
+    weight = weight * known[index]
+    total = weight.sum(axis=1)
+    out = np.einsum("pk,pkc->pc", weight, values[index]) / np.where(total > 0, total, 1.0)[:, None]
+    return out, total > 0
