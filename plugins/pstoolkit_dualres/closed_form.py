@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 
 from pstoolkit import GREY_WEIGHTS, LightModel
+from pstoolkit._shared.vectors import unit
 from pstoolkit.optics.equivalent import equivalent_lights, sample_times
 
 EFFECTIVE_SHARE = 0.01
@@ -87,9 +88,6 @@ def _solve(grey_lights: np.ndarray, grey: np.ndarray, usable: np.ndarray) -> np.
     return b
 
 
-def _unit(b: np.ndarray) -> np.ndarray:
-    norm = np.linalg.norm(b, axis=-1, keepdims=True)
-    return np.where(norm > 0, b / np.where(norm > 0, norm, 1.0), 0.0)
 
 
 def fill(values: np.ndarray, known: np.ndarray, region: np.ndarray) -> np.ndarray:
@@ -145,7 +143,7 @@ def closed_form(
         vis = None if masks is None else [m[:, active] for m in masks]
         lights[:, active] = window_lights(light, windows_us, active.size, normals=normal[active], visibility=vis, n_samples=n_samples)
         effective[:, active] = np.linalg.norm(_grey(lights[:, active]), axis=-1) >= EFFECTIVE_SHARE * free_norm[:, None]
-        updated = _unit(_solve(_grey(lights[:, active]), grey[:, active], effective[:, active]))
+        updated = unit(_solve(_grey(lights[:, active]), grey[:, active], effective[:, active]))
         moved = np.any(updated != 0, axis=1)
         solved[active] = moved
         change = np.einsum("px,px->p", updated, normal[active])
@@ -160,7 +158,7 @@ def closed_form(
     normal_map = normal_map.reshape(height, width, 3)
     known = np.zeros(height * width, dtype=bool)
     known[pixels[full]] = True
-    filled = _unit(fill(normal_map, known.reshape(height, width), mask)).reshape(-1, 3)[pixels]
+    filled = unit(fill(normal_map, known.reshape(height, width), mask)).reshape(-1, 3)[pixels]
     if super_normal is not None:
         # The super pixels' own estimate beats a fill from the nearest frame pixels with three
         # lights, which may lie far inside: on the rim of a simulated 64 px sphere (GGX, the pixels
@@ -172,7 +170,7 @@ def closed_form(
     two = ~full & (count == 2)
     normal[two] = _two_light_normal(grey[:, two], _grey(lights)[:, two], effective[:, two], normal[two])
     normal[:, 2] = np.maximum(normal[:, 2], 0.0)
-    normal = _unit(normal)
+    normal = unit(normal)
     albedo = _albedo(rgb, lights, effective, normal)
     albedo_map = np.zeros((height * width, 3))
     albedo_map[pixels] = albedo
@@ -198,9 +196,9 @@ def _two_light_normal(grey: np.ndarray, lights: np.ndarray, effective: np.ndarra
     cols = np.arange(grey.shape[1])
     a, b = order
     plane = grey[a, cols][:, None] * lights[b, cols] - grey[b, cols][:, None] * lights[a, cols]
-    plane = _unit(plane)
+    plane = unit(plane)
     projected = guess - np.einsum("px,px->p", guess, plane)[:, None] * plane
-    return np.where(np.linalg.norm(projected, axis=1, keepdims=True) > 1e-6, _unit(projected), guess)
+    return np.where(np.linalg.norm(projected, axis=1, keepdims=True) > 1e-6, unit(projected), guess)
 
 
 def _albedo(rgb: np.ndarray, lights: np.ndarray, effective: np.ndarray, normal: np.ndarray) -> np.ndarray:

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from pstoolkit._shared.vectors import unit
 from pstoolkit.errors import UserError
 
 THRESHOLDS_DEG = (11.25, 22.5, 30.0)
@@ -19,9 +20,6 @@ SHARE_KEYS = tuple(f"below_{threshold:g}".replace(".", "_") for threshold in THR
 """The statistics' names of the shares under each threshold: below_11_25, below_22_5, below_30."""
 
 
-def _unit(normal: np.ndarray) -> np.ndarray:
-    norm = np.linalg.norm(normal, axis=-1, keepdims=True)
-    return np.divide(normal, norm, out=np.zeros_like(normal), where=norm > 0)
 
 
 def angular_error_deg(normal: np.ndarray, normal_gt: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
@@ -32,7 +30,7 @@ def angular_error_deg(normal: np.ndarray, normal_gt: np.ndarray, mask: np.ndarra
     b = np.asarray(normal_gt, dtype=np.float64)
     if a.shape != b.shape or a.shape[-1:] != (3,):
         raise UserError(f"normal maps of shape {a.shape} and {b.shape} cannot be compared (expected equal (..., 3))")
-    cosine = np.clip(np.sum(_unit(a) * _unit(b), axis=-1), -1.0, 1.0)
+    cosine = np.clip(np.sum(unit(a) * unit(b), axis=-1), -1.0, 1.0)
     errors = np.degrees(np.arccos(cosine))
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)

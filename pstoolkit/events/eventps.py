@@ -61,6 +61,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from psfmt import EventArray
+from pstoolkit._shared.vectors import unit
 from pstoolkit.errors import UserError
 from pstoolkit.events import fill as eventfill
 from pstoolkit.events.relation import MIN_RANK_RATIO, grey_light
@@ -191,18 +192,15 @@ class LightPath:
         before, _ = self.light.evaluate(t - 1.0)
         later, _ = self.light.evaluate(t + 1.0)
         light = np.ascontiguousarray(grey_light(self.light, np.concatenate([t, t + self.refractory_us])).T)
-        return light, _unit_rows(later[:, :2] - before[:, :2]), 0
+        return light, np.ascontiguousarray(unit(later[:, :2] - before[:, :2])), 0
 
 
-def _unit_rows(vectors: np.ndarray) -> np.ndarray:
-    length = np.linalg.norm(vectors, axis=1, keepdims=True)
-    return np.ascontiguousarray(vectors / np.where(length > 0, length, 1.0))
 
 
 def _motion(direction: np.ndarray) -> np.ndarray:
     """Unit xy motion of a periodic table of light directions (T, 3), by central differences."""
     xy = direction[:, :2]
-    return _unit_rows(np.roll(xy, -1, axis=0) - np.roll(xy, 1, axis=0))
+    return np.ascontiguousarray(unit(np.roll(xy, -1, axis=0) - np.roll(xy, 1, axis=0)))
 
 
 class WindowSolver:

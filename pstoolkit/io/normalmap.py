@@ -18,14 +18,12 @@ import numpy as np
 
 from psfmt import atomic_path
 from psfmt.text import printable
+from pstoolkit._shared.vectors import unit
 from pstoolkit.errors import UserError
 
 _DTYPES = {8: np.uint8, 16: np.uint16}
 
 
-def _unit(normal: np.ndarray) -> np.ndarray:
-    norm = np.linalg.norm(normal, axis=-1, keepdims=True)
-    return np.divide(normal, norm, out=np.zeros_like(normal), where=norm > 0)
 
 
 def _check_normal(normal: np.ndarray, what: str) -> np.ndarray:
@@ -45,7 +43,7 @@ def normal_to_rgb(normal: np.ndarray, mask: np.ndarray | None = None, bits: int 
     if mask.shape != n.shape[:2]:
         raise UserError(f"mask of shape {mask.shape} does not fit a {n.shape[0]}×{n.shape[1]} normal map")
     top = float(2**bits - 1)
-    rgb = np.clip(np.floor((_unit(n) + 1.0) / 2.0 * top + 0.5), 0, top).astype(_DTYPES[bits])
+    rgb = np.clip(np.floor((unit(n) + 1.0) / 2.0 * top + 0.5), 0, top).astype(_DTYPES[bits])
     rgb[~mask] = 0
     return rgb
 
@@ -60,7 +58,7 @@ def rgb_to_normal(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raise UserError(f"normal image has dtype {array.dtype}, expected uint8 or uint16")
     top = float(np.iinfo(array.dtype).max)
     mask = np.any(array != 0, axis=-1)
-    normal = _unit(array.astype(np.float64) / top * 2.0 - 1.0)
+    normal = unit(array.astype(np.float64) / top * 2.0 - 1.0)
     normal[~mask] = 0.0
     return normal.astype(np.float32), mask
 
@@ -200,7 +198,7 @@ def read_geometry_folder(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.n
     if mask.shape != image.shape[:2]:
         raise UserError(f"{mask_path}: mask is {mask.shape[0]}×{mask.shape[1]}, the normal map {image.shape[0]}×{image.shape[1]}")
     # The background of these maps is not 0 (often 65535), so the mask comes from mask.png alone.
-    normal = _unit(image[..., ::-1].astype(np.float64) / 65535.0 * 2.0 - 1.0)
+    normal = unit(image[..., ::-1].astype(np.float64) / 65535.0 * 2.0 - 1.0)
     normal[~mask] = 0.0
     if not depth_path.is_file():
         raise UserError(f"{depth_path}: file does not exist")

@@ -36,7 +36,8 @@ from pstoolkit.plugin.options import Option
 
 MIN_ROUGHNESS = 0.02
 # Keeps the half vector's normalisation differentiable when l = −v (its length is then zero).
-_HALF_EPS = 1e-12
+HALF_EPS = 1e-12
+"""Added to |l + v|² before the half vector is normalised (l = −v leaves it undefined)."""
 
 
 def _dot(a: Tensor, b: Tensor) -> Tensor:
@@ -135,12 +136,12 @@ class GGX(BRDF):
         nv = torch.clamp(_dot(n, v), min=0.0)
         s = l + v
         ss = _dot(s, s)
-        h = s / torch.sqrt(ss + _HALF_EPS)
+        h = s / torch.sqrt(ss + HALF_EPS)
         nh = _dot(n, h)
         # 1 − (n·h)² written as |n × h|² avoids cancellation near the peak, where float32 would round
         # the denominator of D to zero (or below) for smooth surfaces; the last term, 1 − |h|², is
         # negligible unless l = −v, where it keeps D finite.
-        sin2 = torch.sum(torch.linalg.cross(*torch.broadcast_tensors(n, h), dim=-1) ** 2, dim=-1, keepdim=True) + _HALF_EPS / (ss + _HALF_EPS)
+        sin2 = torch.sum(torch.linalg.cross(*torch.broadcast_tensors(n, h), dim=-1) ** 2, dim=-1, keepdim=True) + HALF_EPS / (ss + HALF_EPS)
         d = alpha2 / (math.pi * (sin2 + nh * nh * alpha2) ** 2)
         # G/(4 n·l n·v) with Schlick-GGX G1(x) = x/(x(1−k)+k): the x factors cancel, leaving a form with
         # no division by n·l or n·v, finite (with finite gradients) at grazing angles.
@@ -230,7 +231,7 @@ class _SpecularBases(BRDF):
 
 def _half(l: Tensor, v: Tensor) -> Tensor:
     s = l + v
-    return s / torch.sqrt(_dot(s, s) + _HALF_EPS)
+    return s / torch.sqrt(_dot(s, s) + HALF_EPS)
 
 
 class SphericalGaussians(_SpecularBases):

@@ -19,6 +19,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from psfmt import LightSpec
+from pstoolkit._shared.vectors import unit
 from pstoolkit.errors import UserError
 from pstoolkit.plugin.options import Option
 
@@ -73,9 +74,6 @@ def _array(model: str, key: str, value: Any, shape: tuple[int, ...]) -> np.ndarr
         raise UserError(f"light model {model!r}: parameter {key!r} holds NaN or infinite values")
     return array
 
-
-def _unit(vectors: np.ndarray) -> np.ndarray:
-    return vectors / np.linalg.norm(vectors, axis=-1, keepdims=True)
 
 
 def _ring_angle_rad(t_us: np.ndarray, t0_us: float, period_us: float, phase_deg: float, sense: int) -> np.ndarray:
@@ -257,8 +255,8 @@ class SampledLight(LightModel):
         elif self.period_us is not None:
             raise UserError(f"light model {self.name!r}: period_us is given but the trajectory is not periodic")
         _, knots_d, _ = self._knots()
-        unit = _unit(knots_d)
-        if np.any(np.sum(unit[:-1] * unit[1:], axis=-1) <= -1.0 + 1e-12):
+        unit_d = unit(knots_d)
+        if np.any(np.sum(unit_d[:-1] * unit_d[1:], axis=-1) <= -1.0 + 1e-12):
             raise UserError(f"light model {self.name!r}: consecutive directions are opposite, the interpolation is undefined")
 
     @classmethod
@@ -312,7 +310,7 @@ class SampledLight(LightModel):
             t = np.clip(t, knots_t[0], knots_t[-1])
         i = np.clip(np.searchsorted(knots_t, t, side="right") - 1, 0, knots_t.shape[0] - 2)
         w = ((t - knots_t[i]) / (knots_t[i + 1] - knots_t[i]))[..., None]
-        direction = _unit((1.0 - w) * knots_d[i] + w * knots_d[i + 1])
+        direction = unit((1.0 - w) * knots_d[i] + w * knots_d[i + 1])
         intensity = (1.0 - w) * knots_e[i] + w * knots_e[i + 1]
         return _broadcast_directional(self.name, direction, intensity, points_mm)
 

@@ -27,7 +27,7 @@ import torch
 from pstoolkit.errors import UserError
 from pstoolkit.events.rule import GREY_WEIGHTS
 from pstoolkit.grid import area_weights, event_shape, footprints  # noqa: F401 -- area_weights: the old import path
-from pstoolkit.optics.brdf import BRDF, GGX, MIN_ROUGHNESS, Lambertian
+from pstoolkit.optics.brdf import BRDF, GGX, HALF_EPS, MIN_ROUGHNESS, Lambertian
 from pstoolkit.optics.equivalent import sample_times
 from pstoolkit.optics.lights import US_PER_S, LightModel
 from pstoolkit.sim.scenes import SceneMaps
@@ -46,7 +46,6 @@ CHUNK_VALUES = 1 << 21
 # Shadow margins kept for reuse on the shadow grid (``Renderer(shadow_step_us=…)``), in values.
 MARGIN_CACHE_VALUES = 1 << 22
 # Keeps the half vector's normalisation finite when l = −v, as in ``pstoolkit.optics.brdf``.
-_HALF_EPS = 1e-12
 # Columns a sweep gathers before writing them out (see ``_sweep``): 16 float32 fill a cache line; the
 # sweeps of untransposed maps stored row-major took 40 % less time than writing column by column.
 _TILE = 16
@@ -454,8 +453,8 @@ class Renderer:
         constant = c if pixel is None else {name: value[pixel] for name, value in c.items() if name != "nT"}
         s = l + torch.tensor([0.0, 0.0, 1.0], dtype=l.dtype, device=l.device)
         ss = torch.sum(s * s, dim=-1, keepdim=True)
-        h = s / torch.sqrt(ss + _HALF_EPS)
-        hh, lift = ss / (ss + _HALF_EPS), _HALF_EPS / (ss + _HALF_EPS)
+        h = s / torch.sqrt(ss + HALF_EPS)
+        hh, lift = ss / (ss + HALF_EPS), HALF_EPS / (ss + HALF_EPS)
         if pixel is None:
             q = h @ c["nT"]
         else:

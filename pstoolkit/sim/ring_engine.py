@@ -47,7 +47,7 @@ from pstoolkit._shared.worksharing import take_task
 from pstoolkit.errors import UserError
 from pstoolkit.events.rule import GREY_WEIGHTS, LOG_EPS, REFRACTORY_RULE, REFRACTORY_RULES, check_rule
 from pstoolkit.grid import event_shape
-from pstoolkit.optics.brdf import GGX
+from pstoolkit.optics.brdf import GGX, HALF_EPS
 from pstoolkit.optics.lights import US_PER_S, RingLight
 from pstoolkit.sim.esim import check_options, draw_thresholds, event_rngs
 from pstoolkit.sim.render import Renderer
@@ -90,8 +90,6 @@ ROOM_BYTES = 32 << 20
 # Runs of pixels the event sort of a block counts and places in parallel (see ``_gather``); fixed, so
 # the work does not depend on the threads.
 GATHER_RUNS = 16
-# Keeps the half vector's normalisation finite when l = −v, as in ``pstoolkit.optics.brdf``.
-HALF_EPS = 1e-12
 
 
 @dataclass
