@@ -22,6 +22,7 @@ from typing import Any
 
 __version__ = "0.1.0"
 
+from pstoolkit._shared import aliases as _aliases
 from pstoolkit.errors import UserError
 from pstoolkit.events.rule import GREY_WEIGHTS
 from pstoolkit.hardware.backend import CameraSource, LightBackend
@@ -32,6 +33,8 @@ from pstoolkit.plugin.options import Option
 from pstoolkit.plugin.registry import Registry
 from pstoolkit.shadows import ShadowDetector, ShadowEvidence, ShadowIntervals, ShadowMask
 from pstoolkit.solve.base import Progress, Solver, SolverResult, no_progress
+
+_aliases.install()
 
 _TORCH_NAMES = {"BRDF": "pstoolkit.optics.brdf", "FitParam": "pstoolkit.optics.brdf"}
 

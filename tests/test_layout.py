@@ -11,19 +11,11 @@ from pathlib import Path
 import pytest
 from helpers import REPO
 
+from pstoolkit._shared import aliases
+
 ROOT = REPO
 MOVED = {
-    "pstoolkit.hookspecs": "pstoolkit.plugin.spec",
-    "pstoolkit.plugins": "pstoolkit.plugin.manager",
-    "pstoolkit.registry": "pstoolkit.plugin.registry",
-    "pstoolkit.lights": "pstoolkit.optics.lights",
-    "pstoolkit.eventmodel": "pstoolkit.events.rule",
-    "pstoolkit.render": "pstoolkit.sim.render",
-    "pstoolkit.solver": "pstoolkit.solve.base",
-    "pstoolkit.outputs": "pstoolkit.solve.results",
-    "pstoolkit.metrics": "pstoolkit.evaluation.metrics",
-    "pstoolkit.backend": "pstoolkit.hardware.backend",
-    "pstoolkit.normalmap": "pstoolkit.io.normalmap",
+    **aliases.MOVED,
     "pstoolkit.shadows.profile": "pstoolkit.shadows.period_profile",
     "psfmt.tonic": "psfmt.structured",
 }
@@ -33,6 +25,18 @@ MOVED = {
 def test_an_old_module_path_is_the_moved_module(old: str, new: str) -> None:
     # the same module object, so patching either name patches both
     assert importlib.import_module(old) is importlib.import_module(new)
+
+
+def test_the_package_folder_holds_subpackages_and_four_modules() -> None:
+    modules = sorted(p.name for p in (REPO / "pstoolkit").glob("*.py"))
+    assert modules == ["__init__.py", "errors.py", "grid.py", "testing.py"]
+    packages = sorted(p.name for p in (REPO / "pstoolkit").iterdir() if (p / "__init__.py").exists())
+    assert packages == ["_shared", "cli", "evaluation", "events", "hardware", "io", "optics", "plugin", "shadows", "sim", "solve", "surface"]
+
+
+def test_an_old_name_keeps_the_moved_module_spec() -> None:
+    old = importlib.import_module("pstoolkit.simkernel")
+    assert old.__name__ == old.__spec__.name == "pstoolkit.sim.ring_engine"
 
 
 def test_the_old_evaluation_module_names_still_import() -> None:
