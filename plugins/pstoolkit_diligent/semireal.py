@@ -202,13 +202,5 @@ def _write_events(
         writer, (height, width), ((c, float(c.t[-1])) for c in chunks), config.duration_us,
         lambda fraction, message: progress(FRAMES_SHARE + (1.0 - FRAMES_SHARE) * fraction, message),
     )
-    writer.set_calibration(
-        psfmt.Calibration(
-            event_to_frame=psfmt.scale_affine(config.event_scale),
-            contrast_pos=config.contrast,
-            contrast_neg=config.contrast,
-            refractory_us=config.refractory_us,
-            refractory_rule=config.refractory_rule,
-        )
-    )
+    writer.set_calibration(config.calibration())
     return count

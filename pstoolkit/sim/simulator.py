@@ -252,15 +252,7 @@ def _simulate(config: SimulationConfig, path: str | os.PathLike[str], progress: 
         else:
             n_events, event_size = _write_hybrid(config, renderer, diffuse, writer, noise_rng, report)
             n_frames = config.frames * config.periods
-            writer.set_calibration(
-                psfmt.Calibration(
-                    event_to_frame=psfmt.scale_affine(config.event_scale),
-                    contrast_pos=config.contrast,
-                    contrast_neg=config.contrast,
-                    refractory_us=config.refractory_us,
-                    refractory_rule=config.refractory_rule,
-                )
-            )
+            writer.set_calibration(config.calibration())
         writer.set_lights(renderer.light.to_spec())
     return SimulationSummary(path, n_frames, n_events, event_size, time.perf_counter() - started)
 

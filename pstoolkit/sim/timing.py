@@ -52,6 +52,17 @@ class CaptureTiming:
         """Shortest render step of the event simulation (``EVENT_MIN_STEP_TURNS`` of a turn, ≥ 1 µs)."""
         return max(1.0, self.period_us * EVENT_MIN_STEP_TURNS)
 
+    def calibration(self) -> psfmt.Calibration:
+        """What the capture's ``/calibration`` records of these options: the event→frame affine of the
+        event grid, the symmetric contrast, the refractory period and rule."""
+        return psfmt.Calibration(
+            event_to_frame=psfmt.scale_affine(self.event_scale),
+            contrast_pos=self.contrast,
+            contrast_neg=self.contrast,
+            refractory_us=self.refractory_us,
+            refractory_rule=self.refractory_rule,
+        )
+
     def event_rule(self) -> dict[str, Any]:
         """The event options both event engines (``pstoolkit.sim.ring_engine.simulate_ring``, ``pstoolkit.sim.esim.simulate_events``)
         take from the capture: symmetric contrast, refractory period and rule, seed and shortest step."""
