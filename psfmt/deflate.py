@@ -8,7 +8,7 @@ meanwhile the writer's caller goes on with its work. At level 1, the format's, t
 where ``isal`` is installed (pstoolkit depends on it; psfmt works without it): a standard zlib
 stream, which HDF5's filter and every inflate read (see ``ISAL_ENCODER_LEVEL``; ``psfmt.inflate``
 reads with ISA-L too). Otherwise the stored bytes are zlib's, those HDF5's own filters write
-(``tests/test_deflate.py`` checks both).
+(``tests/psfmt/test_deflate.py`` checks both).
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ pass per event pixel (numba, in parallel over event pixels).
 It covers what the simulator renders on the CPU with the built-in BRDFs (``ggx``, ``lambertian``):
 a directional ring light, the closed-form shading of ``Renderer`` and the cast shadows of its shadow
 grid. Other BRDFs, and other devices, go through ``Renderer`` and ``pstoolkit.sim.esim``; both follow the
-same event rule (``pstoolkit.events.rule``) and ``tests/test_simkernel.py`` compares them.
+same event rule (``pstoolkit.events.rule``) and ``tests/sim/test_simkernel.py`` compares them.
 
 Per event pixel, time advances in its own steps (ESIM's adaptive sampling, made per pixel): a step
 whose change of the pixel's ``L = ln(I + ε)`` exceeds ``max_dlog`` (half the contrast) is shortened
