@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 from baselines import GEOMETRY_ROOT, scenes
+from dualres import DILIGENT_LIGHTS, SHINY
 from results_io import write_results
 
 import psfmt
@@ -94,7 +95,7 @@ def fingerprints(args: argparse.Namespace, folder: Path) -> dict[str, Any]:
         simulate(SimulationConfig(discrete_lights=24, **common), kinds["direct"][1])
         if args.semi:
             grid = folder / f"{label}-grid.h5"
-            simulate(SimulationConfig(scene=scene, scene_options=[*options, "f0=0.15", "roughness=0.25"], size=args.size,
+            simulate(SimulationConfig(scene=scene, scene_options=[*options, *SHINY], size=args.size,
                                       seed=0, lights=lights, discrete_lights=96, bit_depth=16, auto_gain="peak"), grid)
             kinds["semi"] = (folder / f"{label}-semi.h5", folder / f"{label}-semi-classic.h5")
             semi_real_from_capture(grid, kinds["semi"][0], size=args.size, seed=0)
@@ -138,7 +139,7 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=64, help="frame size in pixels (default 64)")
     parser.add_argument("--semi", action="store_true", help="also the semi-real recipe")
     parser.add_argument("--geometry-root", type=Path, default=GEOMETRY_ROOT)
-    parser.add_argument("--diligent-lights", type=Path, default=Path("/work/shared/data/diligent-lights/light_directions.txt"))
+    parser.add_argument("--diligent-lights", type=Path, default=DILIGENT_LIGHTS)
     parser.add_argument("--compare", type=Path, help="an earlier run's JSON to check against")
     parser.add_argument("--tolerance-deg", type=float, default=1e-3)
     parser.add_argument("--out", type=Path, default=RESULTS)

@@ -16,7 +16,6 @@ from pstoolkit._shared import aliases
 ROOT = REPO
 MOVED = {
     **aliases.MOVED,
-    "pstoolkit.shadows.profile": "pstoolkit.shadows.period_profile",
     "psfmt.tonic": "psfmt.structured",
 }
 
@@ -60,7 +59,7 @@ def test_pstoolkit_exports_what_a_plugin_needs() -> None:
 def test_the_package_its_subpackages_the_cli_and_the_diligent_converter_load_neither_torch_nor_numba() -> None:
     packages = ["pstoolkit", "pstoolkit.cli", "pstoolkit.plugin", "pstoolkit.optics", "pstoolkit.events", "pstoolkit.sim", "pstoolkit.solve",
                 "pstoolkit.shadows", "pstoolkit.surface", "pstoolkit.evaluation", "pstoolkit.hardware", "pstoolkit.io", "pstoolkit.grid",
-                "pstoolkit.sim.timing", "pstoolkit_diligent.converters"]
+                "pstoolkit.sim.timing", "pstoolkit.sim.exposure", "pstoolkit_diligent.converters"]
     code = f"import sys\nfor p in {packages!r}: __import__(p)\nprint(sorted({{'torch', 'numba', 'matplotlib'}} & set(sys.modules)))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"

@@ -1,6 +1,7 @@
-"""The flat module paths of pstoolkit before it was split into subpackages (``pstoolkit.render`` →
-``pstoolkit.sim.render`` …), answered with the moved module itself until the release after 0.2: an
-import finder, so the old names need no files and patching either name patches the one module."""
+"""The module paths pstoolkit had before it was split into subpackages (``pstoolkit.render`` →
+``pstoolkit.sim.render`` …, ``pstoolkit.shadows.profile`` → ``pstoolkit.shadows.period_profile``),
+answered with the moved module itself until the release after 0.2: an import finder, so the old
+names need no files and patching either name patches the one module."""
 
 from __future__ import annotations
 
@@ -46,6 +47,7 @@ MOVED: dict[str, str] = {
     "pstoolkit.simulator": "pstoolkit.sim.simulator",
     "pstoolkit.solver": "pstoolkit.solve.base",
     "pstoolkit.worksharing": "pstoolkit._shared.worksharing",
+    "pstoolkit.shadows.profile": "pstoolkit.shadows.period_profile",
 }
 
 

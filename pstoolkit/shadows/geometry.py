@@ -31,7 +31,7 @@ def surface_shadows(evidence: ShadowEvidence, time_steps: int, margin_px: float)
     ``evidence.normal`` (H, W, 3; not None) at the bin centres of ``intervals.grid_times`` from
     ``evidence.t0_us``."""
     # deferred: the sweep is compiled with numba, which `pstoolkit plugins` need not load
-    from pstoolkit.sim.render import shadow_margin
+    from pstoolkit.sim.shadow_sweep import shadow_margin
     from pstoolkit.surface import integrate_normals
 
     mask = np.asarray(evidence.mask, dtype=bool)

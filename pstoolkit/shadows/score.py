@@ -21,7 +21,7 @@ def true_shadows(depth: np.ndarray, mask: np.ndarray, light: LightModel, t0_us: 
     """The cast shadows (V < ½ in the simulator's soft-edged visibility) of the height map ``depth``
     (H, W) pixels over ``mask`` (H, W) under ``light``, on ``steps`` directions per period from
     ``t0_us``, as a frame-resolution mask."""
-    from pstoolkit.sim.render import cast_shadow_mask  # deferred: compiled with numba
+    from pstoolkit.sim.shadow_sweep import cast_shadow_mask  # deferred: compiled with numba
 
     mask = np.asarray(mask, dtype=bool)
     directions = light.evaluate(t0_us + grid_times(period_us, steps))[0]

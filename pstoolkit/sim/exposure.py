@@ -8,11 +8,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pstoolkit.optics.brdf import BRDF
 from pstoolkit.optics.equivalent import sample_times
 from pstoolkit.optics.lights import US_PER_S, LightModel
 
 if TYPE_CHECKING:
+    from pstoolkit.optics.brdf import BRDF
     from pstoolkit.sim.render import Renderer
 
 

@@ -30,16 +30,11 @@ from pstoolkit.optics.brdf import BRDF, GGX, HALF_EPS, MIN_ROUGHNESS, Lambertian
 from pstoolkit.optics.lights import LightModel
 from pstoolkit.sim.exposure import MAX_STEP_DEG, MIN_SAMPLES, exposure_plan, exposure_samples, integrate  # noqa: F401
 from pstoolkit.sim.scenes import SceneMaps
-from pstoolkit.sim.shadow_sweep import (  # noqa: F401 -- their old import path
-    _LOW_MARGIN,
-    _NO_OCCLUDER,
-    _TILE,
+from pstoolkit.sim.shadow_sweep import (  # noqa: F401 -- the public names: their old import path
     PENUMBRA_PX,
     SHADOW_BIAS_PX,
     ShadowCaster,
     _openness,
-    _sweep,
-    _sweep_axes,
     cast_shadow_mask,
     shadow_margin,
     visibility_from_margin,

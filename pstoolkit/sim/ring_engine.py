@@ -897,7 +897,7 @@ def _ring(light: RingLight) -> tuple[float, ...]:
 
 
 def _shadow_table(renderer: Renderer, ta: float, tb: float) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
-    """Unclipped visibility (``pstoolkit.sim.render._openness`` of the shadow margins) of the frame pixels at the
+    """Unclipped visibility (``pstoolkit.sim.shadow_sweep._openness`` of the shadow margins) of the frame pixels at the
     grid times around [ta, tb]: (N, H·W) float32 rows for keys first, first + 1, … (the renderer's
     sweep buffer, valid until its next sweep), which of them are column-major (N,) (see
     ``Renderer.frame_openness``), and the grid (step µs, first key): V at a time is the linear mix

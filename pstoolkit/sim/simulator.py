@@ -51,7 +51,8 @@ from pstoolkit.plugin.manager import get_registries
 from pstoolkit.plugin.options import parse_assignments
 from pstoolkit.sim import ring_engine as simkernel
 from pstoolkit.sim.esim import simulate_events
-from pstoolkit.sim.render import Renderer, exposure_plan, exposure_samples
+from pstoolkit.sim.exposure import exposure_plan, exposure_samples
+from pstoolkit.sim.render import Renderer
 from pstoolkit.sim.scenes import SceneMaps
 from pstoolkit.sim.timing import (  # noqa: F401 -- also importable from here, as before
     EVENT_MIN_STEP_TURNS,

@@ -22,7 +22,8 @@ from pstoolkit.optics.lights import RingLight
 from pstoolkit.plugin.options import defaults
 from pstoolkit.sim import ring_engine as simkernel
 from pstoolkit.sim.esim import _PacedPixels, simulate_events
-from pstoolkit.sim.render import Renderer, exposure_samples
+from pstoolkit.sim.exposure import exposure_samples
+from pstoolkit.sim.render import Renderer
 from pstoolkit.sim.scenes import Blobs
 from pstoolkit.sim.simulator import SHADOW_STEP_DEG
 

@@ -20,8 +20,6 @@ from pstoolkit.plugin.options import Option
 from pstoolkit.plugin.registry import PluginError, Registry
 from pstoolkit.testing import fake_distribution
 
-FAKE_PREFIX = "pskfake_"
-
 
 def install(monkeypatch: pytest.MonkeyPatch, root: Path, sources: dict[str, str], version: str = "1.0") -> None:
     """Each plugin ``name`` as its own distribution ``pskfake-<name>`` with module ``pskfake_<name>``,
@@ -33,18 +31,10 @@ def install(monkeypatch: pytest.MonkeyPatch, root: Path, sources: dict[str, str]
 
 
 @pytest.fixture
-def fresh(monkeypatch: pytest.MonkeyPatch):
-    """A clean plugin state, no plugin environment variables, pstoolkit's own plugins loaded only when
-    named like a third party's (so a test sees just the plugins it installs), and no fake modules left
-    behind."""
-    monkeypatch.setattr(plugins, "BUILT_IN_DISTRIBUTION", "")
-    monkeypatch.delenv(plugins.DISABLE_ENV, raising=False)
-    monkeypatch.delenv(plugins.ALLOW_ENV, raising=False)
-    plugins.reset()
-    yield monkeypatch
-    plugins.reset()
-    for name in [m for m in sys.modules if m.startswith(FAKE_PREFIX)]:
-        del sys.modules[name]
+def fresh(pstoolkit_plugins_alone: pytest.MonkeyPatch) -> pytest.MonkeyPatch:
+    """``pstoolkit.testing``'s isolated plugin state with pstoolkit's own plugins loaded only when
+    named like a third party's, so a test sees just the plugins it installs."""
+    return pstoolkit_plugins_alone
 
 
 def solver_plugin(solver: str, *, option: bool = False) -> str:
@@ -449,27 +439,21 @@ def test_a_plugin_registering_the_wrong_kind_gets_a_one_line_error(
     assert err == "pstoolkit: error: plugin 'mixed': BRDF 'fit' is pskfake_mixed.Fit, not a subclass of pstoolkit.optics.brdf.BRDF\n"
 
 
-def test_built_in_plugins_load_whatever_the_environment_says(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
-    install(monkeypatch, tmp_path, {"alpha": solver_plugin("a")})
-    monkeypatch.setenv(plugins.ALLOW_ENV, "alpha")
+def test_built_in_plugins_load_whatever_the_environment_says(pstoolkit_plugins: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    install(pstoolkit_plugins, tmp_path, {"alpha": solver_plugin("a")})  # PSTOOLKIT_PLUGINS=alpha
+    loaded = {p.name: p for p in loaded_plugins()}
+    assert loaded["core"].source == "built in" and loaded["core"].built_in
+    assert loaded["alpha"].source == "entry point" and not loaded["alpha"].built_in
+    assert {"frameps", "dualres", "a"} <= set(get_registries().solvers.names())
+    pstoolkit_plugins.setenv(plugins.DISABLE_ENV, "1")
     plugins.reset()
-    try:
-        loaded = {p.name: p for p in loaded_plugins()}
-        assert loaded["core"].source == "built in" and loaded["core"].built_in
-        assert loaded["alpha"].source == "entry point" and not loaded["alpha"].built_in
-        assert {"frameps", "dualres", "a"} <= set(get_registries().solvers.names())
-        monkeypatch.setenv(plugins.DISABLE_ENV, "1")
-        plugins.reset()
-        assert "alpha" not in {p.name for p in loaded_plugins()} and "core" in {p.name for p in loaded_plugins()}
-    finally:
-        plugins.reset()
-        sys.modules.pop("pskfake_alpha", None)
+    assert "alpha" not in {p.name for p in loaded_plugins()} and "core" in {p.name for p in loaded_plugins()}
 
 
 def test_a_third_party_clash_with_a_built_in_name_is_ignored_with_a_warning(
-    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    pstoolkit_plugins: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    install(monkeypatch, tmp_path, {"copycat": """
+    install(pstoolkit_plugins, tmp_path, {"copycat": """
         from pstoolkit import Solver, hookimpl
 
         class Impostor(Solver):
@@ -485,14 +469,9 @@ def test_a_third_party_clash_with_a_built_in_name_is_ignored_with_a_warning(
             registry.register(Impostor)
             registry.register(Own)
         """})
-    plugins.reset()
-    try:
-        solvers = get_registries().solvers
-        assert solvers.get("frameps").plugin == "frameps" and solvers.get("own").plugin == "copycat"
-        message = "solver 'frameps' is built in (plugin 'frameps'); this plugin's entry is ignored"
-        assert plugins.Failure("copycat", message) in load_failures()
-        assert capsys.readouterr().err == f"pstoolkit: warning: plugin 'copycat': {message}\n"
-        assert main(["plugins"]) == 0  # every command still works
-    finally:
-        plugins.reset()
-        sys.modules.pop("pskfake_copycat", None)
+    solvers = get_registries().solvers
+    assert solvers.get("frameps").plugin == "frameps" and solvers.get("own").plugin == "copycat"
+    message = "solver 'frameps' is built in (plugin 'frameps'); this plugin's entry is ignored"
+    assert plugins.Failure("copycat", message) in load_failures()
+    assert capsys.readouterr().err == f"pstoolkit: warning: plugin 'copycat': {message}\n"
+    assert main(["plugins"]) == 0  # every command still works

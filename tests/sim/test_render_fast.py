@@ -14,7 +14,8 @@ from pstoolkit.optics.brdf import GGX, Lambertian
 from pstoolkit.optics.lights import RingLight
 from pstoolkit.plugin.options import defaults
 from pstoolkit.sim.esim import simulate_events
-from pstoolkit.sim.render import Renderer, exposure_samples, integrate
+from pstoolkit.sim.exposure import exposure_samples, integrate
+from pstoolkit.sim.render import Renderer
 from pstoolkit.sim.scenes import Blobs, Relief, Sphere
 
 

@@ -20,7 +20,8 @@ from pstoolkit.optics.lights import RingLight
 from pstoolkit.plugin.options import defaults
 from pstoolkit.sim import ring_engine as simkernel
 from pstoolkit.sim.esim import simulate_events
-from pstoolkit.sim.render import Renderer, exposure_samples, integrate
+from pstoolkit.sim.exposure import exposure_samples, integrate
+from pstoolkit.sim.render import Renderer
 from pstoolkit.sim.scenes import Blobs, Sphere
 from pstoolkit.sim.simulator import SHADOW_STEP_DEG, SimulationConfig, simulate
 

@@ -13,8 +13,8 @@ from pstoolkit.cli import main
 from pstoolkit.optics.layouts import grid_directions
 from pstoolkit.plugin.options import defaults
 from pstoolkit.sim.demo import demo_capture_path, demo_key
-from pstoolkit.sim.render import shadow_margin, visibility_from_margin
 from pstoolkit.sim.scenes import Sphere
+from pstoolkit.sim.shadow_sweep import shadow_margin, visibility_from_margin
 from pstoolkit.sim.simulator import DIFFUSE_LEVEL, SimulationConfig
 
 FAST = ["--size", "32", "--period-ms", "5", "--quiet"]
