@@ -18,6 +18,7 @@ import h5py
 import numpy as np
 
 from psfmt import layout
+from psfmt.attributes import attrs
 from psfmt.errors import FormatError
 from psfmt.events import Events, H5EventStore, H5Triggers
 from psfmt.files import hdf5_errors, open_hdf5, require_open
@@ -31,13 +32,7 @@ from psfmt.model import (
     LightSpec,
     Result,
 )
-from psfmt.validate import attr, check, plain
-
-
-def _attrs(obj: h5py.HLObject, keys: tuple[str, ...]) -> dict[str, Any]:
-    """The attributes ``keys`` of ``obj`` that are present, as plain values (the ones validated)."""
-    values = {key: attr(obj, key) for key in keys}
-    return {key: value for key, value in values.items() if value is not None}
+from psfmt.validate import check
 
 
 class StoredMaps(Mapping[str, np.ndarray]):
@@ -64,16 +59,17 @@ class StoredMaps(Mapping[str, np.ndarray]):
 
 
 def _read_lights(group: h5py.Group) -> LightSpec:
-    params: dict[str, Any] = {k: plain(v) for k, v in group.attrs.items() if k != "model"}
+    params = attrs(group)
+    model = params.pop("model")
     for key, ds in group.items():
         params[key] = np.asarray(ds[()])
-    return LightSpec(str(plain(group.attrs["model"])), params)
+    return LightSpec(str(model), params)
 
 
 def _read_calibration(group: h5py.Group | None) -> Calibration:
     if group is None:
         return Calibration()
-    kwargs: dict[str, Any] = _attrs(group, layout.CALIBRATION_ATTRS)
+    kwargs: dict[str, Any] = attrs(group, layout.CALIBRATION_ATTRS)
     for key in ("event_to_frame", "view_direction"):
         if key in group:
             kwargs[key] = group[key][()]
@@ -90,28 +86,28 @@ def _read_ground_truth(group: h5py.Group) -> GroundTruth:
 
 
 def _read_result(name: str, group: h5py.Group) -> Result:
-    attrs = _attrs(group, (*layout.RESULT_ATTRS, "data_rate"))
+    values = attrs(group, (*layout.RESULT_ATTRS, "data_rate"))
     return Result(
         name=name,
         maps=StoredMaps(group),
-        solver=str(attrs.get("solver", name)),
-        options=json.loads(attrs.get("options", "{}")),
-        seconds=float(attrs.get("seconds", 0.0)),
-        version=str(attrs.get("version", "")),
-        created=str(attrs.get("created", "")),
-        data_rate=float(attrs["data_rate"]) if "data_rate" in attrs else None,
+        solver=str(values.get("solver", name)),
+        options=json.loads(values.get("options", "{}")),
+        seconds=float(values.get("seconds", 0.0)),
+        version=str(values.get("version", "")),
+        created=str(values.get("created", "")),
+        data_rate=float(values["data_rate"]) if "data_rate" in values else None,
     )
 
 
 def _capture(fh: h5py.File, path: Path) -> Capture:
-    root = _attrs(fh, layout.ROOT_ATTRS)
+    root = attrs(fh, layout.ROOT_ATTRS)
     frames = None
     if layout.FRAMES in fh:
         g = fh[layout.FRAMES]
         frames = Frames(
             FrameStack(g["data"]),
             **{k: g[k][()] for k in layout.FRAME_WINDOW + layout.FRAME_INSTANT if k in g},
-            **_attrs(g, layout.FRAME_ATTRS),
+            **attrs(g, layout.FRAME_ATTRS),
         )
     events = None
     if layout.EVENTS in fh:

@@ -9,7 +9,6 @@ a JSON file or another capture. Everything is read and checked before the output
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -27,23 +26,6 @@ ATTACH_OPTIONS = (
     Option("lights", str, "", "light model: a JSON file {\"model\": NAME, \"params\": {…}} or a capture .h5"),
     Option("calibration", str, "", "calibration: a JSON file (event_to_frame, contrast_pos, …) or a capture .h5"),
 )
-
-
-@dataclass
-class FrameSource:
-    """Frames to write: a (K, H, W, C) array and either exposure windows or light directions."""
-
-    data: np.ndarray
-    t_start_us: np.ndarray | None = None
-    t_end_us: np.ndarray | None = None
-    light_direction: np.ndarray | None = None
-    light_intensity: np.ndarray | None = None
-    color_order: str = "RGB"
-    source: Path | None = None
-
-    @property
-    def needs_windows(self) -> bool:
-        return self.t_start_us is None and self.light_direction is None
 
 
 def _is_capture(path: Path) -> bool:
@@ -96,8 +78,10 @@ def trigger_windows(triggers: psfmt.Triggers, channel: int, count: int, where: P
     return np.asarray(starts, np.int64), np.asarray(ends, np.int64)
 
 
-def load_frames(spec: str) -> FrameSource | None:
-    """The frames named by ``--frames``; a folder's frames still need ``time_frames``."""
+def load_frames(spec: str) -> psfmt.Frames | None:
+    """The frames named by ``--frames``, in memory: a capture's with their windows or light directions
+    (the sensor attributes are those of the data type, as for a folder's), or a folder's, which still
+    need ``time_frames``."""
     if not spec:
         return None
     path = Path(spec)
@@ -106,21 +90,21 @@ def load_frames(spec: str) -> FrameSource | None:
             frames = capture.frames
             if frames is None:
                 raise UserError(f"{path}: holds no frames")
-            return FrameSource(
+            return psfmt.Frames(
                 np.asarray(frames.data), frames.t_start_us, frames.t_end_us,
                 frames.light_direction, frames.light_intensity, frames.color_order,
             )
     if not path.is_dir():
         raise UserError(f"--frames {path}: neither a folder of images nor a capture .h5")
     data, order = image_stack(path)
-    return FrameSource(data, color_order=order, source=path)
+    return psfmt.Frames(data, color_order=order)
 
 
-def time_frames(frames: FrameSource, triggers: psfmt.Triggers, channel: int) -> None:
-    """Give folder frames their exposure windows from the recording's trigger edges."""
+def time_frames(frames: psfmt.Frames, triggers: psfmt.Triggers, channel: int, folder: Path) -> None:
+    """Give the frames of ``folder`` their exposure windows from the recording's trigger edges."""
     if len(triggers) == 0:
-        raise UserError(f"--frames {frames.source}: the recording has no trigger edges to time the frames")
-    frames.t_start_us, frames.t_end_us = trigger_windows(triggers, channel, len(frames.data), frames.source or Path("."))
+        raise UserError(f"--frames {folder}: the recording has no trigger edges to time the frames")
+    frames.t_start_us, frames.t_end_us = trigger_windows(triggers, channel, frames.count, folder)
 
 
 def _json(path: Path, option: str) -> dict[str, Any]:
@@ -172,13 +156,15 @@ def load_calibration(spec: str) -> psfmt.Calibration | None:
 
 def write_attachments(
     writer: psfmt.CaptureWriter,
-    frames: FrameSource | None,
+    frames: psfmt.Frames | None,
     lights: psfmt.LightSpec | None,
     calibration: psfmt.Calibration | None,
 ) -> None:
     if frames is not None:
-        _, h, w, c = frames.data.shape
-        writer.begin_frames(h, w, c, frames.data.dtype, color_order=frames.color_order)
+        writer.begin_frames(
+            frames.height, frames.width, frames.channels, frames.data.dtype, color_order=frames.color_order,
+            bit_depth=frames.bit_depth, saturation=frames.saturation, black_level=frames.black_level, response=frames.response,
+        )
         writer.append_frames(
             frames.data,
             t_start_us=frames.t_start_us,

@@ -95,8 +95,8 @@ class _EventFile(Converter):
                     raise UserError(f"{src}: no events to convert{why}; --allow-empty writes the empty capture anyway")
                 if len(triggers):
                     writer.set_triggers(triggers.t, triggers.channel, triggers.value)
-                if frames is not None and frames.needs_windows:
-                    time_frames(frames, triggers, options["trigger_channel"])
+                if frames is not None and not (frames.has_windows or frames.has_instant_lights):
+                    time_frames(frames, triggers, options["trigger_channel"], Path(options["frames"]))
                 write_attachments(writer, frames, lights, calibration)
             report = psfmt.validate(staging)
             if report.errors:

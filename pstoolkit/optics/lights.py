@@ -13,7 +13,7 @@ z towards the camera). Times are microseconds (any numeric dtype; computed in fl
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar
 
 import numpy as np
@@ -25,15 +25,13 @@ from pstoolkit.plugin.options import Option
 
 US_PER_S = 1e6
 INTERPOLATION = "linear-renormalised"
-_MISSING = object()
 
 
-def _param(spec: LightSpec, key: str, default: Any = _MISSING) -> Any:
-    if key in spec.params:
-        return spec.params[key]
-    if default is _MISSING:
+def _param(spec: LightSpec, key: str) -> Any:
+    """The required parameter ``key`` of ``spec``, or a UserError naming the model and the parameter."""
+    if key not in spec.params:
         raise UserError(f"light model {spec.model!r}: parameter {key!r} is missing")
-    return default
+    return spec.params[key]
 
 
 def _scalar(model: str, key: str, value: Any) -> float:
@@ -108,22 +106,36 @@ def _broadcast_directional(
 class LightModel(ABC):
     """A light trajectory. Subclasses set ``name`` (the registry and file name), ``summary`` (one line),
     ``near`` (True when direction and intensity depend on the surface point) and ``period_us`` (None for
-    an aperiodic trajectory)."""
+    an aperiodic trajectory). A dataclass subclass inherits the spec round trip (``from_spec``,
+    ``to_spec``) from its fields and ``optional_params``; any other defines both."""
 
     name: ClassVar[str]
     summary: ClassVar[str]
     options: ClassVar[tuple[Option, ...]] = ()
     near: ClassVar[bool] = False
+    optional_params: ClassVar[tuple[str, ...]] = ()
+    """Fields a stored spec may leave out; the format requires the others, defaults or not."""
     period_us: float | None
 
     @classmethod
-    @abstractmethod
     def from_spec(cls, spec: LightSpec) -> LightModel:
-        """Build the model from the parameters stored in a capture (UserError on missing or bad ones)."""
+        """Build the model from the parameters stored in a capture (UserError on missing or bad ones).
 
-    @abstractmethod
+        For a dataclass model: every field is a parameter of the same name, required unless it is
+        one of ``optional_params`` (then the field's default applies when it is absent)."""
+        cls._check_spec(spec)
+        return cls(**cls._spec_arguments(spec))
+
     def to_spec(self) -> LightSpec:
-        """The parameters to store in a capture; ``from_spec(to_spec())`` gives the same model."""
+        """The parameters to store in a capture; ``from_spec(to_spec())`` gives the same model.
+
+        For a dataclass model: every field that is not None, in field order, arrays copied."""
+        params: dict[str, Any] = {}
+        for f in fields(self):  # type: ignore[arg-type]
+            value = getattr(self, f.name)
+            if value is not None:
+                params[f.name] = value.copy() if isinstance(value, np.ndarray) else value
+        return LightSpec(self.name, params)
 
     @abstractmethod
     def evaluate(self, t_us: np.ndarray, points_mm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -138,6 +150,16 @@ class LightModel(ABC):
         if spec.model != cls.name:
             raise UserError(f"light model {spec.model!r} given to the {cls.name!r} model")
 
+    @classmethod
+    def _spec_arguments(cls, spec: LightSpec) -> dict[str, Any]:
+        """Constructor arguments from ``spec``, one per dataclass field in field order: a UserError
+        names the first required parameter that is missing; an absent optional one is left out."""
+        return {
+            f.name: _param(spec, f.name)
+            for f in fields(cls)  # type: ignore[arg-type]
+            if f.name in spec.params or f.name not in cls.optional_params
+        }
+
 
 @dataclass(eq=False)
 class RingLight(LightModel):
@@ -146,6 +168,7 @@ class RingLight(LightModel):
 
     name: ClassVar[str] = "ring"
     summary: ClassVar[str] = "directional light circling the camera axis at constant elevation and speed"
+    optional_params: ClassVar[tuple[str, ...]] = ("t0_us",)
 
     elevation_deg: float
     period_us: float
@@ -161,31 +184,6 @@ class RingLight(LightModel):
         self.sense = _sense(self.name, self.sense)
         self.intensity = _array(self.name, "intensity", self.intensity, (3,))
         self.t0_us = _scalar(self.name, "t0_us", self.t0_us)
-
-    @classmethod
-    def from_spec(cls, spec: LightSpec) -> RingLight:
-        cls._check_spec(spec)
-        return cls(
-            elevation_deg=_param(spec, "elevation_deg"),
-            period_us=_param(spec, "period_us"),
-            phase_deg=_param(spec, "phase_deg"),
-            sense=_param(spec, "sense"),
-            intensity=_param(spec, "intensity"),
-            t0_us=_param(spec, "t0_us", 0.0),
-        )
-
-    def to_spec(self) -> LightSpec:
-        return LightSpec(
-            self.name,
-            {
-                "elevation_deg": self.elevation_deg,
-                "period_us": self.period_us,
-                "phase_deg": self.phase_deg,
-                "sense": self.sense,
-                "intensity": self.intensity.copy(),
-                "t0_us": self.t0_us,
-            },
-        )
 
     def angle_rad(self, t_us: np.ndarray) -> np.ndarray:
         """Azimuth φ(t) of the light, radians (not wrapped to one turn)."""
@@ -225,6 +223,7 @@ class SampledLight(LightModel):
 
     name: ClassVar[str] = "sampled"
     summary: ClassVar[str] = "directions and RGB intensities at sample times, interpolated linearly and re-normalised"
+    optional_params: ClassVar[tuple[str, ...]] = ("period_us",)
 
     times_us: np.ndarray
     directions: np.ndarray
@@ -260,33 +259,26 @@ class SampledLight(LightModel):
             raise UserError(f"light model {self.name!r}: consecutive directions are opposite, the interpolation is undefined")
 
     @classmethod
-    def from_spec(cls, spec: LightSpec) -> SampledLight:
-        cls._check_spec(spec)
-        interpolation = _param(spec, "interpolation", INTERPOLATION)
+    def _spec_arguments(cls, spec: LightSpec) -> dict[str, Any]:
+        """The fields' arguments, after the sampled model's own rules: only the one interpolation, and
+        ``periodic`` true or false."""
+        interpolation = spec.params.get("interpolation", INTERPOLATION)
         if interpolation != INTERPOLATION:
             raise UserError(f"light model {spec.model!r}: interpolation {interpolation!r} is not supported (only {INTERPOLATION!r})")
         periodic = _param(spec, "periodic")
         if not isinstance(periodic, (bool, np.bool_)) and periodic not in (0, 1):
             raise UserError(f"light model {spec.model!r}: parameter 'periodic' must be true or false, got {periodic!r}")
-        return cls(
-            times_us=_param(spec, "times_us"),
-            directions=_param(spec, "directions"),
-            intensities=_param(spec, "intensities"),
-            periodic=bool(periodic),
-            period_us=_param(spec, "period_us", None),
-        )
+        return {**super()._spec_arguments(spec), "periodic": bool(periodic)}
 
     def to_spec(self) -> LightSpec:
-        params: dict[str, Any] = {
-            # the format stores sample times as int64 µs (spec §8.2)
-            "times_us": np.round(self.times_us).astype(np.int64),
-            "directions": self.directions.copy(),
-            "intensities": self.intensities.copy(),
-            "periodic": self.periodic,
-            "interpolation": INTERPOLATION,
-        }
-        if self.period_us is not None:
-            params["period_us"] = self.period_us
+        params = super().to_spec().params
+        # the format stores sample times as int64 µs (spec §8.2); the rule goes where files have always held
+        # it, ahead of the optional period, so a capture's attributes are written in the same order
+        params["times_us"] = np.round(self.times_us).astype(np.int64)
+        period = params.pop("period_us", None)
+        params["interpolation"] = INTERPOLATION
+        if period is not None:
+            params["period_us"] = period
         return LightSpec(self.name, params)
 
     def _knots(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -341,6 +333,7 @@ class NearRingLight(LightModel):
     name: ClassVar[str] = "near-ring"
     summary: ClassVar[str] = "point light circling on a ring of given radius and height, inverse-square fall-off"
     near: ClassVar[bool] = True
+    optional_params: ClassVar[tuple[str, ...]] = ("t0_us", "center_px")
 
     radius_mm: float
     height_mm: float
@@ -363,36 +356,6 @@ class NearRingLight(LightModel):
         self.t0_us = _scalar(self.name, "t0_us", self.t0_us)
         if self.center_px is not None:
             self.center_px = _array(self.name, "center_px", self.center_px, (2,))
-
-    @classmethod
-    def from_spec(cls, spec: LightSpec) -> NearRingLight:
-        cls._check_spec(spec)
-        return cls(
-            radius_mm=_param(spec, "radius_mm"),
-            height_mm=_param(spec, "height_mm"),
-            pixel_pitch_mm=_param(spec, "pixel_pitch_mm"),
-            period_us=_param(spec, "period_us"),
-            phase_deg=_param(spec, "phase_deg"),
-            sense=_param(spec, "sense"),
-            intensity=_param(spec, "intensity"),
-            t0_us=_param(spec, "t0_us", 0.0),
-            center_px=_param(spec, "center_px", None),
-        )
-
-    def to_spec(self) -> LightSpec:
-        params: dict[str, Any] = {
-            "radius_mm": self.radius_mm,
-            "height_mm": self.height_mm,
-            "pixel_pitch_mm": self.pixel_pitch_mm,
-            "period_us": self.period_us,
-            "phase_deg": self.phase_deg,
-            "sense": self.sense,
-            "intensity": self.intensity.copy(),
-            "t0_us": self.t0_us,
-        }
-        if self.center_px is not None:
-            params["center_px"] = self.center_px.copy()
-        return LightSpec(self.name, params)
 
     def pixel_points(self, height: int, width: int, depth_mm: float | np.ndarray | None = None) -> np.ndarray:
         """Surface points (H·W, 3) in mm of an image of this rig's pixel pitch and centre."""

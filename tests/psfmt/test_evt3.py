@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 import psfmt
 from psfmt import evt3
+from psfmt._evt3 import decoding, encoding
 from psfmt.errors import FormatError
 from psfmt.events import EventArray
 from psfmt.rawheader import read_header
@@ -41,12 +42,12 @@ def words(*ws: int) -> bytes:
 def reference(data: bytes, width: int = 2048, height: int = 2048) -> tuple[EventArray, psfmt.Triggers, np.ndarray]:
     """The decoding loop run by the interpreter: the reference both engines must match."""
     w = np.frombuffer(data, "<u2")
-    state = np.array(evt3._INITIAL_STATE, np.int64)
+    state = np.array(decoding.DECODER_STATE, np.int64)
     counters = np.zeros(6, np.int64)
     cap = 12 * len(w) + 12
     out = [np.empty(cap, np.uint16), np.empty(cap, np.uint16), np.empty(cap, np.int64), np.empty(cap, np.int8)]
     trig = [np.empty(len(w) + 1, np.int64), np.empty(len(w) + 1, np.uint8), np.empty(len(w) + 1, np.int8)]
-    n, m, used = evt3._decode_loop(w, state, counters, width, height, *out, *trig)
+    n, m, used = decoding.decode_loop(w, state, counters, width, height, *out, *trig)
     assert used == len(w)
     return EventArray(*(a[:n] for a in out)), psfmt.Triggers(*(a[:m] for a in trig)), counters
 
@@ -131,9 +132,9 @@ def _stream(data: tuple) -> EventArray:
 def test_round_trip_is_bit_exact_and_engines_agree(data: tuple) -> None:
     events = _stream(data)
     encoded = evt3.encode(events, engine="numpy")
-    state = np.array([-1, 0, -1], np.int64)
+    state = np.array(encoding.ENCODER_STATE, np.int64)
     out = np.empty(4 * len(events) + 2 * (int(events.t[-1]) >> 24) + 8, np.uint16)
-    k = evt3._encode_loop(events.x, events.y, events.t, events.p, out, state)
+    k = encoding.encode_loop(events.x, events.y, events.t, events.p, out, state)
     assert out[:k].astype("<u2").tobytes() == encoded
     for engine in ENGINES:
         assert evt3.encode(events, engine=engine) == encoded
