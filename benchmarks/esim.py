@@ -28,6 +28,7 @@ import numpy as np
 from results_io import write_results
 
 from pstoolkit.sim.esim import simulate_events
+from pstoolkit.sim.sensor import EventSensor
 
 RESULTS = Path(__file__).resolve().parent / "results" / "esim.json"
 PERIOD_US = 33_333.0
@@ -84,7 +85,8 @@ class SphereRender:
 
 def run_case(size: int, options: dict[str, float]) -> dict[str, Any]:
     render = SphereRender(size, options["ambient"])
-    kwargs: dict[str, Any] = {k: v for k, v in options.items() if k not in ("ambient", "per_pixel")}
+    kwargs: dict[str, Any] = {"sensor": EventSensor(refractory_us=options.get("refractory_us", 0.0)),
+                              "min_dt_us": options.get("min_dt_us", 1.0)}
     if options.get("per_pixel"):
         kwargs["render_pixels"] = render.pixels
     start = time.perf_counter()

@@ -41,7 +41,7 @@ import psfmt
 from pstoolkit._shared.allocator import keep_freed_memory
 from pstoolkit.events.rule import REFRACTORY_RULES
 from pstoolkit.plugin.manager import get_registries
-from pstoolkit.sim import ring_engine as simkernel
+from pstoolkit.sim import ring_engine
 from pstoolkit.sim.simulator import (
     SimulationConfig,
     build_renderer,
@@ -62,7 +62,7 @@ def run_scene(config: SimulationConfig, folder: Path) -> dict[str, Any]:
     cpu = time.process_time() - cpu
     engine = float("nan")
     renderer = build_renderer(config, build_scene(config), get_registries().brdfs.get(config.brdf).obj())
-    if simkernel.supported(renderer):
+    if ring_engine.supported(renderer):
         start = time.perf_counter()
         for _ in compiled_blocks(config, renderer):
             pass

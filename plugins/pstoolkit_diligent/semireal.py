@@ -196,7 +196,8 @@ def _write_events(
         config.duration_us,
         width=width,
         height=height,
-        **config.event_rule(),
+        sensor=config.sensor(),
+        min_dt_us=config.min_step_us,
     )
     count = append_event_chunks(
         writer, (height, width), ((c, float(c.t[-1])) for c in chunks), config.duration_us,

@@ -17,8 +17,8 @@ SHADOW_BIAS_PX = 0.1
 PENUMBRA_PX = 0.25
 
 
-# Columns a sweep gathers before writing them out (see ``_sweep``): 16 float32 fill a cache line; the
-# sweeps of untransposed maps stored row-major took 40 % less time than writing column by column.
+# Columns a sweep gathers before writing them out (see ``_sweep``): 16 float32 fill a cache line
+# (``docs/simulator-tuning.md``).
 _TILE = 16
 
 
@@ -62,7 +62,7 @@ def _sweep(
     no_occluder = np.float32(_NO_OCCLUDER)
     low = np.float32(_LOW_MARGIN)
     one = np.float32(1.0)
-    # V in float32, as stored: to within an ulp of ``_openness``, and 10–15 % faster sweeps than in float64
+    # V in float32, as stored: to within an ulp of ``_openness``, and faster sweeps than in float64
     bias, fade = (np.float32(openness[0]), np.float32(1.0 / openness[1])) if openness is not None else (one, one)
     # the oriented maps' columns are rows of ``target``: those of transposed maps, and of all with ``column_major``
     whole_rows = transpose or column_major

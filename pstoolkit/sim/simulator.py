@@ -32,7 +32,7 @@ import json
 import os
 import time
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -49,11 +49,12 @@ from pstoolkit.optics.layouts import RING, layout_light, layout_lights
 from pstoolkit.optics.lights import RingLight, SampledLight
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.plugin.options import parse_assignments
-from pstoolkit.sim import ring_engine as simkernel
+from pstoolkit.sim import ring_engine
 from pstoolkit.sim.esim import simulate_events
 from pstoolkit.sim.exposure import exposure_plan, exposure_samples
 from pstoolkit.sim.render import Renderer
 from pstoolkit.sim.scenes import SceneMaps
+from pstoolkit.sim.sensor import EventSensor
 from pstoolkit.sim.timing import (  # noqa: F401 -- also importable from here, as before
     EVENT_MIN_STEP_TURNS,
     CaptureTiming,
@@ -99,9 +100,9 @@ class SimulationConfig(CaptureTiming):
     shadows: bool = True
     device: str = "cpu"
 
-    def event_rule(self) -> dict[str, Any]:
-        """``CaptureTiming.event_rule`` with the per-pixel contrast mismatch."""
-        return {**super().event_rule(), "sigma": self.contrast_sigma}
+    def sensor(self) -> EventSensor:
+        """``CaptureTiming.sensor`` with the per-pixel contrast mismatch."""
+        return replace(super().sensor(), sigma=self.contrast_sigma)
 
     @property
     def discrete(self) -> bool:
@@ -164,14 +165,15 @@ def build_renderer(config: SimulationConfig, maps: SceneMaps, brdf: Any) -> Rend
     return Renderer(maps, light, brdf, shadows=config.shadows, device=config.device, shadow_step_us=shadow_step_us)
 
 
-def compiled_blocks(config: SimulationConfig, renderer: Renderer) -> Iterator[simkernel.Block]:
+def compiled_blocks(config: SimulationConfig, renderer: Renderer) -> Iterator[ring_engine.Block]:
     """``pstoolkit.sim.ring_engine.simulate_ring`` over all periods of ``config``, with the first period's windows."""
-    return simkernel.simulate_ring(
+    return ring_engine.simulate_ring(
         renderer,
         event_scale=config.event_scale,
         t1_us=config.duration_us,
         window_ends_us=config.exposure_bounds_us()[1:],
-        **config.event_rule(),
+        sensor=config.sensor(),
+        min_dt_us=config.min_step_us,
     )
 
 
@@ -210,9 +212,8 @@ def simulate(config: SimulationConfig, path: str | os.PathLike[str], progress: P
     is called as work advances. ``config.device`` is a torch device ("cpu", "cuda").
 
     On the CPU torch runs single-threaded here: the reference engine's render steps are many small
-    tensor operations, where handing work between threads costs more than it saves (15 s per period
-    with 2 threads against 2.3 s with 1 on a busy 2-core machine); the compiled engine runs on numba's
-    threads (``NUMBA_NUM_THREADS``)."""
+    tensor operations, where handing work between threads costs more than it saves
+    (``docs/simulator-tuning.md``); the compiled engine runs on numba's threads (``NUMBA_NUM_THREADS``)."""
     threads = torch.get_num_threads()
     if torch.device(config.device).type == "cpu":
         torch.set_num_threads(1)
@@ -328,7 +329,7 @@ def _write_hybrid(
     event_size = event_shape(config.size, config.size, config.event_scale)
     period = config.period_us
     bounds = config.exposure_bounds_us()
-    if simkernel.supported(renderer):
+    if ring_engine.supported(renderer):
         n_events, exposures = _write_compiled(config, renderer, event_size, writer, report, brdfs)
     else:
         sums = _FrameSums(config, renderer, brdfs, bounds)
@@ -353,7 +354,7 @@ def _write_compiled(
     report: Progress,
     brdfs: list[Any],
 ) -> tuple[int, list[list[np.ndarray]]]:
-    """Events over all periods and the first period's exposures per BRDF, from ``simkernel``."""
+    """Events over all periods and the first period's exposures per BRDF, from ``ring_engine``."""
     window_sums = []
 
     def chunks() -> Iterator[tuple[psfmt.EventArray, float]]:
@@ -365,7 +366,7 @@ def _write_compiled(
     count = append_event_chunks(writer, event_size, chunks(), config.duration_us, report)
     exposures = []
     for sums in window_sums:
-        diffuse, gloss = simkernel.window_exposures(renderer, sums)
+        diffuse, gloss = ring_engine.window_exposures(renderer, sums)
         exposures.append([gloss if isinstance(b, GGX) else diffuse for b in brdfs])
     return count, exposures
 
@@ -416,7 +417,8 @@ def _write_events(
         config.duration_us,
         width=width,
         height=height,
-        **config.event_rule(),
+        sensor=config.sensor(),
+        min_dt_us=config.min_step_us,
         render_pixels=render_pixels,
         sample_times_us=sums.sample_times_us(),
     )

@@ -6,17 +6,17 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any
 
 import psfmt
 from pstoolkit.errors import UserError
 from pstoolkit.events.rule import REFRACTORY_RULE, REFRACTORY_RULES
+from pstoolkit.sim.sensor import EventSensor
 from pstoolkit.solve.base import Progress
 
 # Shortest render step of the event simulation, as a fraction of a light turn: a shadow edge or the
 # terminator is resolved to 0.25° of the turn (23 µs at 30 turns/s) instead of ESIM's 1 µs floor, which
-# cuts render calls ~10× at the same event count; crossings inside a step are still placed exactly
-# on the interpolated log-irradiance.
+# cuts render calls at the same event count (``docs/simulator-tuning.md``); crossings inside a step are
+# still placed exactly on the interpolated log-irradiance.
 EVENT_MIN_STEP_TURNS = 0.25 / 360.0
 
 @dataclass
@@ -63,17 +63,17 @@ class CaptureTiming:
             refractory_rule=self.refractory_rule,
         )
 
-    def event_rule(self) -> dict[str, Any]:
-        """The event options both event engines (``pstoolkit.sim.ring_engine.simulate_ring``, ``pstoolkit.sim.esim.simulate_events``)
-        take from the capture: symmetric contrast, refractory period and rule, seed and shortest step."""
-        return {
-            "contrast_pos": self.contrast,
-            "contrast_neg": self.contrast,
-            "refractory_us": self.refractory_us,
-            "refractory_rule": self.refractory_rule,
-            "seed": self.seed,
-            "min_dt_us": self.min_step_us,
-        }
+    def sensor(self) -> EventSensor:
+        """The event sensor both event engines (``pstoolkit.sim.ring_engine.simulate_ring``,
+        ``pstoolkit.sim.esim.simulate_events``) take from the capture: symmetric contrast, refractory
+        period and rule, and seed."""
+        return EventSensor(
+            contrast_pos=self.contrast,
+            contrast_neg=self.contrast,
+            refractory_us=self.refractory_us,
+            refractory_rule=self.refractory_rule,
+            seed=self.seed,
+        )
 
     def exposure_bounds_us(self) -> list[int]:
         """Where the long exposures of one period start, then the period's end (µs): ``frames`` equal

@@ -20,11 +20,14 @@ from pstoolkit.events.rule import LOG_EPS, REFRACTORY_RULES, exact_pairs, log_ir
 from pstoolkit.optics.brdf import GGX
 from pstoolkit.optics.lights import RingLight
 from pstoolkit.plugin.options import defaults
-from pstoolkit.sim import ring_engine as simkernel
-from pstoolkit.sim.esim import _PacedPixels, simulate_events
+from pstoolkit.sim import ring_engine
+from pstoolkit.sim.esim import simulate_events
+from pstoolkit.sim.esim_pixels import PacedPixels
 from pstoolkit.sim.exposure import exposure_samples
 from pstoolkit.sim.render import Renderer
+from pstoolkit.sim.ring_kernels import firing
 from pstoolkit.sim.scenes import Blobs
+from pstoolkit.sim.sensor import EventSensor
 from pstoolkit.sim.simulator import SHADOW_STEP_DEG
 
 C = 0.15
@@ -97,8 +100,8 @@ def esim_events(t: np.ndarray, level: np.ndarray, rule: str, r_us: float) -> lis
         return np.exp(np.stack([np.interp(times, t, row) for row in level], axis=1))[:, None, :] - LOG_EPS
 
     events = EventArray.concatenate(list(simulate_events(
-        render, float(t[0]), float(t[-1]), width=len(level), height=1, contrast_pos=C, contrast_neg=C,
-        refractory_us=r_us, refractory_rule=rule, sample_times_us=t[1:-1], min_dt_us=0.5,
+        render, float(t[0]), float(t[-1]), width=len(level), height=1,
+        sensor=EventSensor(C, C, refractory_us=r_us, refractory_rule=rule), sample_times_us=t[1:-1], min_dt_us=0.5,
     )))
     return [(events.t[events.x == k], events.p[events.x == k]) for k in range(len(level))]
 
@@ -118,7 +121,7 @@ def kernel_events(t: np.ndarray, level: np.ndarray, rule: str, r_us: float) -> l
     hi, lo = levels[:, 0] + C, levels[:, 0] - C
     blind = np.full(lanes, -np.inf if paced else np.inf)
     c = np.full(lanes, C)
-    fire = np.zeros((2 * simkernel.PACED_ROWS, lanes))
+    fire = np.zeros((2 * firing.PACED_ROWS, lanes))
     out_t, out_p = np.zeros((lanes, 4096), np.int64), np.zeros((lanes, 4096), np.int8)
     n = np.zeros(lanes, np.int64)
     accepted = np.ones(lanes, np.bool_)
@@ -126,17 +129,17 @@ def kernel_events(t: np.ndarray, level: np.ndarray, rule: str, r_us: float) -> l
         ta, tb = np.full(lanes, times[i]), np.full(lanes, times[i + 1])
         la, lb = levels[:, i].copy(), levels[:, i + 1].copy()
         if paced:
-            simkernel._fire_lanes_paced(accepted, ta, la, tb, lb, c, c, r_us, hi, lo, blind, fire)
+            firing.fire_lanes_paced(accepted, ta, la, tb, lb, c, c, r_us, hi, lo, blind, fire)
             for k in range(lanes):
-                n[k] = simkernel._emit_paced(fire, k, r_us, out_t[k], out_p[k], n[k])
+                n[k] = firing.emit_paced(fire, k, r_us, out_t[k], out_p[k], n[k])
         else:
-            simkernel._fire_lanes(accepted, ta, la, tb, lb, c, c, r_us, hi, lo, blind, fire)
+            firing.fire_lanes(accepted, ta, la, tb, lb, c, c, r_us, hi, lo, blind, fire)
             for k in range(lanes):
-                n[k] = simkernel._emit(fire, k, times[i], times[i + 1], out_t[k], out_p[k], n[k])
+                n[k] = firing.emit(fire, k, times[i], times[i + 1], out_t[k], out_p[k], n[k])
     return [(out_t[k, : n[k]], out_p[k, : n[k]]) for k in range(lanes)]
 
 
-ENGINES = {"esim": esim_events, "simkernel": kernel_events}
+ENGINES = {"esim": esim_events, "ring_engine": kernel_events}
 
 
 @pytest.mark.parametrize("engine", ENGINES)
@@ -209,16 +212,16 @@ def test_one_line_can_hold_a_lag_run_and_a_run_of_its_own_sense() -> None:
     ta, la, tb, lb, r_us = 999.0, 1.0, 1009.0, -1.0, 2.0
     expected_t, expected_p = [1000, 1003, 1005, 1007], [1, -1, -1, -1]
     hi, lo, blind = np.array([0.3]), np.array([0.0]), np.array([1000.0])
-    fire = np.zeros((2 * simkernel.PACED_ROWS, 1))
+    fire = np.zeros((2 * firing.PACED_ROWS, 1))
     c = np.array([C])
-    simkernel._fire_lanes_paced(np.ones(1, np.bool_), np.array([ta]), np.array([la]), np.array([tb]), np.array([lb]),
+    firing.fire_lanes_paced(np.ones(1, np.bool_), np.array([ta]), np.array([la]), np.array([tb]), np.array([lb]),
                                 c, c, r_us, hi, lo, blind, fire)
     out_t, out_p = np.zeros(8, np.int64), np.zeros(8, np.int8)
-    n = simkernel._emit_paced(fire, 0, r_us, out_t, out_p, 0)
+    n = firing.emit_paced(fire, 0, r_us, out_t, out_p, 0)
     np.testing.assert_array_equal(out_t[:n], expected_t)
     np.testing.assert_array_equal(out_p[:n], expected_p)
     np.testing.assert_allclose([hi[0], lo[0], blind[0]], [0.0, -0.3, 1009.25], atol=1e-12)
-    pixels = _PacedPixels(c.copy(), c.copy(), np.array([0.3]), np.array([0.0]), np.array([1000.0]), r_us)
+    pixels = PacedPixels(c.copy(), c.copy(), np.array([0.3]), np.array([0.0]), np.array([1000.0]), r_us)
     fired = pixels.fire(np.array([0]), ta, tb, np.array([la]), np.array([lb]))
     _, t, p = pixels._expand([fired], [0], np.array([ta, tb]))
     np.testing.assert_array_equal(np.floor(t + 0.5), expected_t)
@@ -267,8 +270,8 @@ def test_exact_pairs_carry_the_true_log_change_of_an_esim_stream(rule: str) -> N
     def render(t_us: np.ndarray) -> np.ndarray:
         return offset + np.sin(2 * np.pi * np.asarray(t_us, dtype=np.float64)[:, None, None] / 200_000.0 + phase)
 
-    events = EventArray.concatenate(list(simulate_events(render, 0, 400_000, width=8, height=8, refractory_us=5000.0,
-                                                         refractory_rule=rule)))
+    events = EventArray.concatenate(list(simulate_events(render, 0, 400_000, width=8, height=8,
+                                                         sensor=EventSensor(refractory_us=5000.0, refractory_rule=rule))))
     pairs = exact_pairs(events, 8, rule, 5000.0, C, C, t_start_us=0.0)
     assert len(pairs.pixel) > (0.9 if rule == RESET else 0.2) * len(events)
     y, x = np.divmod(pairs.pixel, 8)
@@ -292,8 +295,9 @@ def blobs() -> Renderer:
 
 
 def kernel_scene(r: Renderer, rule: str, r_us: float) -> EventArray:
-    blocks = simkernel.simulate_ring(r, event_scale=0.5, t1_us=PERIOD_US, window_ends_us=[PERIOD_US], contrast_pos=C,
-                                     contrast_neg=C, refractory_us=r_us, refractory_rule=rule, min_dt_us=MIN_DT_US)
+    blocks = ring_engine.simulate_ring(r, event_scale=0.5, t1_us=PERIOD_US, window_ends_us=[PERIOD_US],
+                                       sensor=EventSensor(C, C, refractory_us=r_us, refractory_rule=rule),
+                                       min_dt_us=MIN_DT_US)
     return EventArray.concatenate([b.events for b in blocks])
 
 
@@ -303,9 +307,9 @@ def test_the_engines_agree_on_a_scene(blobs: Renderer, rule: str) -> None:
     renders refined per pixel) give event counts within 1 % and within one event for most pixels."""
     events = kernel_scene(blobs, rule, 1500.0)
     reference = EventArray.concatenate(list(simulate_events(
-        lambda t: blobs.event_grey(t, 0.5), 0, PERIOD_US, width=24, height=24, contrast_pos=C, contrast_neg=C,
-        min_dt_us=MIN_DT_US, render_pixels=lambda t, p: blobs.event_pixels(t, p, 0.5), refractory_us=1500.0,
-        refractory_rule=rule,
+        lambda t: blobs.event_grey(t, 0.5), 0, PERIOD_US, width=24, height=24,
+        sensor=EventSensor(C, C, refractory_us=1500.0, refractory_rule=rule), min_dt_us=MIN_DT_US,
+        render_pixels=lambda t, p: blobs.event_pixels(t, p, 0.5),
     )))
     assert len(reference) > 3000
     assert abs(len(events) - len(reference)) <= 0.01 * len(reference)

@@ -11,10 +11,13 @@ from psfmt import EventArray
 from pstoolkit.errors import UserError
 from pstoolkit.events.rule import LOG_EPS, consecutive_pairs, log_irradiance
 from pstoolkit.sim.esim import simulate_events
+from pstoolkit.sim.sensor import EventSensor
 
 
-def run(render, t0: float, t1: float, **kwargs) -> tuple[EventArray, list[EventArray]]:
-    chunks = list(simulate_events(render, t0, t1, width=SIZE, height=SIZE, **kwargs))
+def run(render, t0: float, t1: float, chunk_samples: int = 64, initial_dt_us: float = 100.0,
+        **sensor) -> tuple[EventArray, list[EventArray]]:
+    chunks = list(simulate_events(render, t0, t1, width=SIZE, height=SIZE, sensor=EventSensor(**sensor),
+                                  chunk_samples=chunk_samples, initial_dt_us=initial_dt_us))
     return EventArray.concatenate(chunks), chunks
 
 
@@ -60,7 +63,7 @@ def test_linear_log_ramp_gives_exact_times() -> None:
     assert np.array_equal(events.t, np.repeat(np.arange(1000, 10_001, 1000), 6))
     assert np.array_equal(events.x, np.tile([0, 1, 2, 0, 1, 2], 10))
     assert np.all(events.p == 1)
-    dead = EventArray.concatenate(list(simulate_events(ramp, 0, 10_000, width=3, height=2, refractory_us=300)))
+    dead = EventArray.concatenate(list(simulate_events(ramp, 0, 10_000, width=3, height=2, sensor=EventSensor(refractory_us=300))))
     # Reset at the end of the dead time: each event needs R + C/slope = 1300 µs.
     assert np.array_equal(np.unique(dead.t), np.arange(1000, 10_001, 1300))
     falling = EventArray.concatenate(list(simulate_events(lambda t: ramp(-np.asarray(t)), 0, 10_000, width=3, height=2)))
@@ -143,8 +146,11 @@ def test_leak_fires_positive_events_at_the_leak_rate() -> None:
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
-        ({"contrast_pos": -0.1}, "simulate_events: contrast_pos must be a positive number, got -0.1"),
-        ({"sigma": -1.0}, "simulate_events: sigma must be zero or positive, got -1.0"),
+        ({"sensor": EventSensor(contrast_pos=-0.1)}, "simulate_events: contrast_pos must be a positive number, got -0.1"),
+        ({"sensor": EventSensor(sigma=-1.0)}, "simulate_events: sigma must be zero or positive, got -1.0"),
+        ({"sensor": EventSensor(refractory_rule="x")},
+         "simulate_events: refractory rule 'x' is not one of reset-at-end, rate-limited"),
+        ({"max_dlog": 0.0}, "simulate_events: max_dlog must be a positive number, got 0.0"),
         ({"chunk_samples": 1}, "simulate_events: chunk_samples must be at least 2, got 1"),
         ({"width": 0}, "simulate_events: sensor size 0x16 must be 1 to 65536 pixels per side"),
     ],

@@ -17,6 +17,7 @@ from pstoolkit.sim.esim import simulate_events
 from pstoolkit.sim.exposure import exposure_samples, integrate
 from pstoolkit.sim.render import Renderer
 from pstoolkit.sim.scenes import Blobs, Relief, Sphere
+from pstoolkit.sim.sensor import EventSensor
 
 
 class GenericGGX(GGX):
@@ -160,7 +161,7 @@ def test_per_pixel_refinement_keeps_the_threshold_rule_and_the_counts(refractory
         frames.append(len(t_us))
         return render(t_us)
 
-    kwargs = {"width": SIZE, "height": SIZE, "refractory_us": refractory_us}
+    kwargs = {"width": SIZE, "height": SIZE, "sensor": EventSensor(refractory_us=refractory_us)}
     fine = EventArray.concatenate(list(simulate_events(counted, 0, PERIOD_US, render_pixels=render_pixels, **kwargs)))
     full = EventArray.concatenate(list(simulate_events(render, 0, PERIOD_US, **kwargs)))
     assert abs(len(fine) - len(full)) <= 0.01 * len(full)

@@ -17,6 +17,7 @@ from pstoolkit.events import fill as eventfill
 from pstoolkit.optics.lights import RingLight, SampledLight, build_light_model
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.sim.esim import simulate_events
+from pstoolkit.sim.sensor import EventSensor
 from pstoolkit.sim.simulator import SimulationConfig, simulate
 from pstoolkit.solve.base import SolverResult, run_solver
 
@@ -164,7 +165,8 @@ def _tilt_fan() -> tuple[np.ndarray, EventArray]:
         direction, _ = light.evaluate(np.asarray(t_us, dtype=np.float64))
         return 0.8 * np.clip(direction @ normal.T, 0.0, None)[:, None, :]
 
-    events = EventArray.concatenate(list(simulate_events(render, 0, PERIOD_US, width=len(tilt), height=1, refractory_us=2000)))
+    events = EventArray.concatenate(list(simulate_events(render, 0, PERIOD_US, width=len(tilt), height=1,
+                                                                sensor=EventSensor(refractory_us=2000))))
     return normal, events
 
 

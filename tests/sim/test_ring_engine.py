@@ -18,11 +18,14 @@ from pstoolkit.events.rule import LOG_EPS, reference_time_us
 from pstoolkit.optics.brdf import GGX, Lambertian
 from pstoolkit.optics.lights import RingLight
 from pstoolkit.plugin.options import defaults
-from pstoolkit.sim import ring_engine as simkernel
+from pstoolkit.sim import ring_engine
 from pstoolkit.sim.esim import simulate_events
 from pstoolkit.sim.exposure import exposure_samples, integrate
 from pstoolkit.sim.render import Renderer
+from pstoolkit.sim.ring_kernels import inputs, lanes, shadow_table, tuning
+from pstoolkit.sim.ring_kernels.inputs import FrameInputs, ShadowTable
 from pstoolkit.sim.scenes import Blobs, Sphere
+from pstoolkit.sim.sensor import EventSensor
 from pstoolkit.sim.simulator import SHADOW_STEP_DEG, SimulationConfig, simulate
 
 PERIOD_US = 30000.0
@@ -38,9 +41,9 @@ def renderer(scene: object, brdf: object, size: int = 48, shadows: bool = True) 
 
 
 def run(r: Renderer, refractory_us: float = 0.0, **kwargs: object) -> tuple[EventArray, list[np.ndarray]]:
-    blocks = list(simkernel.simulate_ring(
+    blocks = list(ring_engine.simulate_ring(
         r, event_scale=0.5, t1_us=PERIOD_US, window_ends_us=[PERIOD_US / 3, 2 * PERIOD_US / 3, PERIOD_US],
-        contrast_pos=C, contrast_neg=C, refractory_us=refractory_us, min_dt_us=MIN_DT_US, **kwargs,
+        sensor=EventSensor(C, C, refractory_us=refractory_us), min_dt_us=MIN_DT_US, **kwargs,
     ))
     sums = [b.window_sums for b in blocks if b.window_sums is not None]
     return EventArray.concatenate([b.events for b in blocks]), sums
@@ -84,7 +87,7 @@ def test_events_match_the_reference_engine() -> None:
     r = renderer(Blobs(), GGX())
     events, _ = run(r)
     reference = EventArray.concatenate(list(simulate_events(
-        lambda t: r.event_grey(t, 0.5), 0, PERIOD_US, width=24, height=24, contrast_pos=C, contrast_neg=C,
+        lambda t: r.event_grey(t, 0.5), 0, PERIOD_US, width=24, height=24, sensor=EventSensor(C, C),
         min_dt_us=MIN_DT_US, render_pixels=lambda t, p: r.event_pixels(t, p, 0.5),
     )))
     assert abs(len(events) - len(reference)) <= 0.01 * len(reference)
@@ -139,19 +142,19 @@ def test_results_do_not_depend_on_room_threads_or_repetition() -> None:
 
 @pytest.mark.parametrize("sense", [1, -1])
 def test_turning_the_light_step_by_step_follows_the_library_trigonometry(sense: int) -> None:
-    """A lane turns the light's azimuth on from its last sample by each step (``_turn``'s series):
+    """A lane turns the light's azimuth on from its last sample by each step (``turn``'s series):
     over 1000 steps of up to the longest step, ten turns either way round, it stays within 1e-13
     of cos and sin of the azimuth."""
     light = RingLight(elevation_deg=35.0, period_us=PERIOD_US, phase_deg=17.0, sense=sense)
-    omega = simkernel._ring(light)[3]
-    steps = np.random.default_rng(3).uniform(0.0, PERIOD_US * simkernel.MAX_STEP_TURNS, 1000)
+    omega = inputs.ring_params(light)[3]
+    steps = np.random.default_rng(3).uniform(0.0, PERIOD_US * tuning.MAX_STEP_TURNS, 1000)
 
     @numba.njit
     def walk(steps: np.ndarray, omega: float, azimuth: float) -> np.ndarray:
         c, s = np.cos(azimuth), np.sin(azimuth)
         out = np.empty((steps.size, 2))
         for i in range(steps.size):
-            cos_d, sin_d = simkernel._turn(omega * steps[i])
+            cos_d, sin_d = lanes.turn(omega * steps[i])
             c, s = c * cos_d - s * sin_d, s * cos_d + c * sin_d
             out[i] = c, s
         return out
@@ -163,13 +166,13 @@ def test_turning_the_light_step_by_step_follows_the_library_trigonometry(sense: 
 
 
 def test_the_lanes_log_is_the_library_log() -> None:
-    """``_log_lanes`` (a series, in SIMD) is within 4 ulp of ``np.log`` from 1e-300 to 1e300, and
+    """``log_lanes`` (a series, in SIMD) is within 4 ulp of ``np.log`` from 1e-300 to 1e300, and
     within 1.2e-16 where |ln x| < 1, around the engine's levels."""
     rng = np.random.default_rng(5)
     x = np.concatenate([10.0 ** rng.uniform(-300, 300, 4096), rng.uniform(0.4, 2.7, 4096), LOG_EPS * (1 + rng.random(4096)),
                         [1.0, 2.0, 0.5, np.sqrt(2.0), np.nextafter(np.sqrt(2.0), 2.0), LOG_EPS]])
     got = np.empty_like(x)
-    simkernel._log_lanes(x, got, np.empty(x.size, np.int64), np.empty(x.size, np.int64))
+    lanes.log_lanes(x, got, np.empty(x.size, np.int64), np.empty(x.size, np.int64))
     expected = np.log(x)
     assert np.all(np.abs(got - expected) <= 4 * np.spacing(np.abs(expected)))
     small = np.abs(expected) < 1.0
@@ -183,14 +186,14 @@ def test_only_shadows_on_lit_pixels_shorten_the_steps() -> None:
         r = renderer(scene, GGX())
         # the sphere declares that it casts no shadows; swept all the same, the table says so
         r = Renderer(dataclasses.replace(r.maps, self_shadowing=True), r.light, r.brdf, shadow_step_us=r.shadow_step_us)
-        constants = simkernel.frame_constants(r)
-        ring = simkernel._ring(r.light)  # type: ignore[arg-type]
-        block_us = simkernel.BLOCK_GRID_STEPS * r.shadow_step_us  # type: ignore[operator]
+        constants = inputs.frame_constants(r)
+        ring = inputs.ring_params(r.light)  # type: ignore[arg-type]
+        block_us = tuning.BLOCK_GRID_STEPS * r.shadow_step_us  # type: ignore[operator]
         shadowed, lit_shadowed = False, False
         for ta in np.arange(0.0, PERIOD_US, block_us):
-            openness, column_major, grid = simkernel._shadow_table(r, ta, min(ta + block_us, PERIOD_US))
-            reach = simkernel._lit_shadow(constants.values, r.index, r.column_major_index, ring[1], openness,
-                                          column_major, simkernel._grid_light(ring, openness.shape[0], grid))
+            openness, column_major, grid = shadow_table.sweep_rows(r, ta, min(ta + block_us, PERIOD_US))
+            reach = shadow_table.lit_shadow(constants.values, r.index, r.column_major_index, ring[1], openness,
+                                          column_major, shadow_table.grid_light(ring, openness.shape[0], grid))
             shadowed |= bool((openness < 1.0).any())
             lit_shadowed |= bool(reach.any())
         assert shadowed
@@ -203,18 +206,18 @@ def test_lit_shadow_bits_follow_their_definition() -> None:
     checked on a table of all ``TABLE_ROWS`` grid times, with row- and column-major rows."""
     r = renderer(Blobs(), GGX())
     step = float(r.shadow_step_us)  # type: ignore[arg-type]
-    openness, column_major, grid = simkernel._shadow_table(r, 0.5 * step, 62.3 * step)
+    openness, column_major, grid = shadow_table.sweep_rows(r, 0.5 * step, 62.3 * step)
     rows = openness.shape[0]
-    assert rows == simkernel.TABLE_ROWS
+    assert rows == tuning.TABLE_ROWS
     assert column_major.any() and not column_major.all()
-    constants = simkernel.frame_constants(r)
-    ring = simkernel._ring(r.light)  # type: ignore[arg-type]
-    light = simkernel._grid_light(ring, rows, grid)
-    reach = simkernel._lit_shadow(constants.values, r.index, r.column_major_index, ring[1], openness, column_major,
+    constants = inputs.frame_constants(r)
+    ring = inputs.ring_params(r.light)  # type: ignore[arg-type]
+    light = shadow_table.grid_light(ring, rows, grid)
+    reach = shadow_table.lit_shadow(constants.values, r.index, r.column_major_index, ring[1], openness, column_major,
                                   light)
     v = np.where(column_major[:, None], openness[:, r.column_major_index], openness[:, r.index])
     n = constants.values
-    nl = n[:, simkernel.NX] * light[0][:, None] + n[:, simkernel.NY] * light[1][:, None] + n[:, simkernel.NZ] * ring[1]
+    nl = n[:, inputs.NX] * light[0][:, None] + n[:, inputs.NY] * light[1][:, None] + n[:, inputs.NZ] * ring[1]
     lit = nl > -light[2][:, None]
     near = lit.copy()
     near[1:] |= lit[:-1]
@@ -229,43 +232,43 @@ def test_lit_shadow_bits_follow_their_definition() -> None:
     # the shadows' last interval and masks that are not all one
     assert (expected >> np.uint64(rows - 2)).any()
     assert (expected != (np.uint64(1) << np.uint64(rows - 1)) - np.uint64(1)).any()
-    longer = simkernel._shadow_table(r, 0.5 * step, 63.3 * step)
+    longer = shadow_table.sweep_rows(r, 0.5 * step, 63.3 * step)
     with pytest.raises(ValueError, match="more than TABLE_ROWS"):
-        simkernel._lit_shadow(constants.values, r.index, r.column_major_index, ring[1], longer[0], longer[1],
-                              simkernel._grid_light(ring, longer[0].shape[0], longer[2]))
+        shadow_table.lit_shadow(constants.values, r.index, r.column_major_index, ring[1], longer[0], longer[1],
+                              shadow_table.grid_light(ring, longer[0].shape[0], longer[2]))
 
 
 def test_shading_reads_the_table_only_where_the_bits_say_it_matters() -> None:
-    """A lane reads V only in the table intervals its pixels' ``_lit_shadow`` bits mark; at random
+    """A lane reads V only in the table intervals its pixels' ``lit_shadow`` bits mark; at random
     times through a blobs block, every lane's shading equals that with V read in every interval."""
     r = renderer(Blobs(), GGX())
     step = float(r.shadow_step_us)  # type: ignore[arg-type]
     ta, tb = 3.2 * step, 61.7 * step
-    openness, column_major, grid = simkernel._shadow_table(r, ta, tb)
-    constants = simkernel.frame_constants(r)
-    feet = simkernel.footprints(r, 0.5)
-    ring = simkernel._ring(r.light)  # type: ignore[arg-type]
-    reach = simkernel._lit_shadow(constants.values, r.index, r.column_major_index, ring[1], openness, column_major,
-                                  simkernel._grid_light(ring, openness.shape[0], grid))
-    consts, frame, frame_t = simkernel._idle_lanes(constants.values.shape[1], feet.pixel.shape[1])
-    lanes = simkernel.LANES
+    openness, column_major, grid = shadow_table.sweep_rows(r, ta, tb)
+    constants = inputs.frame_constants(r)
+    feet = inputs.footprints(r, 0.5)
+    ring = inputs.ring_params(r.light)  # type: ignore[arg-type]
+    reach = shadow_table.lit_shadow(constants.values, r.index, r.column_major_index, ring[1], openness, column_major,
+                                  shadow_table.grid_light(ring, openness.shape[0], grid))
+    slots = lanes.idle_lanes(constants.values.shape[1], feet.pixel.shape[1])
+    frame = FrameInputs(constants.values, feet.weight, feet.pixel, r.index, r.column_major_index, True)
+    table = ShadowTable(openness, column_major, *grid, reach)
+    width = tuning.LANES
     rng = np.random.default_rng(5)
     skipped = 0
-    for first in range(0, feet.pixel.shape[0], lanes):
-        shadows = np.zeros(lanes, np.uint64)
-        for k in range(lanes):
-            simkernel._load_lane(consts, frame, frame_t, k, first + k, constants.values, feet.weight, feet.pixel,
-                                 r.index, r.column_major_index)
+    for first in range(0, feet.pixel.shape[0], width):
+        shadows = np.zeros(width, np.uint64)
+        for k in range(width):
+            lanes.load_lane(slots, k, first + k, frame)
             for q in range(feet.pixel.shape[1]):
                 if feet.pixel[first + k, q] >= 0:
-                    shadows[k] |= reach[frame[q, k]]
-        t1 = rng.uniform(ta, tb, lanes)
+                    shadows[k] |= reach[slots.position[q, k]]
+        t1 = rng.uniform(ta, tb, width)
         azimuth = ring[2] + ring[3] * (t1 - ring[4])
         results = []
-        for bits in (shadows, np.full(lanes, np.uint64(0xFFFFFFFFFFFFFFFF))):
-            now, grey = np.empty((2, feet.pixel.shape[1], lanes)), np.empty(lanes)
-            simkernel._shade_lanes(t1, np.cos(azimuth), np.sin(azimuth), consts, frame, frame_t, bits, True, ring,
-                                   openness, column_major, grid, LOG_EPS, now, grey)
+        for bits in (shadows, np.full(width, np.uint64(0xFFFFFFFFFFFFFFFF))):
+            now, grey = np.empty((2, feet.pixel.shape[1], width)), np.empty(width)
+            lanes.shade_lanes(t1, np.cos(azimuth), np.sin(azimuth), slots, bits, True, ring, table, LOG_EPS, now, grey)
             results.append((now, grey))
         # bit-equal: where the skipped intervals are, V ≥ 1 and the same arithmetic gives the same doubles
         np.testing.assert_array_equal(results[0][0], results[1][0])
@@ -284,12 +287,12 @@ def test_blocks_fit_the_shadow_masks() -> None:
     r = renderer(Blobs(), GGX(), size=32)
     step = float(r.shadow_step_us)  # type: ignore[arg-type]
     window_ends = [70.5 * step, 131.0 * step, PERIOD_US]
-    blocks = list(simkernel.simulate_ring(
-        r, event_scale=0.5, t1_us=PERIOD_US, window_ends_us=window_ends, contrast_pos=C, contrast_neg=C,
+    blocks = list(ring_engine.simulate_ring(
+        r, event_scale=0.5, t1_us=PERIOD_US, window_ends_us=window_ends, sensor=EventSensor(C, C),
         min_dt_us=MIN_DT_US, block_us=1e9,
     ))
     ends = [b.t_end_us for b in blocks]
-    assert max(np.diff([0.0, *ends])) <= (simkernel.TABLE_ROWS - 3) * step * (1 + 1e-12)
+    assert max(np.diff([0.0, *ends])) <= (tuning.TABLE_ROWS - 3) * step * (1 + 1e-12)
     assert set(window_ends) <= set(ends)
     assert sum(len(b.events) for b in blocks) > 1000
 
@@ -316,8 +319,8 @@ def test_supported_only_for_the_closed_form_on_the_cpu() -> None:
     class OtherGGX(GGX):
         """Another BRDF type: shaded through ``brdf.shade``."""
 
-    assert simkernel.supported(renderer(Blobs(), GGX()))
-    assert not simkernel.supported(renderer(Blobs(), OtherGGX()))
+    assert ring_engine.supported(renderer(Blobs(), GGX()))
+    assert not ring_engine.supported(renderer(Blobs(), OtherGGX()))
 
 
 def test_the_simulator_gives_the_same_capture_through_either_engine(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -326,7 +329,7 @@ def test_the_simulator_gives_the_same_capture_through_either_engine(monkeypatch:
     config = SimulationConfig(scene="blobs", size=48, bit_depth=16, refractory_us=500.0)
     with tempfile.TemporaryDirectory() as tmp:
         fast = simulate(config, Path(tmp) / "fast.h5")
-        monkeypatch.setattr(simkernel, "supported", lambda _: False)
+        monkeypatch.setattr(ring_engine, "supported", lambda _: False)
         slow = simulate(config, Path(tmp) / "slow.h5")
         assert abs(fast.events - slow.events) <= 0.01 * slow.events
         a, b = psfmt.load(fast.path), psfmt.load(slow.path)
@@ -335,29 +338,32 @@ def test_the_simulator_gives_the_same_capture_through_either_engine(monkeypatch:
 
 
 @pytest.mark.parametrize(("kwargs", "message"), [
-    ({"contrast_pos": 0.0}, "simulate_ring: contrast_pos must be a positive number, got 0.0"),
-    ({"refractory_us": -1.0}, "simulate_ring: refractory_us must be zero or positive, got -1.0"),
+    ({"sensor": EventSensor(contrast_pos=0.0)}, "simulate_ring: contrast_pos must be a positive number, got 0.0"),
+    ({"sensor": EventSensor(refractory_us=-1.0)}, "simulate_ring: refractory_us must be zero or positive, got -1.0"),
+    ({"sensor": EventSensor(leak_hz=2.0)}, r"simulate_ring: the ring engine has no leak or shot noise \(pstoolkit.sim.esim has\)"),
+    ({"min_dt_us": 0.0}, "simulate_ring: min_dt_us must be a positive number, got 0.0"),
     ({"window_ends_us": [0.0]}, r"simulate_ring: window ends must lie in \(0, t1_us = 30000.0\]"),
 ])
 def test_bad_options_name_the_option(kwargs: dict, message: str) -> None:
-    arguments = {"event_scale": 0.5, "t1_us": PERIOD_US, "window_ends_us": [PERIOD_US], "contrast_pos": C,
-                 "contrast_neg": C, **kwargs}
+    arguments = {"event_scale": 0.5, "t1_us": PERIOD_US, "window_ends_us": [PERIOD_US], "sensor": EventSensor(C, C),
+                 **kwargs}
     with pytest.raises(UserError, match=message):
-        next(simkernel.simulate_ring(renderer(Sphere(), GGX(), size=16), **arguments))
+        next(ring_engine.simulate_ring(renderer(Sphere(), GGX(), size=16), **arguments))
 
 
 def test_a_shadowed_pixel_steps_short_only_around_its_shadows() -> None:
     """With a shadow in grid interval 3 (µs 300–400 on a 100 µs grid), steps reach up to it, take one
     grid interval near and inside it, and are long again after it; no shadow: always long."""
-    room = numba.njit(lambda t, bits: simkernel._shadow_room(t, bits, (100.0, 0.0), 100.0, 1000.0))
+    table = ShadowTable(np.ones((2, 1), np.float32), np.zeros(2, np.bool_), 100.0, 0.0, np.zeros(1, np.uint64))
+    room = numba.njit(lambda t, bits, table: shadow_table.shadow_room(t, bits, table, 100.0, 1000.0))
     bits = np.uint64(1 << 3)
-    assert room(50.0, bits) == 250.0
-    assert room(250.0, bits) == 100.0
-    assert room(320.0, bits) == 100.0
-    assert room(450.0, bits) == 1000.0
-    assert room(50.0, np.uint64(0)) == 1000.0
+    assert room(50.0, bits, table) == 250.0
+    assert room(250.0, bits, table) == 100.0
+    assert room(320.0, bits, table) == 100.0
+    assert room(450.0, bits, table) == 1000.0
+    assert room(50.0, np.uint64(0), table) == 1000.0
     # a step reaches the next marked interval however far, within the longest step
-    far = numba.njit(lambda t, bits: simkernel._shadow_room(t, bits, (100.0, 0.0), 100.0, 1e9))
-    assert far(50.0, np.uint64(1 << 40)) == 3950.0
-    assert far(450.0, np.uint64((1 << 40) | (1 << 3))) == 3550.0
-    assert far(6050.0, np.uint64(1 << 63)) == 250.0
+    far = numba.njit(lambda t, bits, table: shadow_table.shadow_room(t, bits, table, 100.0, 1e9))
+    assert far(50.0, np.uint64(1 << 40), table) == 3950.0
+    assert far(450.0, np.uint64((1 << 40) | (1 << 3)), table) == 3550.0
+    assert far(6050.0, np.uint64(1 << 63), table) == 250.0
