@@ -91,9 +91,29 @@ def bilinear_taps(u: np.ndarray, v: np.ndarray, width: int, height: int) -> tupl
 
 def to_frames(values: np.ndarray, known: np.ndarray, affine: np.ndarray, height: int, width: int,
               event_height: int, event_width: int) -> tuple[np.ndarray, np.ndarray]:
-    """Event-grid ``values`` (He·We, C) known at ``known`` (He·We,) bilinearly interpolated to every
-    frame pixel from the known ones among its four neighbouring super pixels (weights renormalised):
-    (H·W, C) values and (H·W,) bool where any neighbour was known."""
+    """Event-grid values bilinearly interpolated to every frame pixel from the known ones among its
+    four neighbouring super pixels (weights renormalised).
+
+    Parameters
+    ----------
+    values
+        (He·We, C) values on the event grid, flat index v_e·We + u_e.
+    known
+        (He·We,) bool, where ``values`` are known.
+    affine
+        (2, 3) event→frame affine.
+    height, width
+        Frame size H, W, pixels.
+    event_height, event_width
+        Event grid size He, We, pixels.
+
+    Returns
+    -------
+    values : numpy.ndarray
+        (H·W, C) interpolated values, flat index v·W + u; 0 where no neighbour was known.
+    any_known : numpy.ndarray
+        (H·W,) bool, where any of the four neighbours was known.
+    """
     v, u = np.mgrid[0:height, 0:width].astype(np.float64)
     ue, ve = frame_to_event(affine, u.ravel(), v.ravel())
     index, weight = bilinear_taps(ue, ve, event_width, event_height)

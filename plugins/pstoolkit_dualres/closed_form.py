@@ -60,9 +60,30 @@ def window_lights(
     visibility: list[np.ndarray] | None,
     n_samples: int,
 ) -> np.ndarray:
-    """Per-channel equivalent lights (J, n_pixels, 3, 3) of windows ``windows_us`` (J, 2), with the
-    clamp of ``normals`` (n_pixels, 3) and, per window, the (n_samples, n_pixels) bool
-    ``visibility`` at its ``sample_times`` if given."""
+    """Per-channel equivalent lights of the exposure windows (``equivalent_lights``, eq. 14/16).
+
+    Parameters
+    ----------
+    light
+        The directional light model.
+    windows_us
+        (J, 2) the windows [t0, t1], µs on the light's clock.
+    n_pixels
+        Number of pixels P.
+    normals
+        (n_pixels, 3) unit normals whose attached-shadow clamp applies, or None (no clamp).
+    visibility
+        Per window, the (n_samples, n_pixels) bool visibility 1 − m_c at its ``sample_times``, or None
+        (all visible).
+    n_samples
+        Midpoint-rule samples per window.
+
+    Returns
+    -------
+    numpy.ndarray
+        (J, n_pixels, 3, 3) float64, axis −2 the RGB channel, axis −1 xyz; the same for every pixel
+        without ``normals`` and ``visibility``.
+    """
     out = np.empty((len(windows_us), n_pixels, 3, 3))
     for j, (t0, t1) in enumerate(windows_us):
         vis = None if visibility is None else visibility[j]
@@ -119,9 +140,35 @@ def closed_form(
     n_samples: int,
     super_normal: np.ndarray | None = None,
 ) -> ClosedFormStart:
-    """Initial maps from ``frames`` (J, H, W, 3) of windows ``windows_us`` (J, 2) (one per distinct
-    window of the period, saturation units) inside ``mask``; ``super_normal`` (H, W, 3) the normals
-    of the super pixels from their events interpolated to the frame pixels (zero where unknown)."""
+    """Initial normal and albedo maps inside ``mask`` from the long exposures (see the module docstring).
+
+    Parameters
+    ----------
+    frames
+        (J, H, W, 3) frame values, saturation units, one per distinct window of the period.
+    windows_us
+        (J, 2) the windows [t0, t1], µs on the light's clock.
+    mask
+        (H, W) bool, the pixels solved.
+    light
+        The directional light model.
+    visibility
+        ``visibility(t_us (T,), pixel (P,)) -> (T, P) bool``, 1 − m_c at frame pixels (flat indices), or
+        None (no cast-shadow mask).
+    iterations
+        Most fixed-point iterations of the attached-shadow clamp (at least 1 is done).
+    n_samples
+        Midpoint-rule samples per window for the equivalent lights.
+    super_normal
+        (H, W, 3) the normals of the super pixels from their events, interpolated to the frame pixels
+        (zero where unknown), or None; where known they fill the pixels with fewer than three
+        effective lights.
+
+    Returns
+    -------
+    ClosedFormStart
+        Normal, albedo and number of effective lights per pixel, zero outside ``mask``.
+    """
     n_windows, height, width, _ = frames.shape
     pixels = np.flatnonzero(mask.ravel())
     rgb = frames.reshape(n_windows, -1, 3)[:, pixels]
@@ -131,7 +178,8 @@ def closed_form(
     # m_c does not depend on the normal: look it up once for all iterations
     masks = None if visibility is None else [visibility(sample_times(t0, t1, n_samples), pixels) for t0, t1 in windows_us]
     # Start from the clamp of a normal facing the camera: on a simulated sphere the first solve
-    # without any clamp falls into wrong fixed points near the rim (1.1° vs 0.26° mean error).
+    # without any clamp falls into wrong fixed points near the rim (measured in docs/dualres-tuning.md,
+    # "Closed-form start: measured choices").
     normal = np.tile(np.array([0.0, 0.0, 1.0]), (len(pixels), 1))
     lights = np.empty((n_windows, len(pixels), 3, 3))
     effective = np.zeros((n_windows, len(pixels)), dtype=bool)
@@ -161,9 +209,9 @@ def closed_form(
     filled = unit(fill(normal_map, known.reshape(height, width), mask)).reshape(-1, 3)[pixels]
     if super_normal is not None:
         # The super pixels' own estimate beats a fill from the nearest frame pixels with three
-        # lights, which may lie far inside: on the rim of a simulated 64 px sphere (GGX, the pixels
-        # with two effective lights) the projected normal errs 1.96° instead of 5.87°, and their
-        # mean 3.76°.
+        # lights, which may lie far inside: so it does on the rim of a simulated sphere, at the pixels
+        # with two effective lights (measured in docs/dualres-tuning.md, "Closed-form start: measured
+        # choices").
         from_events = super_normal.reshape(-1, 3)[pixels]
         filled = np.where(np.linalg.norm(from_events, axis=1, keepdims=True) > 0.5, from_events, filled)
     normal = np.where(full[:, None], normal, filled)

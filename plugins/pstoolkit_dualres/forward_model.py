@@ -21,9 +21,34 @@ def _take(maps: Maps, index: Tensor) -> Maps:
 
 def frame_prediction(model: FitModel, normal: Tensor, maps: Maps, sample_pixel: Tensor, sample_group: Tensor,
                      light: Tensor, weight: Tensor, view: Tensor, groups: int) -> Tensor:
-    """(groups, 3) frame values Σ_samples f_r·[n·l]₊·(e·m_c·Δt): ``sample_pixel`` (M,) indexes the
-    per-pixel ``normal`` and ``maps``, ``sample_group`` (M,) = frame·P + pixel, ``light`` (M, 3) unit
-    directions, ``weight`` (M, 3) RGB intensity × lit × Δt."""
+    """Frame values Σ_samples f_r·[n·l]₊·(e·m_c·Δt) at per-pixel importance samples (eq. 21–22).
+
+    Parameters
+    ----------
+    model
+        The fitted BRDF.
+    normal
+        (P, 3) unit normals of the pixels.
+    maps
+        The BRDF's maps by name, (P, channels) each.
+    sample_pixel
+        (M,) int64: each sample's pixel, an index into ``normal`` and ``maps``.
+    sample_group
+        (M,) int64: each sample's output row, frame·P + pixel.
+    light
+        (M, 3) unit directions to the light.
+    weight
+        (M, 3) RGB intensity × lit × Δt of each sample.
+    view
+        (3,) unit direction to the camera.
+    groups
+        Number of output rows (frames·P).
+
+    Returns
+    -------
+    Tensor
+        (groups, 3) predicted frame values.
+    """
     shaded = model.shade(normal[sample_pixel], light, view, _take(maps, sample_pixel))
     out = torch.zeros((groups, 3), dtype=shaded.dtype, device=shaded.device)
     return out.index_add_(0, sample_group, shaded * weight)
@@ -31,10 +56,33 @@ def frame_prediction(model: FitModel, normal: Tensor, maps: Maps, sample_pixel: 
 
 def frame_prediction_grid(model: FitModel, normal: Tensor, maps: Maps, light: Tensor, weight: Tensor,
                           visible: Tensor | None, view: Tensor, frames: int) -> Tensor:
-    """(frames·P, 3) frame values on a time grid shared by all pixels: ``light`` (S, 3) and ``weight``
-    (S, 3) (intensity × Δt) of S = frames × S_f samples in frame order, ``visible`` (P, S) the lit
-    share of each sample or None. Broadcasting (P, 1) pixels against (1, S) samples needs no gather
-    or scatter."""
+    """Frame values on a time grid shared by all pixels. Broadcasting (P, 1) pixels against (1, S)
+    samples needs no gather or scatter.
+
+    Parameters
+    ----------
+    model
+        The fitted BRDF.
+    normal
+        (P, 3) unit normals of the pixels.
+    maps
+        The BRDF's maps by name, (P, channels) each.
+    light
+        (S, 3) unit directions to the light of S = frames × S_f samples, in frame order.
+    weight
+        (S, 3) RGB intensity × Δt of each sample.
+    visible
+        (P, S) the lit share of each sample, or None (all lit).
+    view
+        (3,) unit direction to the camera.
+    frames
+        Number of frames K; must divide S.
+
+    Returns
+    -------
+    Tensor
+        (frames·P, 3) predicted frame values, rows frame·P + pixel.
+    """
     p, s = normal.shape[0], light.shape[0]
     shaded = model.shade(normal[:, None, :], light[None], view, {k: v[:, None, :] for k, v in maps.items()}) * weight
     if visible is not None:
@@ -44,9 +92,33 @@ def frame_prediction_grid(model: FitModel, normal: Tensor, maps: Maps, light: Te
 
 def superpixel_grey(model: FitModel, normal: Tensor, maps: Maps, tap_pixel: Tensor, tap_weight: Tensor,
                     light: Tensor, grey_intensity: Tensor, view: Tensor) -> Tensor:
-    """(E,) grey irradiance of event super pixels: Σ_taps weight × grey(f_r·[n·l]₊·e) over the frame
-    pixels ``tap_pixel`` (E, F) under each (weight: area share × lit), at one light (E, 3) per row;
-    ``grey_intensity`` (E, 3) is e_c times the Rec. 601 weight of channel c."""
+    """Grey irradiance of event super pixels: Σ_taps weight × grey(f_r·[n·l]₊·e) over the frame pixels
+    under each, at one light per row.
+
+    Parameters
+    ----------
+    model
+        The fitted BRDF.
+    normal
+        (P, 3) unit normals of the pixels.
+    maps
+        The BRDF's maps by name, (P, channels) each.
+    tap_pixel
+        (E, F) int64: the frame pixels under each super pixel, indices into ``normal`` and ``maps``.
+    tap_weight
+        (E, F) each tap's weight: area share × lit.
+    light
+        (E, 3) unit directions to the light.
+    grey_intensity
+        (E, 3) e_c times the Rec. 601 weight of channel c.
+    view
+        (3,) unit direction to the camera.
+
+    Returns
+    -------
+    Tensor
+        (E,) grey irradiance.
+    """
     e, f = tap_pixel.shape
     flat = tap_pixel.reshape(-1)
     l = light[:, None, :].expand(e, f, 3).reshape(-1, 3)

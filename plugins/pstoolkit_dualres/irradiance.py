@@ -106,11 +106,37 @@ def approximate(
     f: np.ndarray | None = None,
     threshold_per_s: float = np.inf,
 ) -> Irradiance:
-    """Î from one period's events grouped by pixel (``pixel``, phase ``t_us``, polarity ``p``,
-    ``first``/``count`` as in ``profile.Profile``) and the super pixels' frame values
-    ``frame_values`` (n_pixels, J) over windows ``bounds_us`` (J+1,) phases. With the events'
-    interval profile ``f``, s changes at events with |f| ≥ ``threshold_per_s`` (the paper's rule);
-    without, at the window bounds (one value per window)."""
+    """Î from one period's events and the super pixels' frame values (supplement eq. 1; see the module
+    docstring).
+
+    Parameters
+    ----------
+    pixel, t_us, p, first, count
+        One period's events grouped by pixel, as in ``profile.Profile``: (N,) flat event pixel, phase
+        (µs, in [0, period_us)), polarity, index of the pixel's first event and its number of events.
+    n_pixels
+        Number of super pixels (event pixels).
+    period_us
+        The light period T, µs.
+    contrast_pos, contrast_neg
+        Thresholds C⁺ and C⁻, log units.
+    refractory_us
+        The refractory period R, µs, for the compensation α (0: none).
+    bounds_us
+        (J+1,) phases of the exposure windows' bounds, µs.
+    frame_values
+        (n_pixels, J) the super pixels' frame values per window (the area mean of their frame pixels,
+        in saturation units).
+    f, threshold_per_s
+        With the events' (N,) interval profile f (eq. 20, log units per second), s changes at events
+        with |f| ≥ ``threshold_per_s`` (the paper's rule); without, at the window bounds (one value
+        per window).
+
+    Returns
+    -------
+    Irradiance
+        Knots of L, change points and fitted scale s per super pixel.
+    """
     period = float(period_us)
     n = len(t_us)
     local = np.arange(n) - first

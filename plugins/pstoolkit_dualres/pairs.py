@@ -55,7 +55,42 @@ def event_samples(
     dark_level: float,
     max_pair_share: float,
 ) -> EventSamples:
-    """The pairs of a time-sorted stream of a sensor ``width`` pixels wide (see the module docstring)."""
+    """The event samples of eq. 25 of a time-sorted stream (see the module docstring).
+
+    Parameters
+    ----------
+    events
+        The event stream, sorted by time.
+    width
+        The sensor's width in pixels (pixel index y·width + x).
+    irradiance
+        Î of the super pixels over the period starting at ``t0_us``, for the confidence.
+    rule
+        The refractory rule, one of ``pstoolkit.events.rule.REFRACTORY_RULES``.
+    refractory_us
+        The refractory period R, µs.
+    contrast_pos, contrast_neg
+        Thresholds C⁺ and C⁻, log units.
+    t0_us, period_us
+        Start of the irradiance's period and the light period, µs.
+    confidence
+        "linear": the weight min(1, Î/(dark_level·Î₉₉)); any other value (``preprocess``'s "none"):
+        weight 1.
+    dark_level
+        Share of Î₉₉ below which a pair's weight falls linearly.
+    max_pair_share
+        Longest pair kept, as a share of the period.
+
+    Returns
+    -------
+    EventSamples
+        The pairs kept, with their log change and weight.
+
+    Raises
+    ------
+    UserError
+        An unknown rule.
+    """
     pairs = exact_pairs(events, width, rule, refractory_us, contrast_pos, contrast_neg)
     t = pairs.t_us.astype(np.float64)
     keep = t - pairs.t_ref_us <= max_pair_share * period_us

@@ -157,8 +157,31 @@ class Preprocessed:
 
 def start(per_window: np.ndarray, windows_us: np.ndarray, mask: np.ndarray, light: LightModel,
           super_normal: np.ndarray, options: PreprocessOptions, shadows: ShadowMask | None) -> ClosedFormStart:
-    """``init.closed_form`` of the window means ``per_window`` (J, H, W, 3) over absolute windows
-    ``windows_us`` (J, 2) with the cast-shadow mask ``shadows`` (None or empty: none)."""
+    """The closed-form start (``closed_form.closed_form``) of the window means under a cast-shadow mask.
+
+    Parameters
+    ----------
+    per_window
+        (J, H, W, 3) mean frame of each distinct window of the period, saturation units.
+    windows_us
+        (J, 2) the windows [t0, t1], absolute µs.
+    mask
+        (H, W) bool, the pixels solved.
+    light
+        The directional, periodic light model.
+    super_normal
+        (H, W, 3) the super pixels' normals from their events, interpolated to the frame pixels (zero
+        where unknown).
+    options
+        The preprocessing options; ``init_iterations`` and ``light_samples`` apply.
+    shadows
+        The cast-shadow mask at frame pixels, or None or empty (none).
+
+    Returns
+    -------
+    ClosedFormStart
+        Normal, albedo and number of effective lights per pixel.
+    """
     visibility = None
     if shadows is not None and len(shadows):
         def visibility(t_us: np.ndarray, pixels: np.ndarray) -> np.ndarray:

@@ -2,7 +2,7 @@
 what a run does; single options override a preset's value.
 
 - ``fast`` (default): ``fields.PyramidField`` started from the closed form, 150 full-batch epochs on
-  8 samples per frame of a time grid shared by all pixels, a strong event loss (λ_e = 4: the pyramid
+  8 samples per frame of a time grid shared by all pixels, a strong event loss (λ_e = 8: the pyramid
   shares information between pixels far less than a network, so the events must weigh more), and a
   surface-based shadow detector run again after the first 40 % of the epochs, with the pixels it
   puts in shadow restarted from the closed form under the new mask.
@@ -11,6 +11,9 @@ what a run does; single options override a preset's value.
   decaying to 1e-4, λ_e = 0.05 (supplement §2.4, as LL22a trains); a surface-based detector runs again
   after a quarter and after half of the epochs (a network cannot restart single pixels, so only the
   mask changes).
+
+A run records the preset it used, overrides applied (``resolve``), under ``preset`` in its
+diagnostics (``Preset.record``), which ``result.json`` carries.
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ class Preset:
     detect_at: tuple[float, ...]
 
     def record(self) -> dict[str, Any]:
+        """Every field by name, as JSON writes it (``detect_at`` a list), for a run's diagnostics."""
         return {**asdict(self), "detect_at": list(self.detect_at)}
 
 

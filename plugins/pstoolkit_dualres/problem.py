@@ -1,6 +1,10 @@
 """A preprocessed capture as tensors on one device (``build_problem``), and the cast-shadow mask
 applied to it (``Problem.apply_mask``).
 
+A ``Problem`` is three parts and the units they share: the masked pixel grid the fit lives on with
+its start values (``Geometry``), the frame term of eq. 24 (``FrameTerms``) and the event term of
+eq. 25 (``EventTerms``). The mask changes only the last two, each from numpy copies of its own.
+
 Units: frame values in units of saturation; radiometric maps (albedo, F0) in units of
 ``albedo_scale`` (a bright albedo of the capture, in frame units per unit light per second), which
 the frame sample weights carry; the event irradiance is e·f_r·[n·l]₊ in those units, so a bright lit
@@ -34,24 +38,54 @@ from pstoolkit_dualres.preprocess import Preprocessed
 SCALE_PERCENTILE = 95.0
 
 
+def _like(array: np.ndarray, reference: Tensor) -> Tensor:
+    """``array`` as a tensor of ``reference``'s dtype on its device."""
+    return torch.as_tensor(np.ascontiguousarray(array), dtype=reference.dtype, device=reference.device)
+
+
 @dataclass
-class Problem:
-    """Everything a fit needs, as tensors on one device. P masked frame pixels (``pixels``, flat
-    indices into the H×W frame grid). Frames: either S samples per period on a time grid shared by
-    all pixels (``shared_*``; ``shared_visible`` (P, S) the lit share of each sample, None without a
-    mask) or M importance samples (``sample_*``). Events: E pairs with F footprint taps each; the
-    usable ones under the current mask are ``event_index``."""
+class Geometry:
+    """The P masked frame pixels a fit solves for, and where it starts. ``pixels`` (P,) flat indices
+    into the ``height``×``width`` frame grid; ``coords`` (P, 2) their positions in [−1, 1] (x right,
+    y up), the network's input; ``grid_taps`` (P, 4) int64 indices into the ``event_shape`` (He, We)
+    event grid and (P, 4) bilinear weights, where a frame pixel reads the smooth materials;
+    ``tv_pairs`` (Q, 2) int64 positions among the P of right and down neighbours both masked;
+    ``view`` (3,) direction towards the camera; ``init_normal`` (P, 3) start normals (the closed
+    form's, facing the camera where it has none) and ``init_albedo`` (P, 3) start albedo in units of
+    the albedo scale."""
 
     height: int
     width: int
-    frames: int
     pixels: np.ndarray
-    albedo_scale: float
     coords: Tensor
     event_shape: tuple[int, int]
     grid_taps: tuple[Tensor, Tensor]
+    tv_pairs: Tensor
+    view: Tensor
     init_normal: Tensor
     init_albedo: Tensor
+
+
+@dataclass
+class FrameTerms:
+    """The K = ``count`` measured frames and how the fit predicts them, as one of two kinds of sample:
+
+    - S samples per frame on a time grid shared by all pixels (``shared_*``, None otherwise):
+      ``shared_light`` (K·S, 3) unit light directions in frame order, ``shared_weight`` (K·S, 3) RGB
+      intensity × Δt (s) × albedo scale, ``shared_visible`` (P, K·S) the lit share of each sample's
+      sub-interval under the mask (None without one);
+    - M importance samples grouped by pixel (``sample_*``, empty with the shared grid):
+      ``sample_pixel`` (M,) int64 position among the P, ``sample_group`` (M,) int64
+      frame·P + position, ``sample_light`` (M, 3) unit directions, ``sample_weight`` (M, 3) RGB
+      intensity × Δt (s) × albedo scale × lit (0 or 1 under the mask).
+
+    ``measured`` (K·P, 3) frame values in units of saturation and ``saturated`` (K·P,) bool, rows in
+    frame-major order; ``exposure_s`` the K frames' summed exposure time. ``source`` holds the numpy
+    copies the mask is applied from: ``shared_t``/``shared_dt_us`` (K·S,) µs, or ``sample_t`` (M,) µs,
+    ``sample_dt_s`` (M,) s and ``sample_weight`` (M, 3) without the mask."""
+
+    count: int
+    exposure_s: float
     shared_light: Tensor | None
     shared_weight: Tensor | None
     shared_visible: Tensor | None
@@ -61,47 +95,55 @@ class Problem:
     sample_weight: Tensor
     measured: Tensor
     saturated: Tensor
-    event_taps: Tensor
-    event_weight_now: Tensor
-    event_weight_ref: Tensor
-    event_light: Tensor
-    event_light_ref: Tensor
-    event_grey: Tensor
-    event_grey_ref: Tensor
-    event_target: Tensor
-    event_weight: Tensor
-    event_index: Tensor
-    tv_pairs: Tensor
-    view: Tensor
-    shadow_fraction: np.ndarray
-    diagnostics: dict[str, Any] = field(default_factory=dict)
-    # numpy copies the mask is applied from
     source: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
-    @property
-    def device(self) -> torch.device:
-        return self.coords.device
-
-    def apply_mask(self, shadows: ShadowMask) -> None:
-        """Take the cast-shadow mask ``shadows`` into the frame weights and the event pairs."""
+    def apply_mask(self, shadows: ShadowMask, pixels: np.ndarray) -> np.ndarray:
+        """Weigh the samples by what ``shadows`` leaves lit at ``pixels`` (P,); returns (P,) the
+        exposure time in shadow, s."""
         src = self.source
-        pixels = self.pixels
         if "shared_t" in src:
             t, half = src["shared_t"], 0.5 * src["shared_dt_us"]
             p = np.repeat(pixels, t.size)
             lit = 1.0 - shadows.shadowed_us(p, np.tile(t - half, pixels.size), np.tile(t + half, pixels.size)) / np.tile(2.0 * half, pixels.size)
             visible = np.clip(lit, 0.0, 1.0).reshape(pixels.size, t.size)
-            self.shared_visible = self._tensor(visible) if len(shadows) else None
-            shadowed_s = (1.0 - visible) @ (2.0 * half) / US_PER_S
-        else:
-            lit = ~shadows.contains(pixels[src["sample_pixel"]], src["sample_t"])
-            self.sample_weight = self._tensor(src["sample_weight"] * lit[:, None])
-            shadowed_s = np.bincount(src["sample_pixel"], weights=src["sample_dt_s"] * ~lit, minlength=pixels.size)
-        self.shadow_fraction = np.zeros(self.height * self.width)
-        self.shadow_fraction[pixels] = np.clip(shadowed_s / src["exposure_s"], 0.0, 1.0)
-        self.shadow_fraction = self.shadow_fraction.reshape(self.height, self.width)
+            # no mask, no (P, K·S) product in every step
+            self.shared_visible = _like(visible, self.measured) if len(shadows) else None
+            return (1.0 - visible) @ (2.0 * half) / US_PER_S
+        lit = ~shadows.contains(pixels[src["sample_pixel"]], src["sample_t"])
+        self.sample_weight = _like(src["sample_weight"] * lit[:, None], self.measured)
+        return np.bincount(src["sample_pixel"], weights=src["sample_dt_s"] * ~lit, minlength=pixels.size)
 
-        taps, area, t_now, t_ref = src["event_frame_taps"], src["event_area"], src["event_t"], src["event_t_ref"]
+
+@dataclass
+class EventTerms:
+    """E event pairs (``pairs.EventSamples``), each seen through the F frame pixels under its super
+    pixel. ``taps`` (E, F) int64 positions among the P masked pixels (0 on a tap outside the mask,
+    whose weight is 0); ``tap_weight_now``/``tap_weight_ref`` (E, F) each tap's area share, 0 where
+    the mask shadows it at the pair's later (``t_us``) or earlier (``t_ref_us``) time; ``light_now``/
+    ``light_ref`` (E, 3) unit light directions and ``grey_now``/``grey_ref`` (E, 3) RGB intensity ×
+    Rec. 601 weight at those times; ``target`` (E,) the log-irradiance step between them and
+    ``weight`` (E,) its confidence ≥ 0; ``usable`` (U,) int64 the pairs the loss may draw under the
+    current mask. ``source`` holds the numpy copies the mask is applied from: ``frame_taps`` (E, F)
+    flat frame indices, ``area`` (E, F), ``t_us``/``t_ref_us`` (E,) µs and ``usable`` (E,) bool
+    without a mask."""
+
+    taps: Tensor
+    tap_weight_now: Tensor
+    tap_weight_ref: Tensor
+    light_now: Tensor
+    light_ref: Tensor
+    grey_now: Tensor
+    grey_ref: Tensor
+    target: Tensor
+    weight: Tensor
+    usable: Tensor
+    source: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+
+    def apply_mask(self, shadows: ShadowMask) -> None:
+        """Keep each tap's area only where ``shadows`` leaves it lit, and only the pairs across which
+        no tap enters or leaves a shadow and some area stays lit at both ends."""
+        src = self.source
+        taps, area, t_now, t_ref = src["frame_taps"], src["area"], src["t_us"], src["t_ref_us"]
         n_taps = taps.shape[1]
         flat, now, ref = taps.ravel(), np.repeat(t_now, n_taps), np.repeat(t_ref, n_taps)
         lit_now = ~shadows.contains(flat, now).reshape(taps.shape)
@@ -109,16 +151,48 @@ class Problem:
         in_between = shadows.shadowed_us(flat, ref, now).reshape(taps.shape)
         steady = (in_between <= 0.0) | (in_between >= (t_now - t_ref)[:, None])
         weight_now, weight_ref = area * lit_now, area * lit_ref
-        usable = src["event_usable"] & np.all(steady | (area <= 0), axis=1)
+        usable = src["usable"] & np.all(steady | (area <= 0), axis=1)
         usable &= (weight_now.sum(axis=1) > 0) & (weight_ref.sum(axis=1) > 0)
-        self.event_weight_now = self._tensor(weight_now)
-        self.event_weight_ref = self._tensor(weight_ref)
-        self.event_index = torch.as_tensor(np.flatnonzero(usable), dtype=torch.int64, device=self.device)
-        self.diagnostics.update(event_pairs=int(usable.sum()), event_pairs_dropped=int(usable.size - usable.sum()),
-                                cast_shadow_share=float(self.shadow_fraction.ravel()[pixels].mean()) if pixels.size else 0.0)
+        self.tap_weight_now = _like(weight_now, self.target)
+        self.tap_weight_ref = _like(weight_ref, self.target)
+        self.usable = torch.as_tensor(np.flatnonzero(usable), dtype=torch.int64, device=self.target.device)
 
-    def _tensor(self, array: np.ndarray) -> Tensor:
-        return torch.as_tensor(np.ascontiguousarray(array), dtype=self.coords.dtype, device=self.device)
+
+@dataclass
+class Problem:
+    """Everything a fit needs, as tensors on one device: the pixel grid and start (``geometry``), the
+    frame and event terms (``frames``, ``events``), the ``albedo_scale`` the radiometric values are
+    in units of, ``shadow_fraction`` (H, W) the share of each pixel's exposure time the current mask
+    removes, and ``diagnostics`` of the setup (pixels, samples, usable pairs, shadowed share)."""
+
+    geometry: Geometry
+    frames: FrameTerms
+    events: EventTerms
+    albedo_scale: float
+    shadow_fraction: np.ndarray
+    diagnostics: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def device(self) -> torch.device:
+        return self.geometry.coords.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.geometry.coords.dtype
+
+    def apply_mask(self, shadows: ShadowMask) -> None:
+        """Take the cast-shadow mask ``shadows`` into the frame weights and the event pairs."""
+        geometry = self.geometry
+        pixels = geometry.pixels
+        shadowed_s = self.frames.apply_mask(shadows, pixels)
+        self.shadow_fraction = np.zeros(geometry.height * geometry.width)
+        self.shadow_fraction[pixels] = np.clip(shadowed_s / self.frames.exposure_s, 0.0, 1.0)
+        self.shadow_fraction = self.shadow_fraction.reshape(geometry.height, geometry.width)
+        self.events.apply_mask(shadows)
+        usable = self.events.usable.numel()
+        total = self.events.target.shape[0]
+        self.diagnostics.update(event_pairs=usable, event_pairs_dropped=total - usable,
+                                cast_shadow_share=float(self.shadow_fraction.ravel()[pixels].mean()) if pixels.size else 0.0)
 
 
 def _positions(pixels: np.ndarray, size: int) -> np.ndarray:
@@ -139,6 +213,8 @@ def tv_pairs(mask: np.ndarray) -> np.ndarray:
 
 
 def albedo_scale(init_albedo: np.ndarray, mask: np.ndarray) -> float:
+    """The SCALE_PERCENTILE-th percentile of the grey (H, W, 3) ``init_albedo`` over ``mask`` (1 if
+    it has no finite positive value)."""
     grey = init_albedo[mask] @ np.asarray(GREY_WEIGHTS)
     grey = grey[np.isfinite(grey) & (grey > 0)]
     return float(np.percentile(grey, SCALE_PERCENTILE)) if grey.size else 1.0
@@ -146,10 +222,31 @@ def albedo_scale(init_albedo: np.ndarray, mask: np.ndarray) -> float:
 
 def build_problem(pre: Preprocessed, view: np.ndarray, *, device: str, frame_samples: int = 0, init: ClosedFormStart | None = None,
                   dtype: torch.dtype = torch.float32) -> Problem:
-    """Tensors of a fit from ``pre``, without a cast-shadow mask (``Problem.apply_mask`` adds one):
-    the frames on ``frame_samples`` samples per frame of a shared midpoint grid (0: the importance
-    samples of preprocessing), measured frames, event pairs with footprints, lights and targets, and
-    the start values of ``init`` (default: ``pre.init``, the closed form without a mask)."""
+    """Tensors of a fit from a preprocessed capture, without a cast-shadow mask (``Problem.apply_mask``
+    adds one): frame samples, measured frames, event pairs with footprints, lights and targets, and the
+    start values.
+
+    Parameters
+    ----------
+    pre
+        The preprocessed capture.
+    view
+        (3,) unit direction towards the camera.
+    device
+        The torch device of the tensors.
+    frame_samples
+        Samples per frame of a shared midpoint grid; 0: the importance samples of preprocessing.
+    init
+        The start normals and albedo (default: ``pre.init``, the closed form without a mask).
+    dtype
+        The float dtype of the tensors.
+
+    Returns
+    -------
+    Problem
+        Radiometric values in units of ``albedo_scale``, the SCALE_PERCENTILE-th percentile of the
+        start's grey albedo.
+    """
     init = pre.init if init is None else init
     h, w = pre.height, pre.width
     he, we = pre.event_height, pre.event_width
@@ -166,7 +263,8 @@ def build_problem(pre: Preprocessed, view: np.ndarray, *, device: str, frame_sam
     k = int(pre.frames.shape[0])
     t_start = np.asarray(pre.t_start_us, dtype=np.float64)
     t_end = np.asarray(pre.t_end_us, dtype=np.float64)
-    source: dict[str, np.ndarray] = {"exposure_s": np.float64(np.sum(t_end - t_start) / US_PER_S)}
+    exposure_s = float(np.sum(t_end - t_start) / US_PER_S)
+    frame_source: dict[str, np.ndarray] = {}
     shared_light = shared_weight = None
     s_pos, s_frame, s_dir, s_weight = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3))
     if frame_samples > 0:
@@ -174,16 +272,22 @@ def build_problem(pre: Preprocessed, view: np.ndarray, *, device: str, frame_sam
         g_dt_us = np.repeat((t_end - t_start) / frame_samples, frame_samples)
         g_dir, g_int = light.evaluate(g_t)
         shared_light, shared_weight = tensor(g_dir), tensor(g_int * (g_dt_us / US_PER_S * scale)[:, None])
-        source.update(shared_t=g_t, shared_dt_us=g_dt_us)
+        frame_source.update(shared_t=g_t, shared_dt_us=g_dt_us)
     else:
         # each masked frame pixel takes its super pixel's importance samples of each frame's window
         s_pos, s_frame, s_t, s_dt = _pixel_samples(pre, pixels)
         s_dir, s_int = light.evaluate(s_t)
         s_weight = s_int * (s_dt * scale)[:, None]
-        source.update(sample_pixel=s_pos, sample_t=s_t, sample_dt_s=s_dt, sample_weight=s_weight)
+        frame_source.update(sample_pixel=s_pos, sample_t=s_t, sample_dt_s=s_dt, sample_weight=s_weight)
 
     measured = np.asarray(pre.frames, dtype=np.float32).reshape(k, h * w, -1)[:, pixels].reshape(k * p, -1)
     saturated = np.asarray(pre.saturated, dtype=bool).reshape(k, h * w)[:, pixels].reshape(k * p)
+    frames = FrameTerms(
+        count=k, exposure_s=exposure_s, shared_light=shared_light, shared_weight=shared_weight, shared_visible=None,
+        sample_pixel=tensor(s_pos, torch.int64), sample_group=tensor(s_frame * p + s_pos, torch.int64),
+        sample_light=tensor(s_dir), sample_weight=tensor(s_weight),
+        measured=tensor(measured), saturated=tensor(saturated, torch.bool), source=frame_source,
+    )
 
     # Event pairs (eq. 25) with the frame pixels under their super pixel.
     fp_frame, fp_weight = footprints((he, we), (h, w), float(we) / float(w))
@@ -195,35 +299,31 @@ def build_problem(pre: Preprocessed, view: np.ndarray, *, device: str, frame_sam
     dir_ev, int_ev = light.evaluate(pairs.t_us)
     dir_ref, int_ref = light.evaluate(pairs.t_ref_us)
     grey_w = np.asarray(GREY_WEIGHTS)
-    source.update(event_frame_taps=frame_taps, event_area=area, event_t=pairs.t_us, event_t_ref=pairs.t_ref_us,
-                  event_usable=usable)
+    events = EventTerms(
+        taps=tensor(np.maximum(taps, 0), torch.int64), tap_weight_now=tensor(area), tap_weight_ref=tensor(area),
+        light_now=tensor(dir_ev), light_ref=tensor(dir_ref),
+        grey_now=tensor(int_ev * grey_w), grey_ref=tensor(int_ref * grey_w),
+        target=tensor(pairs.target), weight=tensor(pairs.weight),
+        usable=torch.as_tensor(np.flatnonzero(usable), dtype=torch.int64, device=device),
+        source={"frame_taps": frame_taps, "area": area, "t_us": pairs.t_us, "t_ref_us": pairs.t_ref_us, "usable": usable},
+    )
 
     v, u = np.divmod(pixels, w)
     ue, ve = frame_to_event(pre.event_to_frame, u.astype(np.float64), v.astype(np.float64))
     grid_index, grid_weight = bilinear_taps(ue, ve, we, he)
     init_normal, init_albedo = start_values(init.normal, init.albedo, pixels, scale)
     coords = np.stack([2.0 * u / max(w - 1, 1) - 1.0, 1.0 - 2.0 * v / max(h - 1, 1)], axis=1)
+    geometry = Geometry(
+        height=h, width=w, pixels=pixels, coords=tensor(coords), event_shape=(he, we),
+        grid_taps=(tensor(grid_index, torch.int64), tensor(grid_weight)),
+        tv_pairs=tensor(tv_pairs(mask), torch.int64), view=tensor(np.asarray(view, dtype=np.float64)),
+        init_normal=tensor(init_normal), init_albedo=tensor(init_albedo),
+    )
 
     problem = Problem(
-        height=h, width=w, frames=k, pixels=pixels, albedo_scale=scale,
-        coords=tensor(coords), event_shape=(he, we),
-        grid_taps=(tensor(grid_index, torch.int64), tensor(grid_weight)),
-        init_normal=tensor(init_normal), init_albedo=tensor(init_albedo),
-        shared_light=shared_light, shared_weight=shared_weight, shared_visible=None,
-        sample_pixel=tensor(s_pos, torch.int64), sample_group=tensor(s_frame * p + s_pos, torch.int64),
-        sample_light=tensor(s_dir), sample_weight=tensor(s_weight),
-        measured=tensor(measured), saturated=tensor(saturated, torch.bool),
-        event_taps=tensor(np.maximum(taps, 0), torch.int64), event_weight_now=tensor(area), event_weight_ref=tensor(area),
-        event_light=tensor(dir_ev), event_light_ref=tensor(dir_ref),
-        event_grey=tensor(int_ev * grey_w), event_grey_ref=tensor(int_ref * grey_w),
-        event_target=tensor(pairs.target), event_weight=tensor(pairs.weight),
-        event_index=torch.as_tensor(np.flatnonzero(usable), dtype=torch.int64, device=device),
-        tv_pairs=tensor(tv_pairs(mask), torch.int64),
-        view=tensor(np.asarray(view, dtype=np.float64)),
-        shadow_fraction=np.zeros((h, w)),
+        geometry=geometry, frames=frames, events=events, albedo_scale=scale, shadow_fraction=np.zeros((h, w)),
         diagnostics={"pixels": int(p), "frame_samples": int(s_pos.size) if shared_light is None else int(p * shared_light.shape[0]),
                      "albedo_scale": scale},
-        source=source,
     )
     problem.apply_mask(ShadowMask.none(h * w, pre.t0_us, pre.period_us))
     return problem

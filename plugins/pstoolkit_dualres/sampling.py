@@ -52,8 +52,29 @@ def importance_samples(
     sigma: float,
     max_step_us: float,
 ) -> Samples:
-    """Samples of every super pixel over the windows of ``irradiance`` (see the module docstring);
-    ``event_pixel``/``event_phase_us`` are the events of the period the irradiance was built from."""
+    """Samples of every super pixel over the exposure windows of ``irradiance`` (see the module
+    docstring): each segment between events and window bounds gets N + 1 midpoint samples (eq. 23).
+
+    Parameters
+    ----------
+    irradiance
+        Î of the super pixels over one period, with the windows' bounds ``bounds_us``.
+    event_pixel, event_phase_us
+        (E,) flat event pixels and phases, µs in [0, period), of the events of the period the
+        irradiance was built from.
+    n_pixels
+        Number of super pixels (event pixels).
+    sigma
+        σ of eq. 23: the sampling density.
+    max_step_us
+        Longest sub-interval, µs.
+
+    Returns
+    -------
+    Samples
+        Grouped by pixel, in time order within a pixel; within a window the weights ``dt_s`` sum to its
+        length in seconds.
+    """
     period = irradiance.period_us
     stride = 2.0 * period
     bounds = irradiance.bounds_us

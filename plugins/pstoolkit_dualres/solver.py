@@ -52,12 +52,13 @@ def deterministic(warn_only: bool) -> Iterator[None]:
 
 def build_field(preset: Preset, problem: Problem, model: FitModel) -> nn.Module:
     """``pyramid`` → PyramidField from the closed-form start; ``mlp`` → the paper's NeuralField."""
-    smooth_init = model.raw_init("smooth").to(problem.device, problem.coords.dtype)
+    geometry = problem.geometry
+    smooth_init = model.raw_init("smooth").to(problem.device, problem.dtype)
     if preset.field == "mlp":
-        return NeuralField(problem.coords, model.raw_init("pixel").to(problem.device), smooth_init).to(problem.device)
+        return NeuralField(geometry.coords, model.raw_init("pixel").to(problem.device), smooth_init).to(problem.device)
     return PyramidField(
-        (problem.height, problem.width), problem.pixels, problem.init_normal, model.pixel_raw_from(problem.init_albedo),
-        problem.event_shape, problem.grid_taps, smooth_init, smoothness=preset.smoothness,
+        (geometry.height, geometry.width), geometry.pixels, geometry.init_normal, model.pixel_raw_from(geometry.init_albedo),
+        geometry.event_shape, geometry.grid_taps, smooth_init, smoothness=preset.smoothness,
     )
 
 
@@ -167,23 +168,24 @@ class DualRes(Solver):
         pixels it shadows restarted from the closed form under it."""
         with torch.no_grad():
             normal = field()[0].cpu().numpy()
-        full = np.zeros((problem.height * problem.width, 3), dtype=np.float32)
-        full[problem.pixels] = normal
-        shadows = detector.detect(pre.evidence.with_normal(full.reshape(problem.height, problem.width, 3)), detector_options)
+        h, w, pixels = problem.geometry.height, problem.geometry.width, problem.geometry.pixels
+        full = np.zeros((h * w, 3), dtype=np.float32)
+        full[pixels] = normal
+        shadows = detector.detect(pre.evidence.with_normal(full.reshape(h, w, 3)), detector_options)
         problem.apply_mask(shadows)
         if isinstance(field, PyramidField) and len(shadows):
             init = pre.closed_form(shadows)
-            shadowed = np.flatnonzero(shadows.coverage()[problem.pixels] > 0)
-            n, albedo = start_values(init.normal, init.albedo, problem.pixels[shadowed], problem.albedo_scale)
+            shadowed = np.flatnonzero(shadows.coverage()[pixels] > 0)
+            n, albedo = start_values(init.normal, init.albedo, pixels[shadowed], problem.albedo_scale)
             index = torch.as_tensor(shadowed, dtype=torch.int64, device=problem.device)
-            field.reset(index, torch.as_tensor(n, dtype=problem.coords.dtype, device=problem.device),
-                        model.pixel_raw_from(torch.as_tensor(albedo, dtype=problem.coords.dtype, device=problem.device)))
+            field.reset(index, torch.as_tensor(n, dtype=problem.dtype, device=problem.device),
+                        model.pixel_raw_from(torch.as_tensor(albedo, dtype=problem.dtype, device=problem.device)))
         return shadows
 
     @staticmethod
     def _result(problem: Problem, model: FitModel, normal: np.ndarray, maps: dict[str, np.ndarray],
                 diagnostics: dict[str, Any]) -> SolverResult:
-        h, w, pixels = problem.height, problem.width, problem.pixels
+        h, w, pixels = problem.geometry.height, problem.geometry.width, problem.geometry.pixels
 
         def full(values: np.ndarray) -> np.ndarray:
             out = np.zeros((h * w,) + values.shape[1:], dtype=np.float32)

@@ -34,8 +34,30 @@ def event_normals(
     *,
     n_pixels: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(n_pixels, 3) unit normals and (n_pixels,) bool where determined, from the event pairs
-    (``pixel``, reference and event times, log change Δ ``target``, confidence ``weight``)."""
+    """Unit normals of the super pixels from their event pairs (see the module docstring).
+
+    Parameters
+    ----------
+    pixel
+        (K,) flat event pixel of each pair.
+    t_ref_us, t_us
+        (K,) reference and event times of each pair, µs on the light's clock.
+    target
+        (K,) log change Δ from ``t_ref_us`` to ``t_us``.
+    weight
+        (K,) confidence w of each pair (≤ 0: ignored).
+    light
+        The directional light model.
+    n_pixels
+        Number of super pixels (event pixels).
+
+    Returns
+    -------
+    normal : numpy.ndarray
+        (n_pixels, 3) unit normals with n_z ≥ 0; zero where not determined.
+    determined : numpy.ndarray
+        (n_pixels,) bool: at least ``MIN_PAIRS`` pairs spanning at least two directions.
+    """
     t_now = np.asarray(t_us, dtype=np.float64)
     v = np.exp(np.asarray(target, dtype=np.float64)) * grey_light(light, np.asarray(t_ref_us, dtype=np.float64)) - grey_light(light, t_now)
     squared = np.einsum("in,in->n", v, v)

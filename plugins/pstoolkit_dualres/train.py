@@ -52,7 +52,7 @@ class StageConfig:
 class Batch:
     """One Adam step's share of the problem. ``pixels`` (N,) the masked-pixel positions the field
     is evaluated at (None: all, in order), the first ``frame_pixels`` of them (None: all) the pixels
-    whose frames are fitted; ``frame_rows`` their rows of ``Problem.measured`` in frame-major order
+    whose frames are fitted; ``frame_rows`` their rows of ``FrameTerms.measured`` in frame-major order
     (None: all); ``samples`` their importance samples (None: all) with ``sample_pixel`` and
     ``sample_group`` (frame·frame_pixels + pixel) in local positions; ``events`` the event pairs
     (indices into all pairs) with ``event_taps`` in local positions; ``tv_pairs`` local neighbour
@@ -72,8 +72,8 @@ class Batch:
 def full_batch(problem: Problem, events: Tensor) -> Batch:
     """Every pixel and sample, the event pairs ``events``."""
     return Batch(pixels=None, frame_pixels=None, frame_rows=None, samples=None,
-                 sample_pixel=problem.sample_pixel, sample_group=problem.sample_group,
-                 events=events, event_taps=problem.event_taps[events], tv_pairs=problem.tv_pairs)
+                 sample_pixel=problem.frames.sample_pixel, sample_group=problem.frames.sample_group,
+                 events=events, event_taps=problem.events.taps[events], tv_pairs=problem.geometry.tv_pairs)
 
 
 @dataclass
@@ -94,18 +94,19 @@ class Tiling:
 
     @classmethod
     def of(cls, problem: Problem) -> Tiling:
-        p = problem.pixels.size
-        row, col = np.divmod(problem.pixels, problem.width)
-        events = problem.event_index.cpu().numpy()
-        taps = problem.event_taps.cpu().numpy()[events]
-        weight = problem.event_weight_now.cpu().numpy()[events]
+        geometry, frames = problem.geometry, problem.frames
+        p = geometry.pixels.size
+        row, col = np.divmod(geometry.pixels, geometry.width)
+        events = problem.events.usable.cpu().numpy()
+        taps = problem.events.taps.cpu().numpy()[events]
+        weight = problem.events.tap_weight_now.cpu().numpy()[events]
         anchor = taps[np.arange(len(taps)), np.argmax(weight, axis=1)] if taps.size else np.zeros(0, np.int64)
-        sample_pixel = problem.sample_pixel.cpu().numpy()
+        sample_pixel = frames.sample_pixel.cpu().numpy()
         count = np.bincount(sample_pixel, minlength=p)
         return cls(row=row, col=col, events=events, event_anchor=anchor, event_taps=taps,
                    sample_start=np.cumsum(count) - count, sample_count=count,
-                   sample_frame=problem.sample_group.cpu().numpy() // max(p, 1),
-                   tv_pairs=problem.tv_pairs.cpu().numpy())
+                   sample_frame=frames.sample_group.cpu().numpy() // max(p, 1),
+                   tv_pairs=geometry.tv_pairs.cpu().numpy())
 
 
 def _ranges(start: np.ndarray, count: np.ndarray) -> np.ndarray:
@@ -119,10 +120,10 @@ def mini_batches(problem: Problem, tiling: Tiling, config: StageConfig, generato
     """One epoch's mini-batches (see the module docstring): a random tiling offset, tiles in random order
     grouped into batches of about ``config.batch_pixels`` pixels."""
     tile = config.tile
-    p = problem.pixels.size
+    p = problem.geometry.pixels.size
     shift = torch.randint(0, tile, (2,), generator=generator).numpy()
-    rows = (problem.height + tile) // tile + 1
-    cols = (problem.width + tile) // tile + 1
+    rows = (problem.geometry.height + tile) // tile + 1
+    cols = (problem.geometry.width + tile) // tile + 1
     tile_of = ((tiling.row + shift[0]) // tile) * cols + (tiling.col + shift[1]) // tile
     rank = torch.randperm(rows * cols, generator=generator).numpy()
     # tiles in random order; a batch closes once it holds batch_pixels pixels
@@ -159,7 +160,7 @@ def mini_batches(problem: Problem, tiling: Tiling, config: StageConfig, generato
 
         out.append(Batch(
             pixels=tensor(pixels), frame_pixels=n,
-            frame_rows=tensor((np.arange(problem.frames)[:, None] * p + own[None, :]).ravel()),
+            frame_rows=tensor((np.arange(problem.frames.count)[:, None] * p + own[None, :]).ravel()),
             samples=tensor(samples), sample_pixel=tensor(sample_pixel),
             sample_group=tensor(tiling.sample_frame[samples] * n + sample_pixel),
             events=tensor(tiling.events[chosen]), event_taps=tensor(local[taps]), tv_pairs=tensor(local[pairs]),
@@ -170,24 +171,49 @@ def mini_batches(problem: Problem, tiling: Tiling, config: StageConfig, generato
 
 def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageConfig, batch: Batch,
            tv_share: float) -> tuple[Tensor, dict[str, float]]:
-    """The total loss of eq. 26 (with the field's own smoothness penalty) and its parts on ``batch``."""
+    """The total loss of eq. 26 (with the field's own smoothness penalty) and its parts on ``batch``.
+
+    Parameters
+    ----------
+    problem
+        The fit's tensors, with the current cast-shadow mask applied.
+    field
+        The surface and material field (``fields``): ``field(pixels)`` gives the normals and raw
+        channels at those masked pixels, ``field.penalty()`` its own smoothness penalty.
+    model
+        The fitted BRDF, which turns the raw channels into maps.
+    config
+        The stage's loss weights λ_f, λ_e, λ_tv.
+    batch
+        The step's pixels, frame samples, event pairs and TV pairs.
+    tv_share
+        Factor on λ_tv (the warm-up's fade from 1 to 0; 0: no TV term).
+
+    Returns
+    -------
+    total : Tensor
+        The scalar loss, differentiable.
+    parts : dict
+        The parts as floats: "frame", and "event" and "tv" when they apply.
+    """
     normal, pixel_raw, smooth_raw = field(batch.pixels)
     maps = model.maps(pixel_raw, smooth_raw)
     n = batch.frame_pixels
     own_normal, own_maps = (normal, maps) if n is None else (normal[:n], {k: v[:n] for k, v in maps.items()})
-    if problem.shared_light is not None:
-        visible = problem.shared_visible
+    frames, events, view = problem.frames, problem.events, problem.geometry.view
+    if frames.shared_light is not None:
+        visible = frames.shared_visible
         if visible is not None and batch.pixels is not None:
             visible = visible[batch.pixels[:n]]
-        predicted = frame_prediction_grid(model, own_normal, own_maps, problem.shared_light, problem.shared_weight,
-                                          visible, problem.view, problem.frames)
+        predicted = frame_prediction_grid(model, own_normal, own_maps, frames.shared_light, frames.shared_weight,
+                                          visible, view, frames.count)
     else:
-        light, weight = problem.sample_light, problem.sample_weight
+        light, weight = frames.sample_light, frames.sample_weight
         if batch.samples is not None:
             light, weight = light[batch.samples], weight[batch.samples]
         predicted = frame_prediction(model, own_normal, own_maps, batch.sample_pixel, batch.sample_group, light, weight,
-                                     problem.view, problem.frames * own_normal.shape[0])
-    measured, saturated = problem.measured, problem.saturated
+                                     view, frames.count * own_normal.shape[0])
+    measured, saturated = frames.measured, frames.saturated
     if batch.frame_rows is not None:
         measured, saturated = measured[batch.frame_rows], saturated[batch.frame_rows]
     lf = frame_loss(predicted, measured, saturated)
@@ -195,11 +221,11 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
     parts = {"frame": float(lf.detach())}
     e = batch.events
     if e.numel() and config.event_weight > 0:
-        grey = superpixel_grey(model, normal, maps, batch.event_taps, problem.event_weight_now[e],
-                               problem.event_light[e], problem.event_grey[e], problem.view)
-        grey_ref = superpixel_grey(model, normal, maps, batch.event_taps, problem.event_weight_ref[e],
-                                   problem.event_light_ref[e], problem.event_grey_ref[e], problem.view)
-        le = event_loss(grey, grey_ref, problem.event_target[e], problem.event_weight[e], LOG_EPS)
+        grey = superpixel_grey(model, normal, maps, batch.event_taps, events.tap_weight_now[e],
+                               events.light_now[e], events.grey_now[e], view)
+        grey_ref = superpixel_grey(model, normal, maps, batch.event_taps, events.tap_weight_ref[e],
+                                   events.light_ref[e], events.grey_ref[e], view)
+        le = event_loss(grey, grey_ref, events.target[e], events.weight[e], LOG_EPS)
         total = total + config.event_weight * le
         parts["event"] = float(le.detach())
     if tv_share > 0 and config.tv_weight > 0:
@@ -210,7 +236,7 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
 
 
 def _event_sample(problem: Problem, config: StageConfig, generator: torch.Generator) -> Tensor:
-    usable = problem.event_index
+    usable = problem.events.usable
     if 0 < config.event_batch < usable.numel():
         return usable[torch.randperm(usable.numel(), generator=generator)[: config.event_batch].to(usable.device)]
     return usable
@@ -218,8 +244,26 @@ def _event_sample(problem: Problem, config: StageConfig, generator: torch.Genera
 
 def train(problem: Problem, field: nn.Module, model: FitModel, config: StageConfig, progress: Progress,
           warm_start: bool = False) -> list[dict[str, float]]:
-    """Adam over ``config.epochs`` epochs; returns the loss parts (means over the epoch's batches)
-    of every PROGRESS_EVERY-th epoch. ``warm_start`` skips the TV warm-up (a later stage)."""
+    """Adam over ``config.epochs`` epochs on eq. 26, the learning rates decaying exponentially to
+    ``LR_DECAY`` of their first.
+
+    Parameters
+    ----------
+    problem, field, model
+        As for ``losses``; the field's parameters and the model's own (if any) are fitted.
+    config
+        The stage: epochs, learning rates, loss weights, batches and seed.
+    progress
+        ``progress(fraction, message)``, called at every PROGRESS_EVERY-th epoch and the last.
+    warm_start
+        Skips the TV warm-up (a later stage).
+
+    Returns
+    -------
+    list of dict
+        For every PROGRESS_EVERY-th epoch and the last: "epoch", "steps" and the loss and its parts,
+        means over the epoch's batches.
+    """
     generator = torch.Generator(device="cpu").manual_seed(config.seed)
     groups = [{"params": field.surface_parameters(), "lr": config.lr}]
     materials = [*field.material_parameters(), *model.parameters()]

@@ -76,9 +76,29 @@ def rim_band(mask: np.ndarray, share: float = 0.05) -> np.ndarray:
 
 def highlight_band(normal: np.ndarray, mask: np.ndarray, directions: np.ndarray, roughness: float | np.ndarray,
                    view: np.ndarray = np.array([0.0, 0.0, 1.0]), level: float = 0.1) -> np.ndarray:
-    """(H, W) bool: the pixels of ``mask`` a GGX highlight passes over while the light takes the unit
-    ``directions`` (T, 3): at some moment the pixel is lit and its lobe D(n·h) is at least ``level`` of
-    its peak, for ``roughness`` (a number or an (H, W) map) and unit normals ``normal`` (H, W, 3)."""
+    """The pixels of ``mask`` a GGX highlight passes over while the light takes the given directions: at
+    some moment the pixel is lit and its lobe D(n·h) is at least ``level`` of its peak.
+
+    Parameters
+    ----------
+    normal
+        (H, W, 3) unit normals.
+    mask
+        (H, W) bool, the object's pixels.
+    directions
+        (T, 3) unit directions to the light.
+    roughness
+        GGX roughness r, a number or an (H, W) map (clamped to ≥ 0.02, as in ``pstoolkit.optics.brdf``).
+    view
+        Unit direction to the viewer (default +z).
+    level
+        Share of the lobe's peak D(0) that counts as in the highlight.
+
+    Returns
+    -------
+    numpy.ndarray
+        (H, W) bool, False outside ``mask``.
+    """
     mask = np.asarray(mask, dtype=bool)
     n = np.asarray(normal, dtype=np.float64)[mask]
     r = np.broadcast_to(np.asarray(roughness, dtype=np.float64), mask.shape)[mask]

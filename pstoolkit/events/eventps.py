@@ -286,15 +286,41 @@ def stream(
     window_us: float | None = None,
     threads: int = 1,
 ) -> Iterator[NormalWindow]:
-    """Normal maps from time-ordered chunks of events of a ``width`` × ``height`` sensor under
-    ``light``: one per window [k·window_us, (k + 1)·window_us) from the first event's window to the last
-    one's (empty windows included), each yielded in order once the events have passed its end (with
-    ``threads`` > 1, up to ``threads`` windows later); or,
-    with ``window_us`` None, one for the whole stream, from its first event to its last, taken to
-    cover the whole number of light turns nearest to that span. With ``threads`` > 1 the pairing
-    stays in the caller's thread and up to ``threads`` windows are fitted at once in a pool (the
-    compiled loops release the GIL): the same maps, sooner. A chunk that goes back in time is a
-    UserError."""
+    """Normal maps of an event stream, one per time window, yielded in order once the events have
+    passed the window's end (see the module docstring).
+
+    Parameters
+    ----------
+    chunks
+        Time-ordered chunks of events.
+    light
+        The light model; must be directional.
+    width, height
+        The sensor's size in pixels.
+    params
+        Thresholds, refractory period, pair intervals and fit options.
+    window_us
+        Window length, µs (> 0): one map per window [k·window_us, (k + 1)·window_us) from the first
+        event's window to the last one's, empty windows included. None: one map for the whole stream,
+        from its first event to its last, taken to cover the whole number of light turns nearest to that
+        span (the stream is then held at once).
+    threads
+        With more than 1, the pairing stays in the caller's thread and up to ``threads`` windows are
+        fitted at once in a pool (the compiled loops release the GIL): the same maps, sooner, each
+        yielded up to ``threads`` windows later.
+
+    Yields
+    ------
+    NormalWindow
+        The normals of one window (H, W, 3) and their sources (H, W).
+
+    Raises
+    ------
+    UserError
+        A chunk that goes back in time, an event outside the sensor, or a near light.
+    ValueError
+        ``window_us`` not positive.
+    """
     solver = WindowSolver(light, width, height, params)
     if window_us is None:
         events = EventArray.concatenate([chunk for chunk in chunks if len(chunk)])
@@ -331,7 +357,31 @@ def solve(
 ) -> tuple[NormalWindow, list[NormalWindow]]:
     """The map of the whole stream and the maps of its windows (as ``stream`` gives them) from one
     pairing pass: the whole stream's pairs are its windows' pairs, so its map is the one ``stream``
-    gives with ``window_us`` None. Up to ``threads`` maps are fitted at once; holds every constraint."""
+    gives with ``window_us`` None. Holds every constraint.
+
+    Parameters
+    ----------
+    chunks, light, width, height, params
+        As for ``stream``.
+    window_us
+        Window length, µs (> 0).
+    threads
+        The most maps fitted at once.
+
+    Returns
+    -------
+    whole : NormalWindow
+        The map of the whole stream.
+    windows : list of NormalWindow
+        The maps of its windows, in time order.
+
+    Raises
+    ------
+    UserError
+        A chunk that goes back in time, an event outside the sensor, or a near light.
+    ValueError
+        ``window_us`` not positive.
+    """
     if not window_us > 0:
         raise ValueError(f"window_us must be positive, got {window_us}")
     solver = WindowSolver(light, width, height, params)

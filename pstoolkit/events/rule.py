@@ -133,18 +133,42 @@ def exact_pairs(
     t_start_us: float | None = None,
 ) -> LevelPairs:
     """The pairs of a time-sorted event stream whose log change is exact under ``rule`` (see the
-    module docstring), with thresholds ``contrast_pos``/``contrast_neg``:
+    module docstring):
 
     - "reset-at-end" (or R = 0): every event and the one before it of its pixel, the earlier level
       read at ``t_prev + R``; one threshold of the later event's polarity.
     - "rate-limited": consecutive exact events of a pixel — those that fired at a crossing, i.e.
       later than ``R + TIMESTAMP_RESOLUTION_US`` after the pixel's event before (an event at the end
       of a blind time only bounds the level) — with every threshold of the events after the earlier
-      one up to the later one. A pixel's first event is exact when it comes at least
-      ``R + TIMESTAMP_RESOLUTION_US`` after ``t_start_us`` (default: the stream's first time), as no
-      event before the recording can have left it blind then.
+      one up to the later one.
 
-    UserError for an unknown rule."""
+    Parameters
+    ----------
+    events
+        Time-sorted event stream.
+    width
+        The sensor's width in pixels (pixel index y·width + x).
+    rule
+        One of ``REFRACTORY_RULES``.
+    refractory_us
+        The refractory period R, µs.
+    contrast_pos, contrast_neg
+        Thresholds C⁺ and C⁻ on the change of L.
+    t_start_us
+        Start of the recording, µs (default: the stream's first time); "rate-limited" only. A pixel's
+        first event is exact when it comes later than ``R + TIMESTAMP_RESOLUTION_US`` after it, as no
+        event before the recording can have left the pixel blind then.
+
+    Returns
+    -------
+    LevelPairs
+        The exact pairs, grouped by pixel, in time order within a pixel.
+
+    Raises
+    ------
+    UserError
+        An unknown rule.
+    """
     check_rule(rule, "exact_pairs")
     pixel, t, p = _by_pixel(events, width)
     positive = (p > 0).astype(np.int64)

@@ -252,11 +252,40 @@ def record(
     trigger_channel: int = 0,
     progress: Callable[[float, str], None] | None = None,
 ) -> Recording:
-    """Stream the sources into ``writer`` (frames and events begun by the caller) for ``periods``
-    turns of ``sweep``, counted from the first rising trigger edge on ``trigger_channel`` (the
-    light's period trigger: LED 0 at its peak). Frames whose exposure window lies inside the turns
-    and events inside them are kept; ``keepalive`` runs every ``keepalive_s`` wall seconds. Sources
-    that end early are a UserError (the caller's writer then aborts, so no partial file appears)."""
+    """Stream the sources into ``writer`` for a whole number of turns of the sweep, counted from the
+    first rising trigger edge. Frames whose exposure window lies inside the turns, and events and
+    trigger edges inside them, are kept; the sources are closed on return.
+
+    Parameters
+    ----------
+    sources
+        The open camera sources; their packets are merged in time order.
+    writer
+        The capture being written, its frames and events begun by the caller.
+    sweep
+        The light sweep the sources record; its ``period_us`` sets the length of a turn.
+    periods
+        Turns to record.
+    keepalive, keepalive_s
+        ``keepalive()`` runs every ``keepalive_s`` wall seconds while recording (e.g. to keep the light
+        running).
+    trigger_channel
+        Channel of the light's period trigger (LED 0 at its peak); its first rising edge starts the turns.
+    progress
+        Optional ``progress(fraction, stage)`` called after each packet written.
+
+    Returns
+    -------
+    Recording
+        Frames and events counted, the trigger edges inside the turns, and the span [t0_us, t_end_us) on
+        the capture clock.
+
+    Raises
+    ------
+    UserError
+        The sources ended before a rising trigger edge or before the last turn was complete (the
+        caller's writer then aborts, so no partial file appears).
+    """
     streams = [source.stream(sweep) for source in sources]
     out = Recording()
     t0: int | None = None

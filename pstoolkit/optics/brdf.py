@@ -84,7 +84,24 @@ class BRDF(ABC):
 
     @abstractmethod
     def shade(self, n: Tensor, l: Tensor, v: Tensor, **maps: Tensor) -> Tensor:
-        """f_r(l, v)·[n·l]₊ per RGB channel, shape broadcast(...) + (3,)."""
+        """f_r(l, v)·[n·l]₊ per RGB channel, with no 1/π on the diffuse part (DualResPS eq. 3–4).
+
+        Parameters
+        ----------
+        n, l, v
+            Unit normal, unit direction to the light and unit direction to the viewer, (..., 3) in any
+            broadcastable batch shape, float32 or float64, on any device.
+        **maps
+            Exactly the maps named in ``params``, as keywords, broadcasting against ``n``: (...,
+            channels) with the channels of ``fit``; a one-channel map may also be given as (...), and a
+            number as a constant map.
+
+        Returns
+        -------
+        Tensor
+            broadcast(...) + (3,): the reflected radiance per RGB channel under a light of intensity 1
+            (a Lambertian pixel under a light of intensity e is e·ρ_d·n·l).
+        """
 
     def derived_maps(self, maps: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Maps implied by fitted ``maps`` (each (..., channels), radiometric ones relative to a bright
@@ -129,6 +146,17 @@ class GGX(BRDF):
     )
 
     def shade(self, n: Tensor, l: Tensor, v: Tensor, *, albedo: Tensor, f0: Tensor, roughness: Tensor) -> Tensor:  # type: ignore[override]
+        """(ρ_d + ρ_s)·[n·l]₊ per RGB channel; see ``BRDF.shade`` for ``n``, ``l``, ``v`` and the result.
+
+        Parameters
+        ----------
+        albedo
+            (..., 3) diffuse albedo ρ_d.
+        f0
+            (..., 3) specular colour F0.
+        roughness
+            (...) or (..., 1) roughness r, clamped to ≥ ``MIN_ROUGHNESS``.
+        """
         r = torch.clamp(_channel_map(roughness, n), min=MIN_ROUGHNESS)
         alpha2 = r**4
         k = (r + 1.0) ** 2 / 8.0
@@ -200,6 +228,18 @@ class MetallicGGX(BRDF):
         return (1.0 - m) * base, (1.0 - m) * DIELECTRIC_F0 + m * base
 
     def shade(self, n: Tensor, l: Tensor, v: Tensor, *, base_color: Tensor, metallic: Tensor, roughness: Tensor) -> Tensor:  # type: ignore[override]
+        """``GGX.shade`` with albedo (1 − m)·b and F0 = (1 − m)·0.04 + m·b; see ``BRDF.shade`` for ``n``,
+        ``l``, ``v`` and the result.
+
+        Parameters
+        ----------
+        base_color
+            (..., 3) base colour b.
+        metallic
+            (...) or (..., 1) metallic m, in [0, 1].
+        roughness
+            (...) or (..., 1) roughness r, clamped to ≥ ``MIN_ROUGHNESS``.
+        """
         albedo, f0 = self._split(base_color, metallic, n)
         return _GGX.shade(n, l, v, albedo=albedo, f0=f0, roughness=roughness)
 
@@ -225,6 +265,18 @@ class _SpecularBases(BRDF):
         """(..., BASES) basis values."""
 
     def shade(self, n: Tensor, l: Tensor, v: Tensor, *, albedo: Tensor, basis_weights: Tensor, specular_tint: Tensor) -> Tensor:  # type: ignore[override]
+        """(ρ_d + tint·Σ_b w_b·basis_b(n, l, v))·[n·l]₊ per RGB channel; see ``BRDF.shade`` for ``n``,
+        ``l``, ``v`` and the result.
+
+        Parameters
+        ----------
+        albedo
+            (..., 3) diffuse albedo ρ_d.
+        basis_weights
+            (..., ``BASES``) non-negative weights w_b of the specular bases.
+        specular_tint
+            (..., 3) RGB tint of the specular term.
+        """
         specular = _as_map(specular_tint, n) * _dot(_as_map(basis_weights, n), self.bases(n, l, v))
         return (_as_map(albedo, n) + specular) * torch.clamp(_dot(n, l), min=0.0)
 

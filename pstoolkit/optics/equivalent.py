@@ -54,21 +54,45 @@ def equivalent_lights(
     visibility: np.ndarray | None = None,
     points_mm: np.ndarray | None = None,
 ) -> np.ndarray:
-    """L*[..., c, :] = ∫_{t0}^{t1} e_c(t)·m(x, t)·l(t) dt, dt in seconds; axis −2 is the RGB channel,
-    axis −1 is xyz.
+    """The equivalent lights L*[..., c, :] = ∫_{t0}^{t1} e_c(t)·m(x, t)·l(t) dt of an exposure window (eq. 12,
+    14, 16), dt in seconds, by the midpoint rule. The work is chunked over pixels so memory stays bounded
+    whatever the number of pixels P is.
 
-    Without per-pixel inputs (a directional model, no normals, no visibility) the result is one (3, 3)
-    matrix. Otherwise it is (P, 3, 3), or pixel_shape + (3, 3): ``normals`` (P, 3) switch on the
-    attached-shadow clamp [l·n > 0]; ``visibility`` (n_samples, P) bool gives m at the sample times;
-    ``points_mm`` (P, 3) are the surface points a near light needs. The work is chunked over pixels so
-    memory stays bounded whatever P is.
+    Parameters
+    ----------
+    model
+        The light model; a near light needs ``points_mm``.
+    t0_us, t1_us
+        The exposure window, µs (t1_us > t0_us).
+    n_samples
+        Midpoint-rule sample times (default ``DEFAULT_SAMPLES`` = 128, or the length of ``visibility``,
+        which it must then equal). For a smooth integrand the relative error is about h²/24 with h the
+        light's angular step per sample: a window sweeping Δφ radians needs n ≥ 7·Δφ for 0.1 % (15 for a
+        third of a turn, 42 for a full turn), and 128 keeps a third of a turn within 2e-5. Shadows and
+        visibility make the integrand jump, where the error is up to one sample's share (1/n of the
+        window) per jump: 128 samples bound it by 0.8 %, so raise n when shadow boundaries matter, e.g.
+        when fitting normals near the terminator.
+    normals
+        (P, 3), or pixel_shape + (3,), unit normals; they switch on the attached-shadow clamp [l·n > 0]
+        (eq. 16).
+    visibility
+        (n_samples, P), or (n_samples,) + pixel_shape, bool: the visibility mask m at the sample times
+        (cast shadows, eq. 14).
+    points_mm
+        (P, 3), or pixel_shape + (3,), surface points, mm, that a near light needs.
 
-    Choosing ``n_samples`` (default 128, or the length of ``visibility``): for a smooth integrand the
-    midpoint rule's relative error is about h²/24 with h the light's angular step per sample — a window
-    sweeping Δφ radians needs n ≥ 7·Δφ for 0.1 % (15 for a third of a turn, 42 for a full turn), and 128
-    keeps a third of a turn within 2e-5. Shadows and visibility make the integrand jump, where the error
-    is up to one sample's share (1/n of the window) per jump: 128 samples bound it by 0.8 %, so raise n
-    when shadow boundaries matter, e.g. when fitting normals near the terminator.
+    Returns
+    -------
+    numpy.ndarray
+        float64; axis −2 is the RGB channel, axis −1 is xyz. Without per-pixel inputs (a directional
+        model, no normals, no visibility, no points) one (3, 3) matrix; otherwise pixel_shape + (3, 3),
+        e.g. (P, 3, 3).
+
+    Raises
+    ------
+    ValueError
+        ``n_samples`` < 1 or disagreeing with ``visibility``, an empty window, ``normals`` not (..., 3),
+        per-pixel inputs covering different numbers of pixels, or a near light without ``points_mm``.
     """
     if visibility is not None:
         visibility = np.asarray(visibility).astype(bool, copy=False)

@@ -65,7 +65,24 @@ def interval_profile(
     contrast_pos: float,
     contrast_neg: float,
 ) -> Profile:
-    """Eq. 20 for the events of one period starting at ``t0_us`` (the stream sorted by time)."""
+    """Eq. 20 for the events of one period starting at ``t0_us``.
+
+    Parameters
+    ----------
+    events
+        The event stream, sorted by time; events outside [t0_us, t0_us + period_us) are ignored.
+    width
+        The sensor's width in pixels (pixel index y·width + x).
+    t0_us, period_us
+        Start of the period and the light period, µs.
+    contrast_pos, contrast_neg
+        Thresholds C⁺ and C⁻, log units.
+
+    Returns
+    -------
+    Profile
+        f_k in log units per second, with the phases, polarities and pixels of the events.
+    """
     pixel, t, p = group_by_pixel(events, width, t0_us, period_us)
     n = len(t)
     starts = np.flatnonzero(np.r_[True, pixel[1:] != pixel[:-1]]) if n else np.empty(0, np.int64)

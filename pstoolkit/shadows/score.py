@@ -18,9 +18,27 @@ SCORE_STEPS = 1440
 
 def true_shadows(depth: np.ndarray, mask: np.ndarray, light: LightModel, t0_us: float, period_us: float,
                  steps: int = SCORE_STEPS) -> ShadowMask:
-    """The cast shadows (V < ½ in the simulator's soft-edged visibility) of the height map ``depth``
-    (H, W) pixels over ``mask`` (H, W) under ``light``, on ``steps`` directions per period from
-    ``t0_us``, as a frame-resolution mask."""
+    """The cast shadows (V < ½ in the simulator's soft-edged visibility) of a height map under a light,
+    as a frame-resolution mask.
+
+    Parameters
+    ----------
+    depth
+        (H, W) height map, towards the camera, in pixels.
+    mask
+        (H, W) bool, the object's pixels; only they occlude.
+    light
+        The directional light model.
+    t0_us, period_us
+        Start of the period and its length, µs.
+    steps
+        Light directions per period, at the bin centres of ``grid_times``.
+
+    Returns
+    -------
+    ShadowMask
+        The shadow intervals of every frame pixel, per period from ``t0_us``.
+    """
     from pstoolkit.sim.shadow_sweep import cast_shadow_mask  # deferred: compiled with numba
 
     mask = np.asarray(mask, dtype=bool)

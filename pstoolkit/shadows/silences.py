@@ -44,9 +44,29 @@ def dark_spans(
     tolerance_us: float = RUN_TOLERANCE_US,
     max_share: float = 0.6,
 ) -> ShadowIntervals:
-    """Dark spans (see the module docstring) of every event pixel of ``profile``, as phase intervals
-    at event pixels; ``ratio`` > 0 keeps only spans longer than ``ratio`` times the event intervals
-    just before and after them, ``max_share`` drops spans longer than that share of the period."""
+    """Dark spans (see the module docstring) of every event pixel of ``profile``.
+
+    Parameters
+    ----------
+    profile
+        The events of one light period, grouped by event pixel (``interval_profile``).
+    refractory_us
+        The sensor's refractory period R, µs.
+    min_gap_us
+        Shortest span kept, µs (exclusive).
+    ratio
+        When > 0, keeps only spans longer than ``ratio`` times the event intervals just before and after
+        them (0: off).
+    tolerance_us
+        Slack on "one refractory period apart" for the events of a negative run, µs.
+    max_share
+        Drops spans as long as this share of the period or longer.
+
+    Returns
+    -------
+    ShadowIntervals
+        Phase intervals, µs, at flat event pixels: from the start of the run to the positive event.
+    """
     n = len(profile)
     if n == 0:
         return ShadowIntervals.empty()

@@ -183,9 +183,37 @@ def result_summary(
     error_max_deg: float,
     stored: bool = False,
 ) -> dict[str, Any]:
-    """The content of ``result.json``: what ran on what, the error statistics in degrees and the
-    coverage (``metrics.error_stats``; None without ground truth), the data rate, the options and the
-    files of the further maps."""
+    """The content of ``result.json``: what ran on what, the error statistics and the coverage, the data
+    rate, the options and the files of the further maps.
+
+    Parameters
+    ----------
+    solved
+        The solved and scored capture (``solve_capture``).
+    entry
+        The registered solver that ran (its name and plugin are recorded).
+    name
+        The result's name.
+    obj
+        The object's name (the capture's stem, or "demo").
+    capture
+        The capture file.
+    device
+        The torch device the solver ran on.
+    options
+        The solver's parsed options.
+    error_max_deg
+        Angular error at the top of ``error.png``'s colour scale, degrees (recorded as None without
+        ground truth).
+    stored
+        Whether the result is also stored in the capture under ``name``.
+
+    Returns
+    -------
+    dict
+        JSON-ready apart from numpy values (``summary_json``); the error statistics in degrees
+        (``metrics.error_stats``) are None without ground truth.
+    """
     stats = solved.scored.stats if solved.scored is not None else {}
     return {
         "name": name,

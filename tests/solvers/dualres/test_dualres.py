@@ -1,12 +1,13 @@
 """The ``dualres`` solver (DualResPS inverse rendering) on a 48 px hybrid capture of the blobs scene
 (cast shadows, GGX highlights): it beats its own closed-form start and ``frameps`` on the same three
 frames, returns every map of the run contract, is deterministic, fits every registered BRDF, takes
-its shadow detector from the registry (a third party's too) and gains from the mask, and rejects
-input it cannot use with one line."""
+its shadow detector from the registry (a third party's too) and gains from the mask, records the
+preset as resolved, and rejects input it cannot use with one line."""
 
 from __future__ import annotations
 
 import json
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +25,7 @@ from pstoolkit.shadows import ShadowDetector
 from pstoolkit.shadows.score import true_shadows
 from pstoolkit.solve.base import SolverResult, run_solver
 from pstoolkit_dualres.fields import NeuralField, positional_encoding
+from pstoolkit_dualres.presets import PRESETS
 
 SIZE = 48
 
@@ -168,12 +170,25 @@ def test_frames_without_exposure_windows_are_refused(blobs: Path) -> None:
         _solve(classic, "dualres")
 
 
+def test_the_preset_as_resolved_is_recorded(blobs: Path) -> None:
+    """The diagnostics carry every value the run used: the named preset with the options set over it."""
+    capture = psfmt.load(blobs)
+    result = _solve(capture, "dualres", "preset=paper", "epochs=0", "lr=0.002", "frame_samples=4", "tv_weight=-1")
+    paper = PRESETS["paper"]
+    # tv_weight −1 keeps the preset's
+    expected = {**asdict(paper), "epochs": 0, "lr": 0.002, "frame_samples": 4, "detect_at": list(paper.detect_at)}
+    assert result.diagnostics["preset"] == expected
+    assert json.loads(json.dumps(result.diagnostics["preset"])) == expected
+
+
 def test_cli_run_writes_maps_and_result_json(blobs: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "out"
     assert main(["run", str(blobs), "--solver", "dualres", "-o", str(out), "--set", "epochs=3", "--json"]) == 0
     result = json.loads((out / "result.json").read_text())
     assert result["solver"] == "dualres" and result["mae_deg"] < 3.0
     assert result["options"]["epochs"] == 3
+    fast = PRESETS["fast"]
+    assert result["diagnostics"]["preset"] == {**asdict(fast), "epochs": 3, "detect_at": list(fast.detect_at)}
     for name in ("normal", "albedo", "f0", "roughness", "metallic", "base_color", "cast_shadow", "error"):
         assert (out / f"{name}.npy").exists(), name
     capsys.readouterr()

@@ -46,25 +46,26 @@ def test_an_epoch_covers_every_pixel_sample_and_usable_event_once(sphere: tuple[
     _, problem = sphere
     tiling = Tiling.of(problem)
     batches = mini_batches(problem, tiling, STAGE, torch.Generator().manual_seed(0))
-    p = problem.pixels.size
+    geometry, frames = problem.geometry, problem.frames
+    p = geometry.pixels.size
     assert abs(len(batches) - p / 256) <= 2
     own = np.concatenate([b.pixels[: b.frame_pixels].numpy() for b in batches])
     np.testing.assert_array_equal(np.sort(own), np.arange(p))
     samples = np.concatenate([b.samples.numpy() for b in batches])
-    np.testing.assert_array_equal(np.sort(samples), np.arange(problem.sample_pixel.numel()))
+    np.testing.assert_array_equal(np.sort(samples), np.arange(frames.sample_pixel.numel()))
     events = np.concatenate([b.events.numpy() for b in batches])
-    np.testing.assert_array_equal(np.sort(events), problem.event_index.numpy())
+    np.testing.assert_array_equal(np.sort(events), problem.events.usable.numpy())
     tv = sum(len(b.tv_pairs) for b in batches)
-    assert 0.75 * len(problem.tv_pairs) < tv < len(problem.tv_pairs)  # pairs across tiles wait for another offset
+    assert 0.75 * len(geometry.tv_pairs) < tv < len(geometry.tv_pairs)  # pairs across tiles wait for another offset
     for b in batches:
         pixels = b.pixels.numpy()
         # local indices point at the right global pixels and frame groups
-        np.testing.assert_array_equal(pixels[b.sample_pixel.numpy()], problem.sample_pixel.numpy()[b.samples.numpy()])
-        frame = problem.sample_group.numpy()[b.samples.numpy()] // p
+        np.testing.assert_array_equal(pixels[b.sample_pixel.numpy()], frames.sample_pixel.numpy()[b.samples.numpy()])
+        frame = frames.sample_group.numpy()[b.samples.numpy()] // p
         np.testing.assert_array_equal(b.sample_group.numpy(), frame * b.frame_pixels + b.sample_pixel.numpy())
-        np.testing.assert_array_equal(pixels[b.event_taps.numpy()], problem.event_taps.numpy()[b.events.numpy()])
+        np.testing.assert_array_equal(pixels[b.event_taps.numpy()], problem.events.taps.numpy()[b.events.numpy()])
         rows = b.frame_rows.numpy()
-        np.testing.assert_array_equal(rows % p, np.tile(pixels[: b.frame_pixels], problem.frames))
+        np.testing.assert_array_equal(rows % p, np.tile(pixels[: b.frame_pixels], frames.count))
         assert (b.tv_pairs.numpy() < b.frame_pixels).all()
     again = mini_batches(problem, tiling, STAGE, torch.Generator().manual_seed(0))
     assert all(torch.equal(a.pixels, b.pixels) for a, b in zip(batches, again))
@@ -77,10 +78,10 @@ def test_the_mask_reaches_the_frames_and_the_events(blobs: tuple[psfmt.Capture, 
     for frame_samples in (8, 0):
         problem = build_problem(pre, capture.calibration.view_direction, device="cpu", frame_samples=frame_samples)
         assert problem.shadow_fraction.max() == 0.0
-        usable = problem.event_index.numel()
+        usable = problem.events.usable.numel()
         problem.apply_mask(truth)
-        share = problem.shadow_fraction.ravel()[problem.pixels]
-        coverage = truth.coverage()[problem.pixels]
+        share = problem.shadow_fraction.ravel()[problem.geometry.pixels]
+        coverage = truth.coverage()[problem.geometry.pixels]
         # the share of exposure time masked is the time in shadow: exactly for the shared grid's lit
         # shares, to within an importance sample at each edge (at most 5° of the turn) otherwise
         assert coverage.max() > 0.2
@@ -89,17 +90,17 @@ def test_the_mask_reaches_the_frames_and_the_events(blobs: tuple[psfmt.Capture, 
         else:
             assert np.abs(share - coverage).mean() < 0.005 and np.abs(share - coverage).max() < 4 * 5.0 / 360.0  # measured 0.001, 0.033
         if frame_samples:
-            lit = problem.shared_visible.numpy()
+            lit = problem.frames.shared_visible.numpy()
             assert lit.min() == 0.0 and ((lit > 0) & (lit < 1)).any()
         else:
-            assert (problem.sample_weight.numpy() == 0).any()
+            assert (problem.frames.sample_weight.numpy() == 0).any()
         # pairs across an edge go; the others keep only their lit taps' area
-        assert 0 < problem.event_index.numel() < usable
-        kept = problem.event_index.numpy()
-        now, ref = problem.event_weight_now.numpy()[kept], problem.event_weight_ref.numpy()[kept]
+        assert 0 < problem.events.usable.numel() < usable
+        kept = problem.events.usable.numpy()
+        now, ref = problem.events.tap_weight_now.numpy()[kept], problem.events.tap_weight_ref.numpy()[kept]
         assert (now.sum(axis=1) > 0).all() and (ref.sum(axis=1) > 0).all() and (now.sum(axis=1) < 0.99).any()
         problem.apply_mask(ShadowMask.none(pre.height * pre.width, pre.t0_us, pre.period_us))
-        assert problem.event_index.numel() == usable and problem.shadow_fraction.max() == 0.0
+        assert problem.events.usable.numel() == usable and problem.shadow_fraction.max() == 0.0
 
 
 def test_a_laplacian_pyramid_collapses_to_its_image() -> None:
@@ -111,17 +112,18 @@ def test_a_laplacian_pyramid_collapses_to_its_image() -> None:
 
 def test_the_pyramid_field_starts_at_its_init_and_resets_pixels(sphere: tuple[psfmt.Capture, Problem]) -> None:
     _, problem = sphere
+    geometry = problem.geometry
     model = FitModel(GGX())
-    pixel_raw = model.pixel_raw_from(problem.init_albedo)
-    field = PyramidField((problem.height, problem.width), problem.pixels, problem.init_normal, pixel_raw,
-                         problem.event_shape, problem.grid_taps, model.raw_init("smooth"), smoothness=1.0)
+    pixel_raw = model.pixel_raw_from(geometry.init_albedo)
+    field = PyramidField((geometry.height, geometry.width), geometry.pixels, geometry.init_normal, pixel_raw,
+                         geometry.event_shape, geometry.grid_taps, model.raw_init("smooth"), smoothness=1.0)
     normal, raw, smooth = field()
-    torch.testing.assert_close(normal, problem.init_normal / problem.init_normal.norm(dim=1, keepdim=True), atol=1e-5, rtol=0)
+    torch.testing.assert_close(normal, geometry.init_normal / geometry.init_normal.norm(dim=1, keepdim=True), atol=1e-5, rtol=0)
     torch.testing.assert_close(raw, pixel_raw, atol=1e-5, rtol=0)
     torch.testing.assert_close(smooth, model.raw_init("smooth").expand_as(smooth), atol=1e-5, rtol=0)
     maps = model.maps(raw, smooth)
     assert set(maps) == {"albedo", "f0", "roughness"}
-    torch.testing.assert_close(maps["albedo"], problem.init_albedo.clamp(min=1e-3), atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(maps["albedo"], geometry.init_albedo.clamp(min=1e-3), atol=1e-4, rtol=1e-4)
     index = torch.tensor([0, 5, 17])
     target = torch.tensor([[0.0, 0.6, 0.8]] * 3)
     before = field()[0]
@@ -158,7 +160,7 @@ def test_a_coordinate_mlp_fits_a_sphere_by_mini_batches(tmp_path: Path) -> None:
     model = FitModel(GGX())
     # the paper's network at a quarter of its width (its shape is tested in test_dualres.py), so the
     # test stays fast; the full width converges the same way (benchmarks/dualres.py)
-    field = NeuralField(problem.coords, model.raw_init("pixel"), model.raw_init("smooth"), width=64, material_width=32)
+    field = NeuralField(problem.geometry.coords, model.raw_init("pixel"), model.raw_init("smooth"), width=64, material_width=32)
     config = StageConfig(epochs=40, lr=3e-3, material_lr=3e-3, frame_weight=1.0, event_weight=0.05, tv_weight=0.02,
                          tv_fraction=0.3, event_batch=0, batch_pixels=64, tile=8, seed=0)
     history = train(problem, field, model, config, no_progress)
@@ -166,7 +168,7 @@ def test_a_coordinate_mlp_fits_a_sphere_by_mini_batches(tmp_path: Path) -> None:
     with torch.no_grad():
         normal = field()[0].numpy()
     full = np.zeros((32 * 32, 3), np.float32)
-    full[problem.pixels] = normal
+    full[problem.geometry.pixels] = normal
     gt = capture.ground_truth
     mae = float(angular_error_deg(full.reshape(32, 32, 3), gt.normal, gt.mask)[gt.mask].mean())
     # from 45° (facing the camera); measured 5.9° and 8.0° on two CPUs, whose float sums order differently
@@ -178,10 +180,10 @@ def test_shadow_intervals_of_a_frame_mask_reach_problem_pixels(blobs: tuple[psfm
     """A mask that shadows one pixel for the whole second window: that pixel's second frame gets no light."""
     capture, pre = blobs
     problem = build_problem(pre, capture.calibration.view_direction, device="cpu", frame_samples=8)
-    pixel = int(problem.pixels[100])
+    pixel = int(problem.geometry.pixels[100])
     window = pre.windows_us[1]
     mask = ShadowMask.from_intervals(ShadowIntervals(np.array([pixel]), window[:1], window[1:]),
                                      np.arange(pre.height * pre.width), pre.t0_us, pre.period_us)
     problem.apply_mask(mask)
-    lit = problem.shared_visible.numpy()[100].reshape(3, 8)
+    lit = problem.frames.shared_visible.numpy()[100].reshape(3, 8)
     np.testing.assert_allclose(lit, [[1.0] * 8, [0.0] * 8, [1.0] * 8], atol=1e-9)
