@@ -145,16 +145,17 @@ def shade_lanes(
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _idle_slot(slots: LaneSlots, q: int, k: int) -> None:  # pragma: no cover - compiled
-    """Slot ``q`` of lane ``k`` without a frame pixel: constants of zero (no light), but |n|² and k of
-    one, which keep its shading finite, at frame position 0."""
-    consts = slots.values
+def _idle_slot(
+    consts: np.ndarray, position: np.ndarray, position_t: np.ndarray, q: int, k: int,
+) -> None:  # pragma: no cover - compiled
+    """Slot ``q`` of lane ``k`` without a frame pixel (``LaneSlots``' arrays): constants of zero (no
+    light), but |n|² and k of one, which keep its shading finite, at frame position 0."""
     for col in range(consts.shape[0]):
         consts[col, q, k] = 0.0
     consts[NORM2, q, k] = 1.0
     consts[K_COLUMN, q, k] = 1.0
-    slots.position[q, k] = 0
-    slots.position_t[q, k] = 0
+    position[q, k] = 0
+    position_t[q, k] = 0
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -164,7 +165,7 @@ def idle_lanes(columns: int, taps: int) -> LaneSlots:  # pragma: no cover - comp
     slots = LaneSlots(np.empty((columns, taps, LANES)), np.empty((taps, LANES), np.int64), np.empty((taps, LANES), np.int64))
     for q in range(taps):
         for k in range(LANES):
-            _idle_slot(slots, q, k)
+            _idle_slot(slots.values, slots.position, slots.position_t, q, k)
     return slots
 
 
@@ -172,16 +173,20 @@ def idle_lanes(columns: int, taps: int) -> LaneSlots:  # pragma: no cover - comp
 def load_lane(slots: LaneSlots, k: int, p: int, frame: FrameInputs) -> None:  # pragma: no cover - compiled
     """Lane ``k`` takes event pixel ``p``: per slot of its footprint (``Footprints``), the frame
     pixel's ``FrameConstants.values`` with the greys times the slot's area weight, and its flat
-    positions row- and column-major; an unused slot is idle (``_idle_slot``: adds nothing)."""
-    consts, values, weight, pixel = slots.values, frame.values, frame.weight, frame.pixel
+    positions row- and column-major; an unused slot is idle (``_idle_slot``: adds nothing).
+
+    Every array is taken out of its record once, before the loop: each read of a record's array
+    field is a reference count taken and dropped (atomic), too slow for the loop."""
+    consts, position, position_t = slots.values, slots.position, slots.position_t
+    values, weight, pixel, index, index_t = frame.values, frame.weight, frame.pixel, frame.index, frame.index_t
     for q in range(pixel.shape[1]):
         f = pixel[p, q]
         if f < 0:
-            _idle_slot(slots, q, k)
+            _idle_slot(consts, position, position_t, q, k)
             continue
         for col in range(values.shape[1]):
             consts[col, q, k] = values[f, col]
         consts[GREY_DIFFUSE, q, k] *= weight[p, q]
         consts[GREY_SPECULAR, q, k] *= weight[p, q]
-        slots.position[q, k] = frame.index[f]
-        slots.position_t[q, k] = frame.index_t[f]
+        position[q, k] = index[f]
+        position_t[q, k] = index_t[f]

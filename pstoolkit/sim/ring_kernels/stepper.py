@@ -60,6 +60,7 @@ def advance_pixels(
     shadows = np.zeros(w, np.uint64)
     cos_az, sin_az = np.ones(w), np.zeros(w)
     slots = idle_lanes(frame.values.shape[1], taps)
+    position = slots.position
     last_shade, l_sums = np.zeros((2, taps, w)), np.zeros((2, taps, w))
     # the trial sample
     t1, cos1, sin1, l1, grey = np.empty(w), np.empty(w), np.empty(w), np.empty(w), np.empty(w)
@@ -87,7 +88,7 @@ def advance_pixels(
             shadows[k] = 0
             for q in range(taps):
                 if pixel[p, q] >= 0:
-                    shadows[k] |= reach[slots.position[q, k]]
+                    shadows[k] |= reach[position[q, k]]
                 for j in range(2):
                     last_shade[j, q, k] = shade[p, q, j]
                     l_sums[j, q, k] = sums[p, q, j]
