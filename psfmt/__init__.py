@@ -14,6 +14,7 @@ from __future__ import annotations
 __version__ = "0.1.0"
 
 from psfmt.atomic import atomic_path
+from psfmt.camera import CAMERA_MODELS
 from psfmt.datarate import DataRate, data_rate, target_size
 from psfmt.errors import FormatError
 from psfmt.events import EventArray, Events, Triggers
@@ -36,6 +37,7 @@ from psfmt.version import FORMAT_NAME, FORMAT_VERSION_STR
 from psfmt.writer import CaptureWriter, write
 
 __all__ = [
+    "CAMERA_MODELS",
     "FORMAT_NAME",
     "FORMAT_VERSION_STR",
     "REFRACTORY_RULES",

@@ -149,6 +149,13 @@ class Calibration:
     contrast thresholds are in natural-log units; the refractory period in µs, and what a pixel does
     after it, ``refractory_rule`` (one of ``REFRACTORY_RULES``; None, when unknown, means
     ``"reset-at-end"``, spec §9).
+
+    ``camera_model`` is ``"orthographic"`` or ``"perspective"`` (``psfmt.camera.CAMERA_MODELS``, spec
+    §9.1); a perspective camera has ``intrinsics``, the float64 (3, 3) pinhole matrix
+    K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]] in frame pixels (centre of projection at the origin,
+    scene at z < 0; ``psfmt.camera`` states the projection), an orthographic one None.
+    ``view_direction`` (3,) is the unit vector from the surface to the camera (for a perspective
+    camera, that of the principal point).
     """
 
     event_to_frame: np.ndarray | None = None
@@ -158,10 +165,13 @@ class Calibration:
     refractory_rule: str | None = None
     camera_model: str = "orthographic"
     view_direction: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+    intrinsics: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        if self.event_to_frame is not None:
-            self.event_to_frame = np.asarray(self.event_to_frame, dtype=np.float64)
+        for name in ("event_to_frame", "intrinsics"):
+            value = getattr(self, name)
+            if value is not None:
+                setattr(self, name, np.asarray(value, dtype=np.float64))
         self.view_direction = np.asarray(self.view_direction, dtype=np.float64)
 
 

@@ -19,6 +19,7 @@ import numpy as np
 
 from psfmt import layout
 from psfmt.attributes import attrs
+from psfmt.camera import PERSPECTIVE
 from psfmt.errors import FormatError
 from psfmt.events import Events, H5EventStore, H5Triggers
 from psfmt.files import hdf5_errors, open_hdf5, require_open
@@ -67,10 +68,15 @@ def _read_lights(group: h5py.Group) -> LightSpec:
 
 
 def _read_calibration(group: h5py.Group | None) -> Calibration:
+    """``/calibration`` as checked by the validator; ``intrinsics`` (3, 3) only of a perspective camera
+    (a file before format 1.2 has none: its camera is orthographic)."""
     if group is None:
         return Calibration()
     kwargs: dict[str, Any] = attrs(group, layout.CALIBRATION_ATTRS)
-    for key in ("event_to_frame", "view_direction"):
+    keys = ["event_to_frame", "view_direction"]
+    if kwargs.get("camera_model") == PERSPECTIVE:
+        keys.append("intrinsics")
+    for key in keys:
         if key in group:
             kwargs[key] = group[key][()]
     return Calibration(**kwargs)

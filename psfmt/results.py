@@ -11,8 +11,8 @@ import h5py
 from psfmt.atomic import atomic_path, locked
 from psfmt.errors import FormatError
 from psfmt.model import Result
+from psfmt.storing import compression_options, put_result
 from psfmt.validate import check
-from psfmt.writer import compression_options, put_result
 
 
 def write_result(path: str | os.PathLike[str], result: Result) -> None:

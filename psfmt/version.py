@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 FORMAT_NAME = "hybrid-capture"
-FORMAT_VERSION = (1, 1)
+FORMAT_VERSION = (1, 2)
 FORMAT_VERSION_STR = f"{FORMAT_VERSION[0]}.{FORMAT_VERSION[1]}"
 
 

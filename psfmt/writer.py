@@ -9,7 +9,6 @@ streams HDF5's own filters read.
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Any
@@ -19,6 +18,7 @@ import numpy as np
 
 from psfmt import layout
 from psfmt.atomic import check_target, commit, temporary_sibling
+from psfmt.camera import camera_problem
 from psfmt.deflate import ChunkCompressor
 from psfmt.errors import FormatError
 from psfmt.events import DEFAULT_CHUNK_EVENTS, EVENT_DTYPES, EventArray, MsIndexBuilder
@@ -34,37 +34,19 @@ from psfmt.model import (
     Result,
     utc_now,
 )
+from psfmt.storing import compression_options, put_calibration, put_params, put_result, row_chunks
 from psfmt.version import FORMAT_NAME, FORMAT_VERSION_STR
 
-_FRAME_CHUNK_BYTES = 1 << 20
 # The event columns grow by at least this many chunks at a time (see ``_flush_events``).
 GROW_CHUNKS = 16
+# compression_options, row_chunks and put_result are also importable from here, their former home
+__all__ = ["GROW_CHUNKS", "CaptureWriter", "compression_options", "put_result", "row_chunks", "write"]
 
 
 def _package_version() -> str:
     from psfmt import __version__
 
     return __version__
-
-
-def compression_options(level: int) -> dict[str, Any]:
-    # deflate and shuffle are built into every HDF5 library, so any reader in any language opens the file
-    return {"compression": "gzip", "compression_opts": level, "shuffle": True} if level > 0 else {}
-
-
-def row_chunks(shape: tuple[int, ...], itemsize: int, lead: tuple[int, ...] = ()) -> tuple[int, ...]:
-    """Chunk shape of whole rows of ``shape`` (rows first), about ``_FRAME_CHUNK_BYTES`` each, after
-    the ``lead`` chunk sizes of leading axes (a frame stack's 1)."""
-    row_bytes = int(np.prod(shape[1:], dtype=np.int64)) * itemsize
-    return (*lead, max(1, min(shape[0], _FRAME_CHUNK_BYTES // max(1, row_bytes))), *shape[1:])
-
-
-def _put_params(group: h5py.Group, params: dict[str, Any]) -> None:
-    for key, value in params.items():
-        if isinstance(value, (str, bool, int, float, np.integer, np.floating, np.bool_)):
-            group.attrs[key] = value
-        else:
-            group.create_dataset(key, data=np.asarray(value))
 
 
 class CaptureWriter:
@@ -275,20 +257,14 @@ class CaptureWriter:
     def set_lights(self, lights: LightSpec) -> None:
         group = self._file.create_group(layout.LIGHTS)
         group.attrs["model"] = lights.model
-        _put_params(group, lights.params)
+        put_params(group, lights.params)
 
     def set_calibration(self, calibration: Calibration) -> None:
-        group = self._file.require_group(layout.CALIBRATION)
-        group.attrs["camera_model"] = calibration.camera_model
-        group.create_dataset("view_direction", data=np.asarray(calibration.view_direction, np.float64))
-        if calibration.event_to_frame is not None:
-            group.create_dataset("event_to_frame", data=np.asarray(calibration.event_to_frame, np.float64))
-        for key in ("contrast_pos", "contrast_neg", "refractory_us"):
-            value = getattr(calibration, key)
-            if value is not None:
-                group.attrs[key] = float(value)
-        if calibration.refractory_rule is not None:
-            group.attrs["refractory_rule"] = str(calibration.refractory_rule)
+        """``/calibration``; a camera model and intrinsics that do not go together (spec §9.1) are refused."""
+        problem = camera_problem(calibration.camera_model, calibration.intrinsics)
+        if problem is not None:
+            raise FormatError(self.path, f"calibration: {problem}")
+        put_calibration(self._file, calibration)
 
     def set_ground_truth(self, gt: GroundTruth) -> None:
         group = self._file.create_group(layout.GROUND_TRUTH)
@@ -352,24 +328,6 @@ class CaptureWriter:
             self.close()
         else:
             self.abort()
-
-
-def put_result(root: h5py.Group, result: Result, compress: dict[str, Any] | None = None) -> None:
-    """Store one result under ``/results/<name>``, replacing a result of the same name."""
-    results = root.require_group(layout.RESULTS)
-    if result.name in results:
-        del results[result.name]
-    group = results.create_group(result.name)
-    for key, value in result.maps.items():
-        arr = np.asarray(value)
-        group.create_dataset(key, data=arr.astype(np.uint8) if arr.dtype == bool else arr, **(compress or {}))
-    group.attrs["solver"] = result.solver
-    group.attrs["options"] = json.dumps(result.options, sort_keys=True, default=str)
-    group.attrs["seconds"] = float(result.seconds)
-    group.attrs["version"] = result.version
-    group.attrs["created"] = result.created
-    if result.data_rate is not None:
-        group.attrs["data_rate"] = float(result.data_rate)
 
 
 def write(capture: Capture, path: str | os.PathLike[str], *, compression_level: int = 1) -> Path:

@@ -40,6 +40,7 @@ def describe(capture: psfmt.Capture) -> dict[str, Any]:
         else:
             f["instantaneous_lights"] = True
         out["frames"] = f
+    out["camera"] = camera(capture.calibration)
     events = capture.events
     if events is not None:
         n = len(events)
@@ -84,6 +85,16 @@ def describe(capture: psfmt.Capture) -> dict[str, Any]:
     return out
 
 
+def camera(calibration: psfmt.Calibration) -> dict[str, Any]:
+    """The camera model and, for a perspective camera, fx, fy, cx, cy (and the skew s) of its
+    intrinsics K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]] in frame pixels (spec §9.1)."""
+    out: dict[str, Any] = {"model": calibration.camera_model}
+    if calibration.intrinsics is not None:
+        k = calibration.intrinsics
+        out.update(fx=float(k[0, 0]), fy=float(k[1, 1]), cx=float(k[0, 2]), cy=float(k[1, 2]), skew=float(k[0, 1]))
+    return out
+
+
 def event_encoding(capture: psfmt.Capture) -> dict[str, Any]:
     """The real EVT 3.0 size of the capture's events (words only, no header) beside the 16-bit
     estimate, and the data rate with the real size."""
@@ -118,6 +129,12 @@ def _text(d: dict[str, Any]) -> str:
             f"  frames: {f['count']} × {f['width']}×{f['height']}×{f['channels']} {f['dtype']} "
             f"({f['bit_depth']}-bit, saturation {f['saturation']:g}), {timing}"
         )
+    cam = d["camera"]
+    if "fx" in cam:
+        skew = f", skew {cam['skew']:g}" if cam["skew"] else ""
+        lines.append(f"  camera: {s(cam['model'])}, fx {cam['fx']:g}, fy {cam['fy']:g}, cx {cam['cx']:g}, cy {cam['cy']:g} px{skew}")
+    else:
+        lines.append(f"  camera: {s(cam['model'])}")
     if "events" in d:
         e = d["events"]
         lines.append(
@@ -165,9 +182,10 @@ def info(
     file: Path = typer.Argument(..., help="A hybrid-capture HDF5 file."),
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
 ) -> None:
-    """Show what a capture holds: resolution, frames and exposure, events and rate, the event
-    sensor's thresholds and refractory period and rule, lights, ground truth, stored results, and the
-    data rate against 24 RGB 8-bit frames."""
+    """Show what a capture holds: resolution, frames and exposure, the camera model (with a perspective
+    camera's focal lengths and principal point), events and rate, the event sensor's thresholds and
+    refractory period and rule, lights, ground truth, stored results, and the data rate against 24 RGB
+    8-bit frames."""
     with psfmt.read(file, verify=True) as capture:
         summary = describe(capture)
     echo(json.dumps(summary, indent=2) if as_json else _text(summary))

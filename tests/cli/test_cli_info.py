@@ -43,7 +43,8 @@ def test_info_json_numbers_of_a_hybrid_capture(tmp_path: Path, capsys: pytest.Ca
     psfmt.write(known_capture(), path)
     d = info_json(path, capsys)
     assert (d["file"], d["kind"], d["format_version"], d["creator"], d["created"]) == (
-        str(path), "hybrid", "1.1", "tests 9.9", CREATED)
+        str(path), "hybrid", "1.2", "tests 9.9", CREATED)
+    assert d["camera"] == {"model": "orthographic"}
     assert d["frames"] == {"count": 3, "width": 64, "height": 64, "channels": 3, "dtype": "uint8", "bit_depth": 8,
                            "saturation": 255.0, "exposure_ms": [10.0, 10.0, 10.0]}
     last = (N_EVENTS - 1) * EVENT_STEP_US
@@ -73,9 +74,10 @@ def test_info_text_of_a_hybrid_capture(tmp_path: Path, capsys: pytest.CaptureFix
     total = 100 * (3 * 64 * 64 * 3 + 2 * N_EVENTS) / REFERENCE_BYTES
     assert err == ""
     assert out.splitlines() == [
-        f"{path}: hybrid capture, format 1.1, by tests 9.9 at {CREATED}",
+        f"{path}: hybrid capture, format 1.2, by tests 9.9 at {CREATED}",
         "  description: hybrid sample, seed 0",
         "  frames: 3 × 64×64×3 uint8 (8-bit, saturation 255), exposure 10, 10, 10 ms",
+        "  camera: orthographic",
         "  events: 4,000 at 32×32, 27.994 ms, 0.143 M events/s",
         "  event sensor: contrast +0.15/−0.2, refractory 500 µs, rate-limited",
         "  lights: ring (elevation_deg=43.0, period_us=30000, phase_deg=90.0, sense=-1, t0_us=0)",
@@ -111,7 +113,7 @@ def test_info_of_events_only_and_frames_only_captures(tmp_path: Path, capsys: py
     assert main(["info", str(tmp_path / "frames.h5")]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[2] == "  frames: 6 × 64×64×3 uint8 (8-bit, saturation 255), instantaneous lights"
-    assert lines[3] == "  lights: none"
+    assert lines[3:5] == ["  camera: orthographic", "  lights: none"]
 
 
 def test_info_lists_a_result_written_later(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -161,3 +163,22 @@ def test_strings_from_the_file_reach_the_terminal_without_control_characters(tmp
     assert "  results: eventps (eventps, 1.25 s), r[31m (s1m, 0.00 s)" in lines
     info = info_json(path, capsys)  # JSON escapes them: the values stay as stored
     assert info["description"] == capture.description
+
+
+def test_info_shows_a_perspective_camera(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    capture = known_capture()
+    capture.calibration.camera_model = "perspective"
+    capture.calibration.intrinsics = np.array([[500.0, 0.0, 31.5], [0.0, 510.0, 30.25], [0.0, 0.0, 1.0]])
+    path = tmp_path / "pinhole.h5"
+    psfmt.write(capture, path)
+    assert info_json(path, capsys)["camera"] == {"model": "perspective", "fx": 500.0, "fy": 510.0, "cx": 31.5, "cy": 30.25,
+                                                 "skew": 0.0}
+    assert main(["info", str(path)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[3] == "  camera: perspective, fx 500, fy 510, cx 31.5, cy 30.25 px"
+
+    capture.calibration.intrinsics[0, 1] = 0.5
+    psfmt.write(capture, path)
+    assert info_json(path, capsys)["camera"]["skew"] == 0.5
+    assert main(["info", str(path)]) == 0
+    assert capsys.readouterr().out.splitlines()[3] == "  camera: perspective, fx 500, fy 510, cx 31.5, cy 30.25 px, skew 0.5"

@@ -63,9 +63,12 @@ def assert_captures_equal(a: psfmt.Capture, b: psfmt.Capture) -> None:
     for key in ("contrast_pos", "contrast_neg", "refractory_us", "refractory_rule", "camera_model"):
         assert getattr(cb, key) == getattr(ca, key), key
     np.testing.assert_array_equal(cb.view_direction, ca.view_direction)
-    assert (ca.event_to_frame is None) == (cb.event_to_frame is None)
-    if ca.event_to_frame is not None:
-        np.testing.assert_array_equal(cb.event_to_frame, ca.event_to_frame)
+    for key in ("event_to_frame", "intrinsics"):
+        va, vb = getattr(ca, key), getattr(cb, key)
+        assert (va is None) == (vb is None), key
+        if va is not None:
+            np.testing.assert_array_equal(vb, va)
+            assert vb.dtype == np.float64, key
     assert (a.ground_truth is None) == (b.ground_truth is None)
     if a.ground_truth is not None:
         for key in ("normal", "mask", "albedo", "depth"):
@@ -89,11 +92,39 @@ def test_every_field_survives_write_and_load(tmp_path: Path, kind: str) -> None:
     capture = sample_capture(kind, seed=3)
     psfmt.write(capture, tmp_path / "c.h5")
     loaded = psfmt.load(tmp_path / "c.h5")
-    assert loaded.format_version == psfmt.FORMAT_VERSION_STR == "1.1"
+    assert loaded.format_version == psfmt.FORMAT_VERSION_STR == "1.2"
     assert loaded.kind == kind
     assert_captures_equal(capture, loaded)
     report = psfmt.validate(tmp_path / "c.h5")
     assert report.errors == []
+
+
+@pytest.mark.parametrize("kind", ["hybrid", "events", "frames"])
+def test_a_perspective_camera_survives_write_and_load(tmp_path: Path, kind: str) -> None:
+    capture = sample_capture(kind, seed=8)
+    capture.calibration.camera_model = "perspective"
+    # fx, fy, cx, cy and a skew that are not round in binary: compared bit for bit
+    capture.calibration.intrinsics = np.array([[812.3456789, 0.1234567, 31.7], [0.0, 809.87654321, 32.05], [0.0, 0.0, 1.0]])
+    psfmt.write(capture, tmp_path / "c.h5")
+    assert psfmt.validate(tmp_path / "c.h5").errors == []
+    loaded = psfmt.load(tmp_path / "c.h5")
+    assert loaded.format_version == "1.2" and loaded.calibration.camera_model == "perspective"
+    assert_captures_equal(capture, loaded)
+    with h5py.File(tmp_path / "c.h5", "r") as f:
+        assert f["calibration"].attrs["camera_model"] == "perspective"
+        ds = f["calibration/intrinsics"]
+        assert (ds.shape, ds.dtype.str) == ((3, 3), "<f8")
+    with psfmt.read(tmp_path / "c.h5") as lazy:
+        np.testing.assert_array_equal(lazy.calibration.intrinsics, capture.calibration.intrinsics)
+
+
+def test_an_orthographic_camera_stores_no_intrinsics(tmp_path: Path) -> None:
+    capture = sample_capture("hybrid", seed=9)
+    psfmt.write(capture, tmp_path / "c.h5")
+    loaded = psfmt.load(tmp_path / "c.h5")
+    assert (loaded.calibration.camera_model, loaded.calibration.intrinsics) == ("orthographic", None)
+    with h5py.File(tmp_path / "c.h5", "r") as f:
+        assert "intrinsics" not in f["calibration"] and f["calibration"].attrs["camera_model"] == "orthographic"
 
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])
@@ -178,7 +209,7 @@ def test_same_capture_gives_the_same_bytes(tmp_path: Path) -> None:
 def test_layout_on_disk_matches_the_spec(tmp_path: Path) -> None:
     psfmt.write(sample_capture("hybrid", seed=0), tmp_path / "c.h5")
     with h5py.File(tmp_path / "c.h5", "r") as f:
-        assert f.attrs["format"] == "hybrid-capture" and f.attrs["format_version"] == "1.1"
+        assert f.attrs["format"] == "hybrid-capture" and f.attrs["format_version"] == "1.2"
         assert set(f) == {"frames", "events", "triggers", "lights", "calibration", "ground_truth", "results"}
         dtypes = {c: f["events"][c].dtype.str for c in "xytp"}
         assert dtypes == {"x": "<u2", "y": "<u2", "t": "<i8", "p": "|i1"}
