@@ -1,4 +1,5 @@
-"""First-party plugin that registers pstoolkit's built-in light models, shadow detectors, BRDFs and scenes.
+"""First-party plugin that registers pstoolkit's built-in light models, shadow detectors, BRDFs, scenes
+and normal integrators.
 
 It is found through the ``pstoolkit`` entry-point group and uses the same hooks as a third-party
 plugin. Imports sit inside the hooks, so a module that fails to import spoils only its own registry
@@ -44,3 +45,12 @@ def pstoolkit_register_scenes(registry: Registry) -> None:
 
     for scene in SCENES:
         registry.register(scene)
+
+
+@hookimpl
+def pstoolkit_register_integrators(registry: Registry) -> None:
+    from pstoolkit.surface.bini import BiNIIntegrator
+    from pstoolkit.surface.poisson import PoissonIntegrator
+
+    for integrator in (PoissonIntegrator, BiNIIntegrator):
+        registry.register(integrator)

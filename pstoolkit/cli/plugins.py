@@ -63,7 +63,8 @@ def _plugin_text(info: PluginInfo, held: Holdings) -> list[str]:
 @app.command()
 def plugins(as_json: bool = typer.Option(False, "--json", help="Print the listing as JSON.")) -> None:
     """List every plugin with its version and what it registered (light models, shadow detectors,
-    BRDFs, solvers, backends, converters, scenes) with options, and plugins that failed to load."""
+    BRDFs, solvers, backends, converters, scenes, integrators) with options, and plugins that failed
+    to load."""
     listing = [(info, _holdings(info.name)) for info in loaded_plugins()]
     failures = load_failures()
     if as_json:

@@ -1,4 +1,5 @@
-"""Accuracy of normal maps: per-pixel angular error and the summary statistics papers report.
+"""Accuracy of normal maps: per-pixel angular error and the summary statistics papers report; and of
+depth maps: RMSE after the usual scale/offset alignment (``depth_error``).
 
 MAE is the mean of the per-pixel angles (DiLiGenT's definition), not the arccos of the mean cosine.
 A pixel a solver leaves unsolved (a zero normal) counts as 90° in the MAE, the median and the shares
@@ -8,6 +9,7 @@ pixels solved) and the MAE over the solved pixels say how much of the error that
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -20,6 +22,57 @@ SHARE_KEYS = tuple(f"below_{threshold:g}".replace(".", "_") for threshold in THR
 """The statistics' names of the shares under each threshold: below_11_25, below_22_5, below_30."""
 
 
+@dataclass
+class DepthError:
+    """``depth_error``'s result: ``rmse`` in the truth's units after alignment, the ``scale`` and
+    ``offset`` that align the depth to the truth (truth ≈ scale·depth + offset), and the number of
+    ``pixels`` compared."""
+
+    rmse: float
+    scale: float
+    offset: float
+    pixels: int
+
+
+def depth_error(depth: np.ndarray, truth: np.ndarray, mask: np.ndarray, *, scale: bool = True) -> DepthError:
+    """RMSE of a depth map against the truth after the usual scale/offset alignment.
+
+    Integrated depth is known only up to an offset (orthographic) or a scale (perspective), and may
+    be in other units than the truth (pixels against mm), so before comparing, the least-squares
+    ``s``, ``o`` minimising Σ (s·depth + o − truth)² over the pixels of ``mask`` where both maps are
+    finite are applied (``scale=False``: s = 1, only the offset is fitted); the RMSE of
+    s·depth + o − truth over them is returned in the truth's units. The scale may come out negative
+    (a depth of the opposite sign convention); a depth constant over the pixels gets s = 0 (it
+    explains nothing of the truth's shape). Raises UserError when the shapes differ or no pixel is
+    left to compare.
+
+    Parameters
+    ----------
+    depth
+        (H, W) the depth to rate (NaN where there is none).
+    truth
+        (H, W) the true depth.
+    mask
+        (H, W) bool, the pixels to compare.
+    scale
+        Fit a scale as well as the offset.
+    """
+    d = np.asarray(depth, dtype=np.float64)
+    t = np.asarray(truth, dtype=np.float64)
+    m = np.asarray(mask, dtype=bool)
+    if d.shape != t.shape or m.shape != t.shape or d.ndim != 2:
+        raise UserError(f"depth {d.shape}, truth {t.shape} and mask {m.shape} must be equal (H, W)")
+    inside = m & np.isfinite(d) & np.isfinite(t)
+    if not inside.any():
+        raise UserError("no pixels to compare: the mask has none where both depths are finite")
+    d, t = d[inside], t[inside]
+    # centred sums: the fit of s stays exact for depths far from 0 (perspective: z ≈ −f)
+    dc, tc = d - d.mean(), t - t.mean()
+    spread = float(np.dot(dc, dc))
+    s = (float(np.dot(dc, tc)) / spread if spread > 0 else 0.0) if scale else 1.0
+    o = float(t.mean() - s * d.mean())
+    residual = s * d + o - t
+    return DepthError(rmse=float(np.sqrt(np.mean(residual**2))), scale=s, offset=o, pixels=int(d.size))
 
 
 def angular_error_deg(normal: np.ndarray, normal_gt: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:

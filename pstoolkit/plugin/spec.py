@@ -65,6 +65,13 @@ def pstoolkit_register_scenes(registry: Registry) -> None:
 
 
 @hookspec
+def pstoolkit_register_integrators(registry: Registry) -> None:
+    """Register normal integrators (subclasses of ``pstoolkit.surface.base.Integrator``) that turn a
+    normal map into a depth map, orthographic or through a pinhole camera; callers take them by name,
+    so methods can be swapped like solvers."""
+
+
+@hookspec
 def pstoolkit_add_commands(app: typer.Typer) -> None:
     """Add commands to the ``pstoolkit`` command line: decorate functions with ``@app.command()``.
     Called once, when the ``pstoolkit`` command starts (``pstoolkit.cli.main``)."""

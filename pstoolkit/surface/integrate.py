@@ -8,9 +8,15 @@ neighbours inside the mask, likewise vertically, each weighted by the pair's mea
 normal's slope is the least certain), plus a weak pull of every height towards zero that fixes the
 free offset of each connected part. A depth step the normals cannot see (an occluding contour) comes
 out as the steepest slope the clamped gradients allow, spread over the pixels beside it.
+
+The solve itself (``integrate_gradients``) takes any gradient field with its weights, so the
+perspective integrators (``pstoolkit.surface.perspective``: gradients of log-depth) and the
+discontinuity-preserving one (``pstoolkit.surface.bini``: the same pairs, reweighted) share it.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -23,11 +29,92 @@ MIN_NZ = 0.05
 SCREEN = 1e-6
 
 
+class Pairs(NamedTuple):
+    """The neighbour pairs inside a mask of n pixels: ``index`` (H, W) int64, each mask pixel's
+    unknown (−1 outside); ``first``/``second`` (M,) the unknowns of each pair, ``second`` the right
+    (axis 1) or lower (axis 0) neighbour; ``lo``/``hi`` (M,) the flat pixel indices (v·W + u) of
+    the same; ``axis`` (M,) 1 for horizontal pairs, then 0 for vertical ones."""
+
+    index: np.ndarray
+    n: int
+    first: np.ndarray
+    second: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    axis: np.ndarray
+
+
+def neighbour_pairs(mask: np.ndarray) -> Pairs:
+    """Every pair of 4-neighbours both inside ``mask`` (H, W) bool: horizontal pairs first, then
+    vertical, each in row-major order of their first pixel."""
+    height, width = mask.shape
+    n = int(mask.sum())
+    index = np.full((height, width), -1, dtype=np.int64)
+    index[mask] = np.arange(n)
+    flat = np.arange(height * width).reshape(height, width)
+    firsts, seconds, los, his, axes = [], [], [], [], []
+    for axis in (1, 0):
+        lo = (slice(None), slice(None, -1)) if axis == 1 else (slice(None, -1), slice(None))
+        hi = (slice(None), slice(1, None)) if axis == 1 else (slice(1, None), slice(None))
+        both = mask[lo] & mask[hi]
+        firsts.append(index[lo][both])
+        seconds.append(index[hi][both])
+        los.append(flat[lo][both])
+        his.append(flat[hi][both])
+        axes.append(np.full(int(both.sum()), axis, dtype=np.int8))
+    return Pairs(index, n, *(np.concatenate(parts) for parts in (firsts, seconds, los, his, axes)))
+
+
+def difference_matrix(pairs: Pairs) -> sp.csr_matrix:
+    """(M, n) sparse: row k gives value[second_k] − value[first_k]."""
+    m = pairs.first.size
+    rows = np.concatenate([np.arange(m), np.arange(m)])
+    values = np.concatenate([np.ones(m), -np.ones(m)])
+    return sp.csr_matrix((values, (rows, np.concatenate([pairs.second, pairs.first]))), shape=(m, pairs.n))
+
+
+def solve_pairs(pairs: Pairs, weight: np.ndarray, target: np.ndarray, refine: int = 0) -> np.ndarray:
+    """(n,) values minimising Σ_k weight_k·(value[second_k] − value[first_k] − target_k)² +
+    SCREEN·Σ value² over the unknowns of ``pairs``; ``weight`` and ``target`` (M,). The screen term
+    keeps the system positive definite and sets each connected part's mean near 0.
+
+    Its pull also bends what is loosely held (a long thin part far from 0), so each of ``refine``
+    further solves pulls towards the previous solution instead of 0 (a proximal step on the same
+    factorisation, about 1/30 of its cost): the offsets stay, the bend shrinks by SCREEN over the
+    part's stiffness each time."""
+    d = difference_matrix(pairs)
+    normal_matrix = (d.T @ sp.diags(weight) @ d + SCREEN * sp.identity(pairs.n)).tocsc()
+    rhs = d.T @ (weight * target)
+    # a sparse direct solve: about 0.2 s for a 256² map on this machine, faster than CG on the Laplacian
+    factor = spla.splu(normal_matrix)
+    values = factor.solve(rhs)
+    for _ in range(refine):
+        values = factor.solve(rhs + SCREEN * values)
+    return np.asarray(values, dtype=np.float64)
+
+
 def surface_gradients(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(∂h/∂u, ∂h/∂v, weight) (H, W) each, from unit normals (H, W, 3); n_z is clamped to ``MIN_NZ``
     and the weight is the clamped n_z."""
     nz = np.maximum(np.asarray(normal[..., 2], dtype=np.float64), MIN_NZ)
     return -normal[..., 0] / nz, normal[..., 1] / nz, nz
+
+
+def integrate_gradients(du: np.ndarray, dv: np.ndarray, weight: np.ndarray, mask: np.ndarray, refine: int = 0) -> np.ndarray:
+    """(H, W) float64 values whose differences best match the gradients ``du`` = ∂/∂u, ``dv`` = ∂/∂v
+    (H, W) over ``mask`` (H, W) bool, 0 outside: each pair of neighbours gets the mean of its two
+    pixels' gradient and, squared, the mean of their ``weight`` as its equation's weight (see the
+    module docstring); ``refine`` as in ``solve_pairs``."""
+    mask = np.asarray(mask, dtype=bool)
+    out = np.zeros(mask.shape)
+    pairs = neighbour_pairs(mask)
+    if pairs.n == 0:
+        return out
+    horizontal = pairs.axis == 1
+    grad = np.where(horizontal, du.ravel()[pairs.lo] + du.ravel()[pairs.hi], dv.ravel()[pairs.lo] + dv.ravel()[pairs.hi])
+    w = 0.5 * (weight.ravel()[pairs.lo] + weight.ravel()[pairs.hi])
+    out[mask] = solve_pairs(pairs, w**2, 0.5 * grad, refine)
+    return out
 
 
 def integrate_normals(normal: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -37,35 +124,4 @@ def integrate_normals(normal: np.ndarray, mask: np.ndarray) -> np.ndarray:
     mask = np.asarray(mask, dtype=bool)
     if normal.shape != (*mask.shape, 3):
         raise ValueError(f"normal {normal.shape} and mask {mask.shape} disagree")
-    height, width = mask.shape
-    n = int(mask.sum())
-    out = np.zeros((height, width))
-    if n == 0:
-        return out
-    index = np.full((height, width), -1, dtype=np.int64)
-    index[mask] = np.arange(n)
-    du, dv, weight = surface_gradients(np.asarray(normal, dtype=np.float64))
-    rows: list[np.ndarray] = []
-    cols: list[np.ndarray] = []
-    rhs: list[np.ndarray] = []
-    wts: list[np.ndarray] = []
-    for grad, axis in ((du, 1), (dv, 0)):
-        lo = (slice(None), slice(None, -1)) if axis == 1 else (slice(None, -1), slice(None))
-        hi = (slice(None), slice(1, None)) if axis == 1 else (slice(1, None), slice(None))
-        both = mask[lo] & mask[hi]
-        rows.append(index[lo][both])
-        cols.append(index[hi][both])
-        rhs.append(0.5 * (grad[lo][both] + grad[hi][both]))
-        wts.append(0.5 * (weight[lo][both] + weight[hi][both]))
-    first, second = np.concatenate(rows), np.concatenate(cols)
-    w = np.concatenate(wts)
-    m = first.size
-    equation = np.arange(m)
-    # each row: h[second] − h[first] = rhs, scaled by its weight
-    a = sp.csr_matrix(
-        (np.concatenate([w, -w]), (np.concatenate([equation, equation]), np.concatenate([second, first]))), shape=(m, n)
-    )
-    b = w * np.concatenate(rhs)
-    normal_matrix = (a.T @ a + SCREEN * sp.identity(n)).tocsc()
-    out[mask] = spla.spsolve(normal_matrix, a.T @ b)
-    return out
+    return integrate_gradients(*surface_gradients(np.asarray(normal, dtype=np.float64)), mask)

@@ -56,6 +56,7 @@ def solver_plugin(solver: str, *, option: bool = False) -> str:
 ALL_HOOKS = """
     from pstoolkit import BRDF, Converter, LightBackend, LightModel, ShadowDetector, Solver, hookimpl
     from pstoolkit.sim.scenes import Scene
+    from pstoolkit.surface import Integrator
 
     __version__ = "9.9"
 
@@ -86,6 +87,10 @@ ALL_HOOKS = """
     @hookimpl
     def pstoolkit_register_scenes(registry):
         registry.register(Scene, name="fake-scene", summary="a scene")
+
+    @hookimpl
+    def pstoolkit_register_integrators(registry):
+        registry.register(Integrator, name="fake-integrator", summary="an integrator")
 
     @hookimpl
     def pstoolkit_add_commands(app):
@@ -122,6 +127,7 @@ def test_every_register_hook_fills_its_own_registry(fresh: pytest.MonkeyPatch, t
         "backends": "fake-backend",
         "converters": "fake-converter",
         "scenes": "fake-scene",
+        "integrators": "fake-integrator",
     }
     assert {kind: registry.names() for kind, registry in registries.items()} == {k: [v] for k, v in expected.items()}
     assert all(e.plugin == "all" for _, registry in registries.items() for e in registry)
