@@ -116,9 +116,10 @@ def sphere(size: int, radius_px: float) -> tuple[np.ndarray, np.ndarray]:
 def sphere_capture(path: Path, size: int = 48, lights: int = 8, albedo: float = 0.8, elevation_deg: float = 45.0) -> Path:
     """Write a classic capture of a Lambertian sphere (radius 0.42·size, grey ``albedo``) under
     ``lights`` directional lights evenly round a ring at ``elevation_deg`` above the image plane
-    (``lights=1``: one frontal light), float32 frames, with ground-truth normals and mask. Returns
-    ``path``."""
-    normal, mask = sphere(size, 0.42 * size)
+    (``lights=1``: one frontal light), float32 frames, with ground-truth normals, mask and depth (the
+    sphere's z towards the camera, one pixel = 1 mm). Returns ``path``."""
+    radius = 0.42 * size
+    normal, mask = sphere(size, radius)
     if lights == 1:
         directions = np.array([[0.0, 0.0, 1.0]])
     else:
@@ -134,7 +135,8 @@ def sphere_capture(path: Path, size: int = 48, lights: int = 8, albedo: float = 
     )
     capture = psfmt.Capture(
         frames=frames,
-        ground_truth=psfmt.GroundTruth(normal=normal.astype(np.float32), mask=mask),
+        ground_truth=psfmt.GroundTruth(normal=normal.astype(np.float32), mask=mask,
+                                       depth=np.where(mask, radius * normal[..., 2], 0.0).astype(np.float32)),
         description=f"Lambertian sphere under {lights} lights",
     )
     psfmt.write(capture, path)

@@ -30,7 +30,7 @@ def test_the_package_folder_holds_subpackages_and_four_modules() -> None:
     modules = sorted(p.name for p in (REPO / "pstoolkit").glob("*.py"))
     assert modules == ["__init__.py", "errors.py", "grid.py", "testing.py"]
     packages = sorted(p.name for p in (REPO / "pstoolkit").iterdir() if (p / "__init__.py").exists())
-    assert packages == ["_shared", "cli", "evaluation", "events", "hardware", "io", "optics", "plugin", "shadows", "sim", "solve", "surface"]
+    assert packages == ["_shared", "cli", "evaluation", "events", "hardware", "io", "optics", "plugin", "shadows", "sim", "solve", "surface", "view"]
 
 
 def test_an_old_name_keeps_the_moved_module_spec() -> None:
@@ -58,7 +58,7 @@ def test_pstoolkit_exports_what_a_plugin_needs() -> None:
 
 def test_the_package_its_subpackages_the_cli_and_the_diligent_converter_load_neither_torch_nor_numba() -> None:
     packages = ["pstoolkit", "pstoolkit.cli", "pstoolkit.plugin", "pstoolkit.optics", "pstoolkit.events", "pstoolkit.sim", "pstoolkit.solve",
-                "pstoolkit.shadows", "pstoolkit.surface", "pstoolkit.evaluation", "pstoolkit.hardware", "pstoolkit.io", "pstoolkit.grid",
+                "pstoolkit.shadows", "pstoolkit.surface", "pstoolkit.evaluation", "pstoolkit.hardware", "pstoolkit.io", "pstoolkit.view", "pstoolkit.grid",
                 "pstoolkit.sim.timing", "pstoolkit.sim.exposure", "pstoolkit_diligent.converters"]
     code = f"import sys\nfor p in {packages!r}: __import__(p)\nprint(sorted({{'torch', 'numba', 'matplotlib'}} & set(sys.modules)))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout

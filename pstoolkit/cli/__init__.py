@@ -16,7 +16,7 @@ _main: list[Callable[[list[str] | None], int]] = []
 def _commands() -> Callable[[list[str] | None], int]:
     """Import every command (each registers itself) and the plugins' commands, once; the app's main."""
     if not _main:
-        from pstoolkit.cli import batch, calibrate, capture, convert, evaluate, export, info, plugins, report, run, simulate, validate  # noqa: F401
+        from pstoolkit.cli import batch, calibrate, capture, convert, evaluate, export, info, integrate, plugins, report, run, simulate, validate, view  # noqa: F401
         from pstoolkit.cli.app import app
         from pstoolkit.cli.app import main as app_main
         from pstoolkit.plugin.manager import add_commands

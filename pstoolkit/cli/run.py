@@ -13,7 +13,8 @@ from pstoolkit.cli.app import app, echo, progress_bar
 from pstoolkit.errors import UserError
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.solve.base import Progress, resolve_device
-from pstoolkit.solve.results import result_summary, solve_capture, write_result_folder
+from pstoolkit.solve.results import result_summary, solve_capture, summary_json, write_result_folder
+from pstoolkit.surface.outputs import SurfaceInputs, add_surface, capture_truth, surface_line
 
 _RESULT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
 
@@ -39,6 +40,11 @@ def run(
         "Name of the result: its column in `pstoolkit eval` and /results/<name> with --store (default: the solver)."
     )),
     error_max: float = typer.Option(30.0, "--error-max", help="Angular error (degrees) at the top of error.png's colour scale."),
+    integrate: str | None = typer.Option(None, "--integrate", help=(
+        "Also integrate the normals into a surface with this registered integrator (see `pstoolkit plugins`): "
+        "depth.npy, depth.png, mesh.ply, mesh.obj and a surface entry in result.json."
+    )),
+    integrator_assignments: list[str] = typer.Option([], "--integrator-set", help="An integrator option as key=value; repeat for more."),
 ) -> None:
     """Estimate normals of CAPTURE with a solver. Writes to the output folder: normal.npy (float32
     H×W×3), normal.png (16-bit, RGB = (n+1)/2, x right, y up, z to the camera, background 0), each
@@ -47,9 +53,14 @@ def run(
     pixel unsolved) and error.npy (float32 degrees, NaN outside the mask, 90 where unsolved) when the
     capture has ground truth, and result.json (solver, capture, seconds, mean and median error in
     degrees with unsolved pixels counted as 90°, coverage and the mean error of the solved pixels,
-    shares below 11.25/22.5/30°, data rate, options)."""
+    shares below 11.25/22.5/30°, data rate, options). With --integrate, also the surface (see
+    `pstoolkit integrate --help`), with its depth error when the capture has ground-truth depth."""
     entry = get_registries().solvers.get(solver)
     options = entry.parse_options(assignments)
+    integrator = None if integrate is None else get_registries().integrators.get(integrate)
+    integrator_options = {} if integrator is None else integrator.parse_options(integrator_assignments)
+    if integrator is None and integrator_assignments:
+        raise UserError("--integrator-set needs --integrate NAME")
     device = resolve_device(device)
     if not error_max > 0:
         raise UserError(f"--error-max {error_max:g}: must be a positive number of degrees")
@@ -80,6 +91,12 @@ def run(
         where = f"the demo capture {capture} (a cached file, regenerated without it if the cache is cleared)" if demo else str(capture)
         echo(f"stored result {result_name!r} in {where}", err=True)
     text = write_result_folder(outdir, solved, summary)
+    if integrator is not None:
+        albedo = next((m.array for m in solved.maps if m.name == "albedo" and m.array.shape == (*solved.mask.shape, 3)), None)
+        truth, camera = capture_truth(capture, solved.mask.shape)
+        inputs = SurfaceInputs(solved.normal, solved.mask, albedo, truth, camera)
+        summary = add_surface(outdir, summary, inputs, integrator, integrator_options)
+        text = summary_json(summary)
     if as_json:
         echo(text)
         return
@@ -89,3 +106,5 @@ def run(
         else "no ground truth"
     )
     echo(f"{entry.name} on {capture}: {score_text}, {solved.seconds:.2f} s, data rate {100 * solved.data_rate:.1f} % → {outdir}")
+    if integrator is not None:
+        echo(surface_line(summary["surface"]))

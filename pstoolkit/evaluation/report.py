@@ -2,10 +2,11 @@
 
 The report holds the tables of ``pstoolkit eval`` (object × solver: mean angular error, of the solved
 pixels too, median error, coverage, shares under 11.25°/22.5°/30°, data rate, solver time, with
-average rows), a plot of the mean angular error against the data rate per solver (every object
-faint, the solver's average bold), and per object one figure with each solver's normal map (titled
-with its MAE and coverage) above its error map (unsolved pixels grey), plus the pairs a batch failed
-on (from ``batch.json``).
+average rows; the depth error where a surface was integrated), a plot of the mean angular error
+against the data rate per solver (every object faint, the solver's average bold), and per object one
+figure with each solver's normal map (titled with its MAE and coverage) above its error map
+(unsolved pixels grey) and its depth thumbnail when a surface was integrated
+(``pstoolkit integrate``), plus the pairs a batch failed on (from ``batch.json``).
 Without ground truth the error tables, the plot and the error maps are left out. Figures are PNGs
 beside the report, named ``<report stem>-…png``, drawn with matplotlib's Agg canvas (no pyplot, so
 no global backend state).
@@ -106,22 +107,48 @@ def _error_map(folder: Path) -> tuple[np.ndarray, float] | None:
     return error, float(top) if usable else 30.0
 
 
+def _depth_map(folder: Path) -> np.ndarray | None:
+    """``depth.npy`` of a result folder with an integrated surface (a float (H, W) map, else a
+    UserError), None without one."""
+    path = folder / "depth.npy"
+    if not path.is_file():
+        return None
+    depth = read_npy(path)
+    if depth.ndim != 2 or depth.dtype.kind != "f":
+        raise UserError(f"{path}: expected a float (H, W) depth map, got {depth.dtype} {depth.shape}")
+    return depth
+
+
+def _depth_image(depth: np.ndarray) -> np.ndarray:
+    """Grey (H, W) in [0, 1] of a depth map, nearer brighter, black where it has no depth."""
+    inside = np.isfinite(depth)
+    if not inside.any():
+        return np.zeros(depth.shape)
+    low, high = float(depth[inside].min()), float(depth[inside].max())
+    grey = (depth - low) / (high - low) * 0.8 + 0.2 if high > low else np.full(depth.shape, 0.6)
+    return np.where(inside, grey, 0.0)
+
+
 def plot_maps(records: list[Record], path: Path) -> None:
     """One object's figure: a column per solver with its normal map (titled with its MAE and coverage)
     above its error map (Turbo, 0 to the folder's error scale, grey where the solver left a pixel
-    unsolved: a zero normal); one row of normals when no result has ground truth."""
+    unsolved: a zero normal) and, where a surface was integrated, its depth (nearer brighter, titled
+    with the depth error); no error row when no result has ground truth, no depth row when no result
+    has a surface."""
     errors = [_error_map(Path(r.source)) for r in records]
-    rows = 2 if any(e is not None for e in errors) else 1
+    depths = [_depth_map(Path(r.source)) for r in records]
+    has_error, has_depth = any(e is not None for e in errors), any(d is not None for d in depths)
+    rows = 1 + has_error + has_depth
     fig = Figure(figsize=(len(records) * PANEL_PX[0] / DPI, rows * PANEL_PX[1] / DPI), dpi=DPI, layout="constrained")
     axes = fig.subplots(rows, len(records), squeeze=False)
-    for column, (record, error) in enumerate(zip(records, errors)):
+    for column, (record, error, depth) in enumerate(zip(records, errors, depths)):
         normal = read_normal_npy(Path(record.source) / "normal.npy")
         score = f"MAE {record.mae_deg:.2f}°" if record.mae_deg is not None else "no ground truth"
         if record.coverage is not None:
             score += f", {100 * record.coverage:.1f} % solved"
         axes[0, column].imshow(normal_to_rgb(normal, bits=8), interpolation="nearest")
         axes[0, column].set_title(f"{_label(record.solver)}\n{score}", fontsize="small")
-        if rows == 2:
+        if has_error:
             if error is None:
                 axes[1, column].text(0.5, 0.5, "no ground truth", ha="center", va="center", transform=axes[1, column].transAxes)
             else:
@@ -129,6 +156,14 @@ def plot_maps(records: list[Record], path: Path) -> None:
                 axes[1, column].imshow(error_to_rgb(error[0], error[1], solved), interpolation="nearest")
                 grey = ", grey: unsolved" if np.any(np.isfinite(error[0]) & ~solved) else ""
                 axes[1, column].set_title(f"error 0–{error[1]:g}°{grey}", fontsize="small")
+        if has_depth:
+            ax = axes[rows - 1, column]
+            if depth is None:
+                ax.text(0.5, 0.5, "no surface", ha="center", va="center", transform=ax.transAxes)
+            else:
+                ax.imshow(_depth_image(depth), cmap="gray", vmin=0.0, vmax=1.0, interpolation="nearest")
+                detail = "no true depth" if record.depth_error is None else f"RMSE {100 * record.depth_error:.2f} % of range"
+                ax.set_title(f"depth, {detail}", fontsize="small")
         for ax in axes[:, column]:
             ax.set_axis_off()
     fig.suptitle(_label(records[0].object))
@@ -149,8 +184,9 @@ def report_markdown(records: list[Record], failures: list[str], plot: str | None
     ]
     if not has_error:
         parts.append("No result has ground truth: the error tables, the plot and the error maps are left out.")
+    has_depth = any(r.depth_error is not None for r in records)
     for metric in METRICS:
-        if metric in GROUND_TRUTH_METRICS and not has_error:
+        if metric in GROUND_TRUTH_METRICS and not has_error or metric == "depth_error" and not has_depth:
             continue
         parts += [f"## {TITLES[metric]}", markdown_table(records, metric)]
     if plot is not None:

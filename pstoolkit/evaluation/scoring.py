@@ -25,7 +25,7 @@ from pstoolkit.evaluation.metrics import SHARE_KEYS, THRESHOLDS_DEG, angular_err
 
 MISSING = "–"
 RESULT_FILE = "result.json"
-METRICS = ("mae_deg", "mae_solved_deg", "median_deg", "coverage", *SHARE_KEYS, "data_rate", "seconds")
+METRICS = ("mae_deg", "mae_solved_deg", "median_deg", "coverage", *SHARE_KEYS, "data_rate", "seconds", "depth_error")
 TITLES = {
     "mae_deg": "Mean angular error (degrees)",
     "mae_solved_deg": "Mean angular error of the solved pixels (degrees)",
@@ -34,8 +34,9 @@ TITLES = {
     **{key: f"Pixels under {threshold:g}° (% of the mask)" for key, threshold in zip(SHARE_KEYS, THRESHOLDS_DEG)},
     "data_rate": "Data rate (% of 24 RGB frames)",
     "seconds": "Solver time (seconds)",
+    "depth_error": "Depth RMSE after scale and offset alignment (% of the true depth range)",
 }
-PERCENT_METRICS = frozenset({"coverage", *SHARE_KEYS, "data_rate"})
+PERCENT_METRICS = frozenset({"coverage", *SHARE_KEYS, "data_rate", "depth_error"})
 """Metrics stored as shares 0..1 and shown in percent."""
 GROUND_TRUTH_METRICS = frozenset(METRICS) - {"data_rate", "seconds"}
 """Metrics that need ground truth."""
@@ -57,8 +58,9 @@ class Score:
 class Record:
     """One scored result: ``object`` (capture stem, ``demo`` for the demo capture), ``solver`` (the
     result's name: the solver's, or the one given to ``run --name``), the ``METRICS`` (None where
-    unknown: no ground truth, or a result.json written before the metric existed), and ``source``,
-    the folder or capture it was read from."""
+    unknown: no ground truth, or a result.json written before the metric existed; ``depth_error``
+    only for a result folder with an integrated surface, ``pstoolkit.surface.outputs``), and
+    ``source``, the folder or capture it was read from."""
 
     object: str
     solver: str
@@ -71,6 +73,7 @@ class Record:
     below_30: float | None
     data_rate: float | None
     seconds: float | None
+    depth_error: float | None
     source: str
 
 
@@ -95,6 +98,15 @@ def _number(data: dict[str, Any], key: str, where: Path) -> float | None:
     return float(value)
 
 
+def _depth_error(data: dict[str, Any], where: Path) -> float | None:
+    """The surface's depth RMSE as a share of the true depth range, None without one."""
+    surface = data.get("surface")
+    error = surface.get("depth_error") if isinstance(surface, dict) else None
+    if surface is not None and not isinstance(surface, dict) or error is not None and not isinstance(error, dict):
+        raise UserError(f"{where}: 'surface' is malformed, expected an object with a 'depth_error' object or null")
+    return None if error is None else _number(error, "rmse_of_range", where)
+
+
 def read_result_folder(folder: Path) -> Record:
     """The record of a folder written by ``pstoolkit run``."""
     path = folder / RESULT_FILE
@@ -110,7 +122,8 @@ def read_result_folder(folder: Path) -> Record:
     return Record(
         object=data["object"],
         solver=data["name"],
-        **{metric: _number(data, metric, path) for metric in METRICS},
+        **{metric: _number(data, metric, path) for metric in METRICS if metric != "depth_error"},
+        depth_error=_depth_error(data, path),
         source=str(folder),
     )
 
@@ -207,7 +220,8 @@ def markdown_table(records: list[Record], metric: str) -> str:
 def markdown(records: list[Record]) -> str:
     """A titled markdown table for each of the ``METRICS``: MAE (all pixels, solved pixels), median
     error, coverage, the shares under 11.25°, 22.5° and 30°, data rate and solver time."""
-    return "\n\n".join(f"### {TITLES[metric]}\n\n{markdown_table(records, metric)}" for metric in METRICS) + "\n"
+    shown = [m for m in METRICS if m != "depth_error" or any(r.depth_error is not None for r in records)]
+    return "\n\n".join(f"### {TITLES[metric]}\n\n{markdown_table(records, metric)}" for metric in shown) + "\n"
 
 
 def csv_text(records: list[Record]) -> str:

@@ -71,6 +71,7 @@ def test_capture_results_are_scored_against_its_ground_truth(runs: Runs) -> None
         below_30=float(np.mean(inside < 30)),
         data_rate=rate,
         seconds=stored.seconds,
+        depth_error=None,
         source=str(runs.ball),
     )
     ran = folder(runs.root / "ball-lsq")  # what `run` reported for the same maps
@@ -129,7 +130,9 @@ def test_csv_and_json_agree_with_the_records(runs: Runs, capsys: pytest.CaptureF
     assert main(["eval", str(runs.out / "sphere-lsq"), str(runs.out / "nogt-lsq"), str(runs.ball), "--csv"]) == 0
     rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
     metrics = ["mae_deg", "mae_solved_deg", "median_deg", "coverage", "below_11_25", "below_22_5", "below_30", "data_rate", "seconds"]
-    assert [list(row) for row in rows[:1]] == [["object", "solver", *metrics]]
+    assert [list(row) for row in rows[:1]] == [["object", "solver", *metrics, "depth_error"]]
+    # no result here has an integrated surface
+    assert all(row["depth_error"] == "" for row in rows)
     assert [(row["object"], row["solver"]) for row in rows] == [("ball", "lsq"), ("nogt", "lsq"), ("sphere", "lsq")]
     assert all(rows[1][key] == "" for key in metrics[:-2])
     for row, record in zip(rows, records, strict=True):
@@ -144,6 +147,7 @@ def test_csv_and_json_agree_with_the_records(runs: Runs, capsys: pytest.CaptureF
             **{key: pytest.approx((getattr(records[0], key) + getattr(records[2], key)) / 2) for key in metrics[:-2]},
             "data_rate": pytest.approx(8 / 24),
             "seconds": pytest.approx(sum(r.seconds for r in records) / 3),
+            "depth_error": None,
         }
     }
 
