@@ -8,7 +8,6 @@ from pathlib import Path
 
 import typer
 
-from psfmt import FormatError
 from pstoolkit.cli.app import app, echo
 from pstoolkit.errors import UserError
 
@@ -21,7 +20,7 @@ def view(
     allow_remote: bool = typer.Option(False, "--allow-remote", help="Allow a --host other than loopback: anyone who reaches it can read the result."),
     no_browser: bool = typer.Option(False, "--no-browser", help="Only print the address; do not open a browser."),
     capture: Path | None = typer.Option(
-        None, "--capture", help="With a result folder: the capture to scrub (default: the one result.json names, if that file exists)."
+        None, "--capture", help="With a result folder: its capture, to scrub the frames and events (the path in result.json is not followed)."
     ),
     result: str | None = typer.Option(
         None, "--result", help="With a capture: the stored result to show (default: the first one stored, else the ground truth)."
@@ -48,13 +47,7 @@ def view(
             raise UserError("--result picks a result stored in a capture; a result folder holds one")
         data = load_result_folder(path, capture)
         if data.capture is not None:
-            try:
-                timeline = Timeline(data.capture, (data.height, data.width))
-            except (UserError, FormatError) as exc:
-                if capture is not None:
-                    raise
-                # the capture result.json names may have moved or changed since: show the maps anyway
-                data.notes.append(f"capture left out: {exc}")
+            timeline = Timeline(data.capture, (data.height, data.width))
     elif path.is_file():
         if capture is not None:
             raise UserError("--capture goes with a result folder; PATH is a capture already")

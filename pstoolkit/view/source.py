@@ -190,25 +190,12 @@ def plain_options(options: dict[Any, Any]) -> dict[str, Any]:
     return {str(k): v for k, v in options.items() if plain(v)}
 
 
-def _resolve_capture(named: Any, folder: Path) -> Path | None:
-    """The capture result.json names: as given (relative to the working folder ``run`` was started
-    in), else relative to the result folder or the two above it (``run`` writes ``out/<name>/``
-    below the folder it ran in); None when it names none or the file is in none of those places."""
-    if not isinstance(named, str) or not named or "\x00" in named:
-        return None
-    path = Path(named)
-    bases = () if path.is_absolute() else (folder, folder.parent, folder.parent.parent)
-    for candidate in (path, *(base / path for base in bases)):
-        if candidate.is_file():
-            return candidate
-    return None
-
-
 def load_result_folder(folder: Path, capture: Path | None = None) -> ViewData:
     """The maps of a result folder written by ``pstoolkit run`` (``normal.npy`` required).
 
-    ``capture``: the capture it was solved from (None: the one result.json names, if that file
-    exists). Raises UserError for a missing folder or normal map, or an unreadable normal map or
+    ``capture``: the capture it was solved from, given by the user (None: no capture to scrub; the
+    path result.json names is only shown in a note, never opened — a folder's files do not lead the
+    viewer out of the folder). Raises UserError for a missing folder or normal map, or an unreadable normal map or
     result.json; a further map that cannot be read or has another size is left out with a note."""
     if not folder.is_dir():
         raise UserError(f"{folder}: not a folder")
@@ -230,10 +217,8 @@ def load_result_folder(folder: Path, capture: Path | None = None) -> ViewData:
     info, options = _summary_fields(summary)
     error_max = summary.get("error_max_deg")
     label = " · ".join(info[k] for k in ("object", "name") if k in info) or folder.name
-    if capture is None:
-        capture = _resolve_capture(summary.get("capture"), folder)
-        if capture is None and isinstance(summary.get("capture"), str):
-            notes.append(f"capture {summary['capture']} not found: pass --capture FILE to scrub its frames and events")
+    if capture is None and isinstance(summary.get("capture"), str):
+        notes.append(f"result.json names the capture {summary['capture']}: pass --capture FILE to scrub its frames and events")
     data = ViewData(maps, mask, label, folder=folder, info=info, options=options, notes=notes, capture=capture)
     if isinstance(error_max, (int, float)) and not isinstance(error_max, bool) and 0 < error_max < 1e6:
         data.error_max_deg = float(error_max)

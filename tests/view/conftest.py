@@ -42,16 +42,16 @@ def lambertian_folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return folder
 
 
-def serve(folder: Path) -> ViewServer:
-    """A started server on a free loopback port for ``folder`` (and its capture, if any)."""
-    data = load_result_folder(folder)
+def serve(folder: Path, capture: Path | None = None) -> ViewServer:
+    """A started server on a free loopback port for ``folder`` (and ``capture``, if given)."""
+    data = load_result_folder(folder, capture)
     timeline = Timeline(data.capture, (data.height, data.width)) if data.capture is not None else None
     return ViewServer(data, timeline).start()
 
 
 @pytest.fixture
-def ggx_server(ggx_folder: Path) -> Iterator[ViewServer]:
-    server = serve(ggx_folder)
+def ggx_server(ggx_folder: Path, hybrid_capture: Path) -> Iterator[ViewServer]:
+    server = serve(ggx_folder, hybrid_capture)
     yield server
     server.close()
 

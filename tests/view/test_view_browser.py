@@ -93,8 +93,8 @@ def test_orbit_turns_the_depth_map(ggx_folder: Path, tmp_path: Path) -> None:
     assert np.abs(centre.astype(int).mean(axis=0) - expected.mean(axis=0)).max() < 6
 
 
-def test_whole_page_with_capture(ggx_folder: Path) -> None:
-    server = serve(ggx_folder)
+def test_whole_page_with_capture(ggx_folder: Path, hybrid_capture: Path) -> None:
+    server = serve(ggx_folder, hybrid_capture)
     try:
         dom = load_page(server.url + "?t=12000&light=0.5,0.3,0.8", window=(1200, 1600), chromium=CHROMIUM)
         assert server.ready and server.page_errors == []

@@ -23,7 +23,7 @@ from pstoolkit.view.timeline import MAX_WINDOW_US, Timeline
 
 
 def test_light_frame_and_events_at_t(ggx_folder: Path, hybrid_capture: Path) -> None:
-    server = serve(ggx_folder)
+    server = serve(ggx_folder, hybrid_capture)
     try:
         capture = psfmt.load(hybrid_capture)
         info = json.loads(get(server, "/data/index.json")[1])["capture"]
