@@ -113,11 +113,14 @@ def encode(events: EventArray, time_high: int = -1) -> tuple[bytes, int]:
 
 
 class Evt2File:
-    """An EVT 2.0 RAW file decoded in bounded memory (``chunks``) or at once (``read``)."""
+    """An EVT 2.0 RAW file decoded in bounded memory (``chunks``) or at once (``read``); the sensor size
+    is the header's unless ``geometry`` gives it."""
 
-    def __init__(self, path: str | os.PathLike[str], *, chunk_words: int = DEFAULT_CHUNK_WORDS) -> None:
+    def __init__(
+        self, path: str | os.PathLike[str], *, chunk_words: int = DEFAULT_CHUNK_WORDS, geometry: tuple[int, int] | None = None
+    ) -> None:
         self.path = Path(path)
-        self.header, self.width, self.height = read_sized_header(self.path, "EVT2", "EVT 2.0")
+        self.header, self.width, self.height = read_sized_header(self.path, "EVT2", "EVT 2.0", geometry)
         self.chunk_words = int(chunk_words)
         self.stats = DecodeStats()
 

@@ -107,11 +107,19 @@ def decode(
 
 class Evt3File:
     """An EVT 3.0 RAW file, decoded in bounded memory: ``chunks()`` streams it, ``window()`` decodes
-    only the words around a time range, ``read()`` decodes everything; ``stats`` sums up the last pass."""
+    only the words around a time range, ``read()`` decodes everything; ``stats`` sums up the last pass.
+    The sensor size is the header's (``psfmt.rawheader.resolve_geometry``) unless ``geometry`` gives it."""
 
-    def __init__(self, path: str | os.PathLike[str], *, engine: str = "auto", chunk_words: int = DEFAULT_CHUNK_WORDS) -> None:
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        engine: str = "auto",
+        chunk_words: int = DEFAULT_CHUNK_WORDS,
+        geometry: tuple[int, int] | None = None,
+    ) -> None:
         self.path = Path(path)
-        self.header, self.width, self.height = read_sized_header(self.path, "EVT3", "EVT 3.0")
+        self.header, self.width, self.height = read_sized_header(self.path, "EVT3", "EVT 3.0", geometry)
         self.engine = resolve(engine)
         self.chunk_words = int(chunk_words)
         self.stats = DecodeStats()

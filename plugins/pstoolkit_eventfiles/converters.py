@@ -1,11 +1,15 @@
-"""The ``raw`` and ``dsec`` converters: event recordings → hybrid captures, in bounded memory.
+"""The ``raw``, ``dat`` and ``dsec`` converters: event recordings → hybrid captures, in bounded memory.
 
 Events stream from the decoder into ``psfmt.CaptureWriter`` block by block. A capture's events are
 sorted; the few that a sensor stamps earlier than their predecessor (small backward TIME_LOW steps,
-which EVT 3.0 decoders keep as they are) get their predecessor's time and are counted. Whatever was
-skipped, dropped or re-timed is logged as one warning line; a clean recording logs nothing. A
-recording that leaves no event (a header alone, every event outside the sensor) is refused unless
-``--allow-empty`` asks for the empty capture.
+which EVT 3.0 decoders keep as they are, or a DAT file's times going back) get their predecessor's
+time and are counted. Whatever was skipped, dropped or re-timed is logged as one warning line; a
+clean recording logs nothing. A recording that leaves no event (a header alone, every event outside
+the sensor) is refused unless ``--allow-empty`` asks for the empty capture.
+
+RAW and DAT files take their sensor size from the header as Metavision does
+(``psfmt.rawheader.resolve_geometry``), or from ``--geometry WxH``; the capture's description records
+where it came from (``geometry_source = …``) and keeps the file's header lines.
 """
 
 from __future__ import annotations
@@ -20,11 +24,13 @@ import numpy as np
 import psfmt
 import pstoolkit
 from psfmt.atomic import temporary_sibling
+from psfmt.dat import DatFile
 from psfmt.dsec import DEFAULT_CHUNK_EVENTS, DsecFile
 from psfmt.evt2 import Evt2File
 from psfmt.evt3 import Evt3File
 from psfmt.limits import MAX_SENSOR_SIDE
-from psfmt.rawheader import concat_triggers, read_header
+from psfmt.rawheader import RawHeader, concat_triggers, missing_geometry, parse_geometry, read_header
+from psfmt.text import printable
 from pstoolkit import Converter, Option, Progress, UserError
 from pstoolkit_eventfiles.attach import (
     ATTACH_OPTIONS,
@@ -57,18 +63,70 @@ class Monotone:
         return events
 
 
-def open_raw(src: Path) -> Evt3File | Evt2File:
-    """The EVT 3.0 or EVT 2.0 reader that the RAW header asks for."""
-    header = read_header(src)
-    if header.encoding == "EVT3":
-        return Evt3File(src)
-    if header.encoding == "EVT2":
-        return Evt2File(src)
+GEOMETRY_HINT = "give the sensor size with --geometry WxH"
+MAX_KEPT_LINES = 256
+MAX_KEPT_CHARS = 16384
+
+
+def geometry_option(text: str) -> tuple[int, int] | None:
+    """The ``--geometry WxH`` override (None when not given); UserError for anything but ``WxH``."""
+    if not text:
+        return None
+    geometry = parse_geometry(text)
+    if geometry is None:
+        raise UserError(f"option geometry: expected WxH (e.g. 1280x720), got {text!r}")
+    return geometry
+
+
+def _sized(src: Path, header: RawHeader) -> None:
+    """UserError listing what was looked for when the header gives no sensor size."""
+    if header.width is None or header.height is None:
+        raise UserError(f"{src}: {missing_geometry(header)}; {GEOMETRY_HINT}")
+
+
+def is_dat(src: Path, header: RawHeader) -> bool:
+    """Whether ``src`` is a Metavision DAT file: a ``.dat`` name, or a DAT header (``% Data file
+    containing …``) where no RAW encoding is declared."""
+    return src.suffix.lower() == ".dat" or (header.encoding is None and header.fields.get("Data", "").startswith("file containing"))
+
+
+def open_raw(src: Path, geometry: tuple[int, int] | None = None) -> Evt3File | Evt2File:
+    """The EVT 3.0 or EVT 2.0 reader that the RAW header asks for (``geometry`` overriding its size)."""
+    header = read_header(src, geometry=geometry)
     if header.encoding is None:
         raise UserError(f"{src}: no '% evt' or '% format' header line: not a Prophesee RAW file")
-    raise UserError(f"{src}: {header.encoding} RAW files are not supported (EVT 3.0 and EVT 2.0 are)")
+    if header.encoding not in ("EVT3", "EVT2"):
+        raise UserError(f"{src}: {header.encoding} RAW files are not supported (EVT 3.0 and EVT 2.0 are)")
+    _sized(src, header)
+    return Evt3File(src, geometry=geometry) if header.encoding == "EVT3" else Evt2File(src, geometry=geometry)
 
 
+def open_dat(src: Path, geometry: tuple[int, int] | None = None) -> DatFile:
+    """The reader of a Metavision DAT file of CD events (``geometry`` overriding its size)."""
+    header = read_header(src, label="DAT", geometry=geometry)
+    if not header.lines:
+        raise UserError(f"{src}: no '% ' header lines: not a Metavision DAT file")
+    _sized(src, header)
+    return DatFile(src, geometry=geometry)
+
+
+def header_lines(header: RawHeader) -> list[str]:
+    """The description lines that keep a file's header: where the geometry came from, then the
+    header lines as written (made printable, at most ``MAX_KEPT_LINES`` lines and ``MAX_KEPT_CHARS``
+    characters, so that an HDF5 attribute holds them)."""
+    out = [f"geometry_source = {printable(header.geometry_source)}", f"{header.label.lower()}_header:"]
+    kept = 0
+    for k, line in enumerate(header.lines):
+        text = printable(line)
+        if k >= MAX_KEPT_LINES or kept + len(text) > MAX_KEPT_CHARS:
+            out.append(f"% … {len(header.lines) - k} more header line(s) not kept")
+            break
+        out.append(text)
+        kept += len(text)
+    return out
+
+
+GEOMETRY = Option("geometry", str, "", "sensor size WxH (e.g. 1280x720), overriding whatever the file's header says or implies")
 ALLOW_EMPTY = Option("allow_empty", bool, False, "write the capture even when the recording leaves no event")
 
 
@@ -83,7 +141,7 @@ class _EventFile(Converter):
         frames = load_frames(options["frames"])
         lights = load_lights(options["lights"])
         calibration = load_calibration(options["calibration"])
-        description = f"{src.name} converted by pstoolkit convert {self.name}"
+        description = "\n".join([f"{src.name} converted by pstoolkit convert {self.name}", *self.prepare(src, options)])
         # written beside OUT and validated before the rename, so a bad light model or calibration
         # from the user's files never leaves a capture that pstoolkit cannot read
         staging = temporary_sibling(out)
@@ -108,6 +166,11 @@ class _EventFile(Converter):
             log.warning("%s: %s", src, notes)
         return [out]
 
+    def prepare(self, src: Path, options: dict[str, Any]) -> list[str]:
+        """Open ``src`` (refusing a file it cannot read before anything is written) and return the
+        lines the capture's description gets beside the usual first one."""
+        return []
+
     def write_events(
         self, src: Path, writer: psfmt.CaptureWriter, options: dict[str, Any], progress: Progress
     ) -> tuple[psfmt.Triggers, str]:
@@ -116,14 +179,30 @@ class _EventFile(Converter):
         raise NotImplementedError
 
 
+def _notes(stats_clean: bool, summary: str, monotone: Monotone) -> str:
+    notes = [] if stats_clean else [summary]
+    if monotone.moved:
+        notes.append(f"{monotone.moved:,} events stamped before their predecessor got its time")
+    return "; ".join(notes)
+
+
 class Raw(_EventFile):
     name = "raw"
-    summary = "Prophesee RAW recordings (EVT 3.0 or EVT 2.0), with frames, light model and calibration"
+    summary = "Prophesee RAW recordings (EVT 3.0 or EVT 2.0; Metavision .dat too), with frames, light model and calibration"
+    options = (GEOMETRY, *ATTACH_OPTIONS, ALLOW_EMPTY)
+
+    def prepare(self, src: Path, options: dict[str, Any]) -> list[str]:
+        geometry = geometry_option(options["geometry"])
+        dat = src.suffix.lower() == ".dat" or is_dat(src, read_header(src, geometry=geometry))
+        self.reader: Evt3File | Evt2File | DatFile = open_dat(src, geometry) if dat else open_raw(src, geometry)
+        return header_lines(self.reader.header)
 
     def write_events(
         self, src: Path, writer: psfmt.CaptureWriter, options: dict[str, Any], progress: Progress
     ) -> tuple[psfmt.Triggers, str]:
-        reader = open_raw(src)
+        reader = self.reader
+        if isinstance(reader, DatFile):
+            return _write_dat(src, reader, writer, progress)
         writer.begin_events(reader.width, reader.height)
         total = max(1, src.stat().st_size - reader.header.data_offset)
         step = reader.chunk_words * (2 if isinstance(reader, Evt3File) else 4)
@@ -133,10 +212,33 @@ class Raw(_EventFile):
             writer.append_events(monotone(events))
             triggers.append(trig)
             progress(min(1.0, (k + 1) * step / total), "events")
-        notes = [] if reader.stats.clean else [reader.stats.summary()]
-        if monotone.moved:
-            notes.append(f"{monotone.moved:,} events stamped before their predecessor got its time")
-        return concat_triggers(triggers), "; ".join(notes)
+        return concat_triggers(triggers), _notes(reader.stats.clean, reader.stats.summary(), monotone)
+
+
+def _write_dat(src: Path, reader: DatFile, writer: psfmt.CaptureWriter, progress: Progress) -> tuple[psfmt.Triggers, str]:
+    writer.begin_events(reader.width, reader.height)
+    total = max(1, src.stat().st_size - reader.data_offset)
+    step = reader.chunk_records * 8
+    monotone = Monotone()
+    for k, events in enumerate(reader.chunks()):
+        writer.append_events(monotone(events))
+        progress(min(1.0, (k + 1) * step / total), "events")
+    return concat_triggers([]), _notes(reader.stats.clean, reader.stats.summary(), monotone)
+
+
+class Dat(_EventFile):
+    name = "dat"
+    summary = "Metavision DAT files of CD events, with frames, light model and calibration"
+    options = (GEOMETRY, *ATTACH_OPTIONS, ALLOW_EMPTY)
+
+    def prepare(self, src: Path, options: dict[str, Any]) -> list[str]:
+        self.reader = open_dat(src, geometry_option(options["geometry"]))
+        return header_lines(self.reader.header)
+
+    def write_events(
+        self, src: Path, writer: psfmt.CaptureWriter, options: dict[str, Any], progress: Progress
+    ) -> tuple[psfmt.Triggers, str]:
+        return _write_dat(src, self.reader, writer, progress)
 
 
 class Dsec(_EventFile):
