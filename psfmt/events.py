@@ -4,6 +4,10 @@ An event is (x, y, t, p): pixel column and row (uint16), time in int64 microseco
 Streams are sorted by t. On disk the four columns are separate chunked datasets and ``ms_to_idx``
 holds, for every millisecond boundary ``b_i = ms_origin_us + 1000·i``, the number of events with
 ``t < b_i`` (the DSEC ``ms_to_idx`` idea), so a window is read by slicing, never by scanning.
+
+Every event stream — ``EventArray`` in memory, ``H5EventStore`` on disk and ``Events``, the stream
+with its sensor size that a capture holds — has ``len``, slicing by event index (``ev[0:10]``) and
+``window(t0_us, t1_us)``, which raises ValueError when ``t1_us < t0_us``.
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from psfmt.describe import path_text
 from psfmt.files import hdf5_errors, require_open
 from psfmt.inflate import ColumnReader
 
@@ -26,9 +31,28 @@ EVENT_DTYPES: dict[str, np.dtype[Any]] = {
 DEFAULT_CHUNK_EVENTS = 1 << 16
 
 
+def check_window(t0_us: int, t1_us: int) -> tuple[int, int]:
+    """The window ``[t0_us, t1_us)`` as two ints; ValueError when it ends before it starts (a window
+    given backwards would otherwise read as empty, which hides the mistake). ``t0_us == t1_us`` is an
+    empty window."""
+    t0, t1 = int(t0_us), int(t1_us)
+    if t1 < t0:
+        raise ValueError(f"event window [{t0}, {t1}) µs ends before it starts: give t0_us <= t1_us (events with t0_us <= t < t1_us)")
+    return t0, t1
+
+
+def _slice_only(index: object, what: str) -> slice:
+    """``index`` when it is a slice; TypeError otherwise (one event is ``ev[i:i+1]``)."""
+    if not isinstance(index, slice):
+        raise TypeError(f"{what} are indexed by a slice of event indices (ev[i:j]; one event is ev[i:i+1]), not {type(index).__name__}")
+    return index
+
+
 @dataclass
 class EventArray:
-    """Events held in memory as four equal-length columns sorted by ``t`` (µs)."""
+    """Events held in memory as four equal-length columns sorted by ``t`` (µs): ``x``, ``y`` uint16
+    pixel column and row, ``t`` int64 µs, ``p`` int8 polarity ±1. ``len`` is the number of events;
+    indexing by a slice (``ev[0:10]``), a boolean mask or an index array gives an ``EventArray``."""
 
     x: np.ndarray
     y: np.ndarray
@@ -58,7 +82,16 @@ class EventArray:
         return len(self.t)
 
     def __getitem__(self, index: slice | np.ndarray) -> EventArray:
+        """The events at ``index`` (a slice, a boolean mask or an index array); TypeError for a single
+        integer, which would give a scalar per column (one event is ``ev[i:i+1]``)."""
+        if isinstance(index, (int, np.integer)):
+            raise TypeError("events are indexed by a slice, a boolean mask or an index array (one event is ev[i:i+1]), not an integer")
         return EventArray(self.x[index], self.y[index], self.t[index], self.p[index])
+
+    def __repr__(self) -> str:
+        # one line whatever the count: the columns can hold millions of events
+        span = f", t {self.t[0]}…{self.t[-1]} µs" if len(self.t) else ""
+        return f"EventArray({len(self)} events{span})"
 
     @property
     def t_first_us(self) -> int | None:
@@ -69,8 +102,9 @@ class EventArray:
         return int(self.t[-1]) if len(self.t) else None
 
     def window(self, t0_us: int, t1_us: int) -> EventArray:
-        """Events with ``t0_us <= t < t1_us``."""
-        lo, hi = np.searchsorted(self.t, [t0_us, t1_us], side="left")
+        """Events with ``t0_us <= t < t1_us`` (µs); ValueError when ``t1_us < t0_us``."""
+        t0, t1 = check_window(t0_us, t1_us)
+        lo, hi = np.searchsorted(self.t, [t0, t1], side="left")
         return self[lo:hi]
 
     def chunks(self, size: int = 1 << 20) -> Iterator[EventArray]:
@@ -162,6 +196,20 @@ class H5EventStore:
     def __len__(self) -> int:
         return self._n
 
+    def __getitem__(self, index: slice) -> EventArray:
+        """The events of a slice of event indices, read from the file (only the chunks that hold them)."""
+        picked = range(*_slice_only(index, "events on disk").indices(self._n))
+        if not picked:
+            return EventArray.empty()
+        lo, hi = min(picked[0], picked[-1]), max(picked[0], picked[-1]) + 1
+        block = self._slice(lo, hi)
+        # a step other than 1 reads the rows it spans, then picks from them in memory
+        return block if picked.step == 1 else block[np.asarray(picked) - lo]
+
+    def __repr__(self) -> str:
+        # no file access: a repr must work on a closed file too
+        return f"H5EventStore({self._n} events in {path_text(self._path)})"
+
     @property
     def t_first_us(self) -> int | None:
         return int(self._column("t", 0, 1)[0]) if self._n else None
@@ -193,8 +241,10 @@ class H5EventStore:
             return min(int(self._index[i]), self._n)
 
     def window(self, t0_us: int, t1_us: int) -> EventArray:
-        """Events with ``t0_us <= t < t1_us``, reading only the chunks that hold them."""
-        if self._n == 0 or t1_us <= t0_us:
+        """Events with ``t0_us <= t < t1_us`` (µs), reading only the chunks that hold them; ValueError
+        when ``t1_us < t0_us``."""
+        t0_us, t1_us = check_window(t0_us, t1_us)
+        if self._n == 0 or t1_us == t0_us:
             return EventArray.empty()
         if self._index is None:
             lo, hi = 0, self._n
@@ -218,7 +268,9 @@ class H5EventStore:
 
 @dataclass
 class Events:
-    """An event stream with its sensor geometry; ``data`` is in memory or a lazy on-disk store."""
+    """An event stream with its sensor geometry (``width`` × ``height`` pixels); ``data`` is in memory
+    or a lazy on-disk store. ``len`` is the number of events; a slice of event indices
+    (``events[0:10]``) is an ``Events`` of the same sensor holding those events in memory."""
 
     width: int
     height: int
@@ -226,6 +278,14 @@ class Events:
 
     def __len__(self) -> int:
         return len(self.data)
+
+    def __getitem__(self, index: slice) -> Events:
+        return Events(self.width, self.height, self.data[_slice_only(index, "events")])
+
+    def __repr__(self) -> str:
+        where = "on disk" if isinstance(self.data, H5EventStore) else "in memory"
+        span = f", t {self.data.t[0]}…{self.data.t[-1]} µs" if isinstance(self.data, EventArray) and len(self.data) else ""
+        return f"Events({self.width}×{self.height}, {len(self.data)} events{span}, {where})"
 
     @property
     def t_first_us(self) -> int | None:
@@ -236,6 +296,7 @@ class Events:
         return self.data.t_last_us
 
     def window(self, t0_us: int, t1_us: int) -> EventArray:
+        """Events with ``t0_us <= t < t1_us`` (µs); ValueError when ``t1_us < t0_us``."""
         return self.data.window(t0_us, t1_us)
 
     def chunks(self, size: int | None = None) -> Iterator[EventArray]:
@@ -263,6 +324,9 @@ class Triggers:
     def __len__(self) -> int:
         return len(self.t)
 
+    def __repr__(self) -> str:
+        return f"Triggers({len(self)} edges)"
+
     def read(self) -> Triggers:
         return self
 
@@ -278,6 +342,9 @@ class H5Triggers:
 
     def __len__(self) -> int:
         return self._n
+
+    def __repr__(self) -> str:
+        return f"H5Triggers({self._n} edges in {path_text(self._path)})"
 
     def read(self) -> Triggers:
         """The whole table in memory."""

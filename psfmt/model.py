@@ -3,6 +3,9 @@
 A capture holds frames only (classic photometric stereo), events only (EventPS) or both (DualResPS),
 plus the light model, calibration, optional ground truth and stored solver results. Units: time in
 int64 microseconds, lengths in millimetres, angles in degrees, pixels as (column u → right, row v ↓).
+
+Every class has a one-line ``repr`` of a few hundred characters at most: sizes, dtypes, counts and
+names (cut, printable), never array contents, and no file access (it works on a closed capture).
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from psfmt.describe import array_text, cut, names, path_text, quoted, value_text
 from psfmt.events import Events, H5Triggers, Triggers
 from psfmt.files import hdf5_errors
 
@@ -27,6 +31,15 @@ COLOR_ORDERS = {"RGB": 3, "L": 1}
 
 def utc_now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
+
+
+def _stack_text(data: Any) -> str:
+    """``K × H×W×C dtype`` of a frame stack (``dtype[shape]`` when it is not 4-D: a repr never raises)."""
+    shape = tuple(int(d) for d in data.shape)
+    if len(shape) != 4:
+        return array_text(data)
+    k, h, w, c = shape
+    return f"{k} × {h}×{w}×{c} {np.dtype(data.dtype)}"
 
 
 class FrameStack:
@@ -58,6 +71,9 @@ class FrameStack:
         arr = self[()]
         return arr if dtype is None else arr.astype(dtype)
 
+    def __repr__(self) -> str:
+        return f"FrameStack({array_text(self)} on disk)"
+
 
 @dataclass
 class Frames:
@@ -66,7 +82,7 @@ class Frames:
     Long-exposure captures give each frame an exposure window [t_start_us, t_end_us); classic captures
     (DiLiGenT) give an instantaneous light direction (unit, camera frame) and RGB intensity per frame.
     ``saturation`` is the pixel value at which the sensor clips, in stored units; ``bit_depth`` the
-    significant bits of an integer sensor (e.g. 12 in uint16).
+    significant bits of an integer sensor (e.g. 12 in uint16). ``len(frames)`` is K.
     """
 
     data: np.ndarray | FrameStack
@@ -94,6 +110,14 @@ class Frames:
             value = getattr(self, name)
             if value is not None:
                 setattr(self, name, np.asarray(value, dtype=np.float64))
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __repr__(self) -> str:
+        timing = "exposure windows" if self.has_windows else "instant lights" if self.has_instant_lights else "untimed"
+        where = ", on disk" if isinstance(self.data, FrameStack) else ""
+        return f"Frames({_stack_text(self.data)}, {self.bit_depth}-bit, {timing}{where})"
 
     @property
     def count(self) -> int:
@@ -140,6 +164,13 @@ class LightSpec:
     model: str
     params: dict[str, Any] = field(default_factory=dict)
 
+    def __repr__(self) -> str:
+        # scalars as themselves, arrays by dtype and shape; a plugin's model may carry many parameters
+        shown = [f"{cut(key)}={value_text(value)}" for key, value in list(self.params.items())[:6]]
+        if len(self.params) > 6:
+            shown.append(f"+{len(self.params) - 6} more")
+        return f"LightSpec({', '.join([quoted(self.model), *shown])})"
+
 
 @dataclass
 class Calibration:
@@ -174,6 +205,20 @@ class Calibration:
                 setattr(self, name, np.asarray(value, dtype=np.float64))
         self.view_direction = np.asarray(self.view_direction, dtype=np.float64)
 
+    def __repr__(self) -> str:
+        parts = [cut(self.camera_model)]
+        if self.intrinsics is not None:
+            parts.append("intrinsics")
+        if self.contrast_pos is not None or self.contrast_neg is not None:
+            parts.append(f"contrast +{value_text(self.contrast_pos)}/−{value_text(self.contrast_neg)}")
+        if self.refractory_us is not None:
+            parts.append(f"refractory {value_text(self.refractory_us)} µs")
+        if self.refractory_rule is not None:
+            parts.append(cut(self.refractory_rule))
+        if self.event_to_frame is not None:
+            parts.append("event→frame affine")
+        return f"Calibration({', '.join(parts)})"
+
 
 def scale_affine(event_scale: float) -> np.ndarray:
     """The event→frame affine of an event sensor that samples the frame's view at ``event_scale``
@@ -193,6 +238,15 @@ class GroundTruth:
     depth: np.ndarray | None = None
     materials: dict[str, np.ndarray] = field(default_factory=dict)
 
+    def __repr__(self) -> str:
+        present = {k: v for k, v in (("normal", self.normal), ("mask", self.mask), ("albedo", self.albedo), ("depth", self.depth)) if v is not None}
+        if not present and not self.materials:
+            return "GroundTruth(empty)"
+        first = next(iter(present.values()), None)
+        size = f"{first.shape[0]}×{first.shape[1]}: " if first is not None and np.ndim(first) >= 2 else ""
+        materials = f"; materials {names(self.materials)}" if self.materials else ""
+        return f"GroundTruth({size}{', '.join(present)}{materials})"
+
 
 @dataclass
 class Result:
@@ -209,10 +263,16 @@ class Result:
     created: str = field(default_factory=utc_now)
     data_rate: float | None = None
 
+    def __repr__(self) -> str:
+        rate = "" if self.data_rate is None else f", data rate {100 * self.data_rate:.1f} %"
+        return (f"Result({quoted(self.name)}, solver {quoted(self.solver)}, maps: {names(self.maps)}, "
+                f"{value_text(self.seconds)} s{rate})")
+
 
 @dataclass
 class Capture:
-    """One capture: what the cameras recorded, under which lights, and what is known about it."""
+    """One capture: what the cameras recorded, under which lights, and what is known about it.
+    ``len(capture.frames)`` is its number of frames, ``len(capture.events)`` of events."""
 
     frames: Frames | None = None
     events: Events | None = None
@@ -228,6 +288,26 @@ class Capture:
     format_version: str = ""
     path: Path | None = None
     _handle: Any = field(default=None, repr=False, compare=False)
+
+    def __repr__(self) -> str:
+        parts = [self.kind]
+        if self.path is not None:
+            parts.append(path_text(self.path))
+        if self.frames is not None:
+            parts.append(f"frames {_stack_text(self.frames.data)}")
+        if self.events is not None:
+            parts.append(f"{len(self.events)} events {self.events.width}×{self.events.height}")
+        if self.triggers is not None:
+            parts.append(f"{len(self.triggers)} trigger edges")
+        if self.lights is not None:
+            parts.append(f"lights {quoted(self.lights.model)}")
+        if self.ground_truth is not None:
+            parts.append("ground truth")
+        if self.results:
+            parts.append(f"results: {names(self.results)}")
+        if self.format_version:
+            parts.append(f"format {cut(self.format_version, 12)}")
+        return f"Capture({', '.join(parts)})"
 
     @property
     def kind(self) -> str:

@@ -20,6 +20,7 @@ import numpy as np
 from psfmt import layout
 from psfmt.attributes import attrs
 from psfmt.camera import PERSPECTIVE
+from psfmt.describe import names
 from psfmt.errors import FormatError
 from psfmt.events import Events, H5EventStore, H5Triggers
 from psfmt.files import hdf5_errors, open_hdf5, require_open
@@ -57,6 +58,9 @@ class StoredMaps(Mapping[str, np.ndarray]):
 
     def __len__(self) -> int:
         return len(self._names)
+
+    def __repr__(self) -> str:
+        return f"StoredMaps({names(self._names)} on disk)"
 
 
 def _read_lights(group: h5py.Group) -> LightSpec:

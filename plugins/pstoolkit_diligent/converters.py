@@ -46,7 +46,7 @@ UINT16_WHITE = 65535
 
 SELECTION_OPTIONS = (
     Option("object", str, (), "object folder under the SRC root (ball or ballPNG); repeat for several", multiple=True),
-    Option("all", bool, False, "convert every object folder (one holding filenames.txt) under the SRC root"),
+    Option("all", bool, False, "convert every object folder (one holding filenames.txt) under the SRC root, each to OUT/<object>.h5"),
 )
 
 
@@ -83,14 +83,17 @@ def _targets(src: Path, options: dict[str, Any], suffix: str) -> list[tuple[str,
     return list(zip(stems, folders))
 
 
-def _outputs(out: Path, stems: list[str]) -> list[Path]:
-    """One object → OUT (or OUT/<object>.h5 when OUT is a folder); several → OUT/<object>.h5."""
-    if len(stems) == 1 and not out.is_dir():
+def _outputs(out: Path, stems: list[str], folder: bool = False) -> list[Path]:
+    """One object → OUT (or OUT/<object>.h5 when OUT is a folder); several, or any number with
+    ``folder`` (``--all``, where how many objects the root holds is not the user's choice, so the
+    output's kind must not depend on it) → OUT/<object>.h5, OUT created."""
+    if len(stems) == 1 and not folder and not out.is_dir():
         if not out.parent.is_dir():
             raise UserError(f"{out}: folder {out.parent} does not exist")
         return [out]
     if out.exists() and not out.is_dir():
-        raise UserError(f"{out}: is a file, but {len(stems)} objects need an output folder")
+        why = "--all writes an output folder" if len(stems) == 1 else f"{len(stems)} objects need an output folder"
+        raise UserError(f"{out}: is a file, but {why}")
     if not out.parent.is_dir():
         raise UserError(f"{out}: folder {out.parent} does not exist")
     return [out / f"{stem}.h5" for stem in stems]
@@ -105,11 +108,11 @@ class _Folders(Converter):
     def convert(self, src: Path, out: Path, options: dict[str, Any], progress: Progress) -> list[Path]:
         self.check_options(options)
         targets = _targets(src, options, self.folder_suffix)
-        paths = _outputs(out, [stem for stem, _ in targets])
+        paths = _outputs(out, [stem for stem, _ in targets], folder=options["all"])
         objects = [scan_object(folder, self.requires_normal) for _, folder in targets]
         for obj in objects:
             self.check_object(obj, options)
-        if len(paths) > 1:
+        if paths != [out]:
             out.mkdir(exist_ok=True)
         settings = json.dumps({k: list(v) if isinstance(v, tuple) else v for k, v in options.items()}, sort_keys=True)
         for i, (obj, path) in enumerate(zip(objects, paths)):

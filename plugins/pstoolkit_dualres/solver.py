@@ -27,9 +27,10 @@ from torch import nn
 
 import psfmt
 from pstoolkit import BRDF, Option, Progress, ShadowDetector, ShadowMask, Solver, SolverResult, UserError, get_registries
+from pstoolkit.plugin.options import format_assignments
 from pstoolkit_dualres.fields import NeuralField, PyramidField
 from pstoolkit_dualres.preprocess import SCALE_RULES, Preprocessed, PreprocessOptions, preprocess
-from pstoolkit_dualres.presets import PRESETS, Preset, resolve
+from pstoolkit_dualres.presets import OVERRIDES, PRESETS, Preset, resolve
 from pstoolkit_dualres.problem import Problem, build_problem, start_values
 from pstoolkit_dualres.reflectance import FitModel
 from pstoolkit_dualres.train import StageConfig, train
@@ -102,6 +103,25 @@ class DualRes(Solver):
     needs = frozenset({"frames", "events", "lights"})
     shadows: ShadowMask | None = None
     """The cast-shadow mask the last ``solve`` ended with (for inspection from Python)."""
+
+    @classmethod
+    def resolve_options(cls, options: dict[str, Any]) -> dict[str, Any]:
+        """The options with the preset expanded: every override left at −1 ("the preset's") becomes
+        the preset's value, and ``shadow`` lists every option of the shadow detector (``key=value``
+        strings, defaults filled in), so result.json records what the run used. Idempotent: the
+        preset stays named and the expanded values are the ones it would give. UserError for
+        ``smoothness`` with a preset whose field is the MLP, which has no pyramid to smooth (its own
+        value, 0, is accepted: it is what the run uses); an unknown shadow detector or detector option."""
+        named = PRESETS[options["preset"]]
+        if named.field == "mlp" and options["smoothness"] >= 0 and options["smoothness"] != named.smoothness:
+            raise UserError(
+                f"dualres: option smoothness={options['smoothness']:g} cannot apply with preset={named.name}: "
+                "it weighs the pyramid's finer levels, and this preset's field is an MLP (no pyramid)"
+            )
+        preset = resolve(options)
+        detector = get_registries().shadow_detectors.get(options["shadow_detector"])
+        shadow = format_assignments(detector.parse_options(options["shadow"]), detector.options)
+        return {**options, **{name: getattr(preset, name) for name in OVERRIDES}, "shadow": tuple(shadow)}
 
     def solve(self, capture: psfmt.Capture, options: dict[str, Any], progress: Progress) -> SolverResult:
         torch.manual_seed(options["seed"])

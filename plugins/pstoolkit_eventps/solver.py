@@ -75,6 +75,22 @@ class EventPS(Solver):
         Option("threads", int, 0, "maps fitted at once with window_us (0 = the cores this process may use)", minimum=0),
     )
     needs = frozenset({"events", "lights"})
+    requires = {"threads": ("window_us", "window_us > 0 (threads fit windows at once)"),
+                "residual_scale": ("reweight", "reweight > 0 (the scale of the Cauchy reweighting)")}
+    """Options read only when another one is positive: the option, the other, and why."""
+
+    @classmethod
+    def resolve_options(cls, options: dict[str, Any]) -> dict[str, Any]:
+        """The options as given: their placeholders (0 = the capture's calibration, the refractory
+        period, the light period, the cores) depend on the capture or the machine, and the run records
+        what they became in its diagnostics. UserError for ``threads`` changed without ``window_us``
+        and ``residual_scale`` changed with ``reweight=0``, which nothing would read."""
+        for option in cls.options:
+            if option.name in cls.requires and options[option.name] != option.default:
+                other, why = cls.requires[option.name]
+                if not options[other] > 0:
+                    raise UserError(f"eventps: option {option.name}={options[option.name]:g} cannot apply with {other}=0: it needs {why}")
+        return options
 
     def solve(self, capture: psfmt.Capture, options: dict[str, Any], progress: Progress) -> SolverResult:
         events = capture.events

@@ -33,7 +33,7 @@ import numpy as np
 
 import psfmt
 from pstoolkit import Option, Progress, Solver, SolverResult, UserError
-from pstoolkit_frameps.leastsq import robust_weights, solve_shading
+from pstoolkit_frameps.leastsq import MIN_OBSERVATIONS, robust_weights, solve_shading
 from pstoolkit_frameps.lights import (
     channel_weights,
     frame_lights,
@@ -74,6 +74,44 @@ class FramePS(Solver):
         ),
     )
     needs = frozenset({"frames"})
+    robust_options = ("dark_fraction", "saturation_level")
+    """Options that only the robust selection reads."""
+
+    @classmethod
+    def resolve_options(cls, options: dict[str, Any]) -> dict[str, Any]:
+        """The options as given (none is a placeholder: ``frames=0`` means every frame, whatever the
+        capture holds); UserError for a robust-selection option changed while ``robust`` is off, where
+        nothing would read it."""
+        if not options["robust"]:
+            changed = [o for o in cls.options if o.name in cls.robust_options and options[o.name] != o.default]
+            if changed:
+                given = ", ".join(f"{o.name}={options[o.name]:g}" for o in changed)
+                raise UserError(f"frameps: option {given} cannot apply: only robust=true drops observations (set robust=true, or leave it out)")
+        return options
+
+    @staticmethod
+    def _check_robust(options: dict[str, Any], frames: int, where: str) -> None:
+        """UserError when robust selection cannot drop anything from ``frames`` observations per pixel:
+        least squares needs ``MIN_OBSERVATIONS`` (3) of them, and a pixel left with fewer falls back to
+        all of its observations (``leastsq.robust_weights``), so robust=true needs more than 3 frames,
+        and a ``dark_fraction`` above 0 must drop at least one frame and leave at least 3."""
+        if frames <= MIN_OBSERVATIONS:
+            raise UserError(
+                f"frameps: option robust=true needs more than {MIN_OBSERVATIONS} frames, {where} gives {frames}: "
+                f"least squares needs {MIN_OBSERVATIONS} observations per pixel, so none can be dropped"
+            )
+        fraction = options["dark_fraction"]
+        drop = int(np.floor(fraction * frames))
+        if fraction > 0 and drop == 0:
+            raise UserError(
+                f"frameps: option dark_fraction={fraction:g} drops none of the {frames} frames of {where} "
+                f"(the darkest {fraction:g} × {frames} rounds down to 0; use at least {1 / frames:.3g})"
+            )
+        if frames - drop < MIN_OBSERVATIONS:
+            raise UserError(
+                f"frameps: option dark_fraction={fraction:g} drops {drop} of the {frames} frames of {where}, leaving fewer "
+                f"than the {MIN_OBSERVATIONS} least squares needs, so every pixel would keep all of them"
+            )
 
     def solve(self, capture: psfmt.Capture, options: dict[str, Any], progress: Progress) -> SolverResult:
         frames = capture.frames
@@ -84,6 +122,8 @@ class FramePS(Solver):
         indices = spread(trajectory_order(frames, where), options["frames"])
         if len(indices) < 3:
             raise UserError(f"frameps: {where}: least squares needs at least 3 frames, got {len(indices)}")
+        if options["robust"]:
+            self._check_robust(options, len(indices), where)
         lights, kind = frame_lights(capture, indices)
         strength, unit = _unit_lights(lights, where)
         weights_c = channel_weights(frames.channels)

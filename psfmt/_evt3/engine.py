@@ -2,21 +2,25 @@
 
 from __future__ import annotations
 
+import functools
+import importlib.util
 import os
 from collections.abc import Callable
 from typing import Any
 
-try:  # the compiled fast path is optional: psfmt must work with numpy and h5py alone
-    import numba
-except ImportError:  # pragma: no cover - exercised where numba is absent
-    numba = None
-
 ENGINES = ("auto", "numba", "numpy")
+
+
+@functools.cache
+def _numba_installed() -> bool:
+    # found, not imported: numba's import (with the scipy it loads) takes a fifth of a second that
+    # reading a capture, or `pstoolkit info`, never needs
+    return importlib.util.find_spec("numba") is not None
 
 
 def has_numba() -> bool:
     """Whether the compiled engine can run (numba installed and not disabled by PSFMT_NUMBA=0)."""
-    return numba is not None and os.environ.get("PSFMT_NUMBA", "1") != "0"
+    return _numba_installed() and os.environ.get("PSFMT_NUMBA", "1") != "0"
 
 
 def resolve(engine: str) -> str:
@@ -30,5 +34,19 @@ def resolve(engine: str) -> str:
 
 
 def jit(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """``fn`` compiled by numba (cached on disk, releasing the GIL) where numba is installed, else ``fn``."""
-    return numba.njit(cache=True, nogil=True)(fn) if numba is not None else fn
+    """``fn`` compiled by numba (cached on disk, releasing the GIL) where numba is installed, else
+    ``fn``. numba is imported and the kernel compiled (or loaded from the cache) on the first call,
+    so that importing a codec loads no numba."""
+    if not _numba_installed():
+        return fn
+    compiled: list[Callable[..., Any]] = []
+
+    @functools.wraps(fn)
+    def call(*args: Any) -> Any:
+        if not compiled:
+            import numba
+
+            compiled.append(numba.njit(cache=True, nogil=True)(fn))
+        return compiled[0](*args)
+
+    return call

@@ -2,21 +2,19 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import typer
 
 import psfmt
-from pstoolkit.cli.app import app, echo
+from pstoolkit.cli.app import QUIET_HELP, app, echo
 from pstoolkit.errors import UserError
-from pstoolkit.hardware.calibrate import (
-    AffineFit,
-    calibrate_target,
-    fit_affine,
-    read_pairs,
-    store_affine,
-)
+
+if TYPE_CHECKING:
+    from pstoolkit.hardware.calibrate import AffineFit
 
 
 def _affine_text(affine: np.ndarray) -> str:
@@ -33,9 +31,16 @@ def calibrate_command(
     max_error_px: float = typer.Option(1.0, "--max-error-px", help="Refuse to store an affine whose RMS reprojection error exceeds this (frame pixels)."),
     apply_to: list[Path] = typer.Option([], "--apply-to", help="Also store the affine in this capture; repeat for more."),
     store: bool = typer.Option(True, "--store/--no-store", help="Store the affine in TARGET (and --apply-to captures) or only print it."),
+    as_json: bool = typer.Option(False, "--json", help=(
+        "Print the result as JSON: the affine, the reprojection errors, what it was fitted from and where it was stored."
+    )),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help=QUIET_HELP),
 ) -> None:
     """Estimate the 2×3 event→frame affine from LED blobs seen by both cameras (robust matching,
     least squares), report the reprojection error, and store it in the capture(s) atomically."""
+    # deferred: blob detection loads scipy, which `pstoolkit --help` never needs
+    from pstoolkit.hardware.calibrate import calibrate_target, fit_affine, read_pairs, store_affine
+
     for path in [target, *apply_to]:
         if not path.exists():
             raise UserError(f"{path}: does not exist")
@@ -55,8 +60,21 @@ def calibrate_command(
             "(adjust the cameras and record again, or give --pairs); nothing stored"
         )
     line = f"event→frame affine from {source}: reprojection error RMS {fit.rms_px:.3f} px, max {fit.max_px:.3f} px; {_affine_text(fit.affine)}"
-    if store:
-        for path in [target, *apply_to]:
-            store_affine(path, fit.affine)
-        line += "; stored in " + ", ".join(str(p) for p in [target, *apply_to])
+    stored_in = [target, *apply_to] if store else []
+    for path in stored_in:
+        store_affine(path, fit.affine)
+    if as_json:
+        echo(json.dumps({
+            "affine": np.asarray(fit.affine, dtype=float).tolist(),
+            "rms_px": float(fit.rms_px),
+            "max_px": float(fit.max_px),
+            "pairs": fit.pairs,
+            "from": "pairs file" if pairs is not None else "LED detection",
+            "frame_blobs": None if pairs is not None else fit.frame_blobs,
+            "event_blobs": None if pairs is not None else fit.event_blobs,
+            "stored_in": [str(p) for p in stored_in],
+        }, indent=2))
+        return
+    if stored_in:
+        line += "; stored in " + ", ".join(str(p) for p in stored_in)
     echo(line)

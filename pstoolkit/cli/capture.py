@@ -9,6 +9,7 @@ OUT (an earlier file there stays as it was).
 from __future__ import annotations
 
 import dataclasses
+import json
 from contextlib import ExitStack
 from pathlib import Path
 
@@ -120,10 +121,13 @@ def capture_command(
     trigger: str = typer.Option("period", "--trigger", help="Camera trigger output: period (one pulse per turn), exposure (one per exposure window) or off."),
     exposures: int = typer.Option(3, "--exposures", help="Exposure windows per turn, for --trigger exposure."),
     calibration: Path | None = typer.Option(None, "--calibration", help="A capture whose event→frame affine (from `pstoolkit calibrate`) to store."),
-    assignments: list[str] = typer.Option([], "--set", help="A light option as key=value (see `pstoolkit plugins`); repeat for more."),
-    source_assignments: list[str] = typer.Option([], "--source-set", help="A source option as key=value (replay: speed=0, slice_us=500)."),
+    assignments: list[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="A light option (see `pstoolkit plugins`); repeat for more."),
+    source_assignments: list[str] = typer.Option([], "--source-set", metavar="KEY=VALUE", help=(
+        "A source option (replay: speed=0, slice_us=500); repeat for more."
+    )),
     description: str = typer.Option("", "--description", help="Free text stored in the file."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no summary line."),
+    as_json: bool = typer.Option(False, "--json", help="Print what was recorded as JSON (file, frames, events, periods) and no progress."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar and no summary line."),
 ) -> None:
     """Record a capture from a light rig and camera sources (or a replayed recording) into OUT.h5."""
     if periods < 1:
@@ -139,7 +143,7 @@ def capture_command(
     light_options = entry.parse_options(assignments)
     sources = _sources(source, source_assignments)
     given = _stored_affine(calibration) if calibration is not None else None
-    progress = progress_bar("capture", quiet)
+    progress = progress_bar("capture", quiet or as_json)
     try:
         with ExitStack() as stack:
             for s in sources:
@@ -162,5 +166,7 @@ def capture_command(
         # leaving the block sent the light OFF (on a dead link its watchdog turns them off) and removed
         # the writer's temporary file
         raise Interrupted(f"the lights are off and {out} was not written") from None
-    if not quiet:
+    if as_json:
+        echo(json.dumps({"file": str(out), "frames": done.frames, "events": done.events, "periods": periods, "period_us": sweep.period_us}, indent=2))
+    elif not quiet:
         echo(f"wrote {out}: {done.frames} frames, {done.events:,} events, {periods} period(s) of {sweep.period_us} µs")

@@ -8,6 +8,7 @@ converter's registry entry, so a plugin's converter gets its command line for fr
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -104,9 +105,10 @@ def _listing(ctx: typer.Context) -> str:
 def convert(
     ctx: typer.Context,
     args: list[str] = typer.Argument(None, metavar="NAME SRC [CONVERTER OPTIONS]", show_default=False),
-    out: Path | None = typer.Option(None, "-o", "--out", help="Capture file to write; a folder when several objects are converted."),
-    assignments: list[str] = typer.Option([], "--set", help="A converter option as key=value; repeat for more."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no summary."),
+    out: Path | None = typer.Option(None, "-o", "--out", help="Capture file to write; a folder when several objects are converted (always with --all)."),
+    assignments: list[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="A converter option; repeat for more."),
+    as_json: bool = typer.Option(False, "--json", help="Print the files written as JSON and no progress."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar and no summary."),
 ) -> None:
     """Convert a dataset (DiLiGenT, DiLiGenT-Π or a plugin's format) into hybrid capture(s). NAME is a
     registered converter; each converter's own options (e.g. --semi-real, --object NAME) are listed
@@ -130,8 +132,10 @@ def convert(
     options = entry.parse_options([*assignments, *pairs])
     if out is None:
         raise UserError(f"convert {entry.name}: give the output with -o OUT")
-    progress = progress_bar(f"convert {entry.name}", quiet)
+    progress = progress_bar(f"convert {entry.name}", quiet or as_json)
     written = run_converter(entry, Path(positional[0]), out, options, progress)
-    if not quiet:
+    if as_json:
+        echo(json.dumps({"converter": entry.name, "written": [str(path) for path in written]}, indent=2))
+    elif not quiet:
         for path in written:
             echo(f"wrote {path}")

@@ -20,6 +20,7 @@ def eval_command(
         False, "--csv", help=f"Print CSV, one row per result: {', '.join(CSV_COLUMNS)} (shares 0..1)."
     ),
     out: Path | None = typer.Option(None, "-o", "--out", help="Write the output to this file instead of printing it."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="With -o: no line saying what was written."),
 ) -> None:
     """Compare results: markdown tables with a row per object (capture stem) and a column per solver
     (result name) of the mean angular error in degrees (an unsolved pixel counts 90°), the mean error
@@ -38,4 +39,5 @@ def eval_command(
         raise UserError(f"{out}: folder {out.parent} does not exist")
     with psfmt.atomic_path(out) as tmp:
         tmp.write_text(text, encoding="utf-8")
-    echo(f"wrote {out}: {len(records)} result(s)")
+    if not quiet and not as_json:  # with --json, stdout holds JSON or nothing: the JSON went to the file
+        echo(f"wrote {out}: {len(records)} result(s)")

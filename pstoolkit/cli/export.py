@@ -7,12 +7,13 @@ of any size exports in bounded memory.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import typer
 
 import psfmt
-from pstoolkit.cli.app import app, progress_bar
+from pstoolkit.cli.app import app, echo, progress_bar
 from pstoolkit.errors import UserError
 
 EVENT_FORMATS = ("evt3", "evt2", "dsec")
@@ -30,7 +31,8 @@ def export(
     out: Path = typer.Option(..., "-o", "--out", help="File (--events) or folder (--frames) to write."),
     compression: str = typer.Option("gzip", "--compression", help="dsec only: gzip, zstd (needs hdf5plugin) or none."),
     force: bool = typer.Option(False, "--force", help="--frames: replace a non-empty OUT folder (as a unit, once the new one is complete)."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no summary line."),
+    as_json: bool = typer.Option(False, "--json", help="Print what was written as JSON and no progress."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar and no summary line."),
 ) -> None:
     """Write a capture's events as a Prophesee RAW file (EVT 3.0 or EVT 2.0) or a DSEC-style HDF5 file
     (--events), or a classic capture's frames as a DiLiGenT object folder (--frames diligent) that
@@ -40,27 +42,37 @@ def export(
     if frames is not None:
         if compression != "gzip":
             raise UserError("--compression is for --events dsec only")
-        _export_frames(capture_file, frames, out, force, quiet)
+        _export_frames(capture_file, frames, out, force, quiet, as_json)
     else:
         assert events is not None
-        _export_events(capture_file, events, out, compression, quiet)
+        _export_events(capture_file, events, out, compression, quiet, as_json)
 
 
-def _export_frames(capture_file: Path, fmt: str, out: Path, force: bool, quiet: bool) -> None:
+def _export_frames(capture_file: Path, fmt: str, out: Path, force: bool, quiet: bool, as_json: bool) -> None:
     from pstoolkit.io.diligent_export import export_diligent
 
     if fmt not in FRAME_FORMATS:
         raise UserError(f"--frames {fmt!r} is not one of {', '.join(FRAME_FORMATS)}")
-    written = export_diligent(capture_file, out, force=force, progress=progress_bar(f"export {capture_file.name}", quiet))
-    if not quiet:
+    written = export_diligent(capture_file, out, force=force, progress=progress_bar(f"export {capture_file.name}", quiet or as_json))
+    if as_json:
+        echo(json.dumps({
+            "folder": str(written.folder),
+            "format": fmt,
+            "images": written.images,
+            "width": written.width,
+            "height": written.height,
+            "mask_source": written.mask_source,
+            "normal_gt": bool(written.normal),
+        }, indent=2))
+    elif not quiet:
         extra = ", Normal_gt.mat" if written.normal else ""
-        typer.echo(
+        echo(
             f"wrote {written.folder}: {written.images} images at {written.width}×{written.height}, "
             f"mask from the {written.mask_source}{extra}"
         )
 
 
-def _export_events(capture_file: Path, fmt: str, out: Path, compression: str, quiet: bool) -> None:
+def _export_events(capture_file: Path, fmt: str, out: Path, compression: str, quiet: bool, as_json: bool) -> None:
     # the codecs load here, so that other commands start without numba's import
     from psfmt.dsec import write_dsec
     from psfmt.evt2 import write_raw as write_evt2
@@ -85,5 +97,7 @@ def _export_events(capture_file: Path, fmt: str, out: Path, compression: str, qu
             raise
         except ValueError as exc:  # the encoders' word on events they cannot hold
             raise UserError(f"{capture_file}: cannot export as {fmt}: {exc}") from None
-    if not quiet:
-        typer.echo(f"wrote {out} ({len(stream):,} events, {out.stat().st_size:,} bytes)")
+    if as_json:
+        echo(json.dumps({"file": str(out), "format": fmt, "events": len(stream), "bytes": out.stat().st_size}, indent=2))
+    elif not quiet:
+        echo(f"wrote {out} ({len(stream):,} events, {out.stat().st_size:,} bytes)")

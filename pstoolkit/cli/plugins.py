@@ -7,7 +7,7 @@ from typing import Any
 
 import typer
 
-from pstoolkit.cli.app import app, echo
+from pstoolkit.cli.app import QUIET_HELP, app, echo
 from pstoolkit.plugin.manager import PluginInfo, get_registries, load_failures, loaded_plugins
 from pstoolkit.plugin.options import Option
 from pstoolkit.plugin.registry import Entry, Registry
@@ -61,7 +61,10 @@ def _plugin_text(info: PluginInfo, held: Holdings) -> list[str]:
 
 
 @app.command()
-def plugins(as_json: bool = typer.Option(False, "--json", help="Print the listing as JSON.")) -> None:
+def plugins(
+    as_json: bool = typer.Option(False, "--json", help="Print the listing as JSON."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help=QUIET_HELP),
+) -> None:
     """List every plugin with its version and what it registered (light models, shadow detectors,
     BRDFs, solvers, backends, converters, scenes, integrators) with options, and plugins that failed
     to load."""

@@ -10,32 +10,34 @@ import typer
 import psfmt
 from pstoolkit import __version__
 from pstoolkit.cli.app import app, echo, progress_bar
+from pstoolkit.cli.config import check_capture, config_option, integrator_assignments_of, solver_assignments
 from pstoolkit.errors import UserError
 from pstoolkit.plugin.manager import get_registries
-from pstoolkit.solve.base import Progress, resolve_device
-from pstoolkit.solve.results import result_summary, solve_capture, summary_json, write_result_folder
-from pstoolkit.surface.outputs import SurfaceInputs, add_surface, capture_truth, surface_line
+from pstoolkit.solve.base import Progress, resolve_device, resolve_options
 
 _RESULT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
 
 
-def _demo_capture(progress: Progress) -> Path:
+def _demo_capture(progress: Progress, note: bool) -> Path:
     # Deferred: the demo module loads the simulator (and torch), which a run on a given file never needs.
     from pstoolkit.sim import demo
 
-    echo("no CAPTURE given: running on the built-in demo capture (simulated on first use, then cached)", err=True)
+    if note:
+        echo("no CAPTURE given: running on the built-in demo capture (simulated on first use, then cached)", err=True)
     return demo.demo_capture_path(demo.DEMO_CONFIG, progress)
 
 
 @app.command()
 def run(
+    ctx: typer.Context,
     capture: Path | None = typer.Argument(None, help="A hybrid-capture HDF5 file (default: the built-in demo capture)."),
     solver: str = typer.Option(..., "--solver", help="A registered solver (see `pstoolkit plugins`)."),
     out: Path | None = typer.Option(None, "-o", "--out", help="Output folder (default: out/<capture stem>-<name>)."),
-    assignments: list[str] = typer.Option([], "--set", help="A solver option as key=value; repeat for more."),
+    assignments: list[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="A solver option; repeat for more."),
     device: str = typer.Option("auto", "--device", help="auto (CUDA when available), cpu or cuda."),
     as_json: bool = typer.Option(False, "--json", help="Print result.json and no progress."),
-    store: bool = typer.Option(False, "--store", help="Also store the maps in the capture under /results/<name>."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar and no notes on stderr (the summary line is still printed)."),
+    store: bool = typer.Option(False, "--store/--no-store", help="Also store the maps in the capture under /results/<name>."),
     name: str | None = typer.Option(None, "--name", help=(
         "Name of the result: its column in `pstoolkit eval` and /results/<name> with --store (default: the solver)."
     )),
@@ -44,7 +46,8 @@ def run(
         "Also integrate the normals into a surface with this registered integrator (see `pstoolkit plugins`): "
         "depth.npy, depth.png, mesh.ply, mesh.obj and a surface entry in result.json."
     )),
-    integrator_assignments: list[str] = typer.Option([], "--integrator-set", help="An integrator option as key=value; repeat for more."),
+    integrator_assignments: list[str] = typer.Option([], "--integrator-set", metavar="KEY=VALUE", help="An integrator option; repeat for more."),
+    config: Path | None = config_option("run"),
 ) -> None:
     """Estimate normals of CAPTURE with a solver. Writes to the output folder: normal.npy (float32
     H×W×3), normal.png (16-bit, RGB = (n+1)/2, x right, y up, z to the camera, background 0), each
@@ -54,10 +57,18 @@ def run(
     capture has ground truth, and result.json (solver, capture, seconds, mean and median error in
     degrees with unsolved pixels counted as 90°, coverage and the mean error of the solved pixels,
     shares below 11.25/22.5/30°, data rate, options). With --integrate, also the surface (see
-    `pstoolkit integrate --help`), with its depth error when the capture has ground-truth depth."""
+    `pstoolkit integrate --help`), with its depth error when the capture has ground-truth depth.
+    The output folder is replaced as a unit: no file of an earlier result stays. With --config FILE,
+    the settings come from a TOML file or an earlier run's result.json (docs/config.md)."""
+    # deferred: writing maps loads OpenCV and integrating loads scipy, which `pstoolkit --help` never needs
+    from pstoolkit.solve.results import check_result_folder, result_folder, result_summary, solve_capture, summary_json, write_result_folder
+    from pstoolkit.surface.outputs import SurfaceInputs, add_surface, capture_truth, surface_line
+
     entry = get_registries().solvers.get(solver)
-    options = entry.parse_options(assignments)
+    # resolved (presets expanded) before the run: result.json records the values the run used
+    options = resolve_options(entry, entry.parse_options(solver_assignments(ctx, entry, assignments)))
     integrator = None if integrate is None else get_registries().integrators.get(integrate)
+    integrator_assignments = integrator_assignments_of(ctx, integrator, integrator_assignments)
     integrator_options = {} if integrator is None else integrator.parse_options(integrator_assignments)
     if integrator is None and integrator_assignments:
         raise UserError("--integrator-set needs --integrate NAME")
@@ -67,16 +78,16 @@ def run(
     result_name = entry.name if name is None else name
     if not _RESULT_NAME.fullmatch(result_name):
         raise UserError(f"--name {result_name!r}: use letters, digits, '.', '_' and '-', starting with a letter or digit")
-    quiet = as_json
+    notes = not quiet  # the lines on stderr besides the result: the demo capture, the stored result
+    quiet = quiet or as_json  # and no progress bar with --json either
     demo = capture is None
-    if capture is None:
-        capture = _demo_capture(progress_bar("simulate demo", quiet))
-    solved = solve_capture(entry, capture, options, device=device, progress=progress_bar(entry.name, quiet))
+    check_capture(ctx, capture)
     obj = "demo" if demo else capture.stem
-    summary = result_summary(
-        solved, entry=entry, name=result_name, obj=obj, capture=capture, device=device, options=options, error_max_deg=error_max, stored=store
-    )
     outdir = out if out is not None else Path("out") / f"{obj}-{result_name}"
+    check_result_folder(outdir)  # before solving, so that a long run does not end in this error
+    if capture is None:
+        capture = _demo_capture(progress_bar("simulate demo", quiet), notes)
+    solved = solve_capture(entry, capture, options, device=device, progress=progress_bar(entry.name, quiet))
     if store:
         stored = psfmt.Result(
             name=result_name,
@@ -89,14 +100,20 @@ def run(
         )
         psfmt.write_result(capture, stored)
         where = f"the demo capture {capture} (a cached file, regenerated without it if the cache is cleared)" if demo else str(capture)
-        echo(f"stored result {result_name!r} in {where}", err=True)
-    text = write_result_folder(outdir, solved, summary)
-    if integrator is not None:
-        albedo = next((m.array for m in solved.maps if m.name == "albedo" and m.array.shape == (*solved.mask.shape, 3)), None)
-        truth, camera = capture_truth(capture, solved.mask.shape)
-        inputs = SurfaceInputs(solved.normal, solved.mask, albedo, truth, camera)
-        summary = add_surface(outdir, summary, inputs, integrator, integrator_options)
-        text = summary_json(summary)
+        if notes:
+            echo(f"stored result {result_name!r} in {where}", err=True)
+    # after storing: result.json records the capture's checksum as the file is now
+    summary = result_summary(
+        solved, entry=entry, name=result_name, obj=obj, capture=capture, device=device, options=options, error_max_deg=error_max, stored=store
+    )
+    with result_folder(outdir) as partial:
+        text = write_result_folder(partial, solved, summary)
+        if integrator is not None:
+            albedo = next((m.array for m in solved.maps if m.name == "albedo" and m.array.shape == (*solved.mask.shape, 3)), None)
+            truth, camera = capture_truth(capture, solved.mask.shape)
+            inputs = SurfaceInputs(solved.normal, solved.mask, albedo, truth, camera)
+            summary = add_surface(partial, summary, inputs, integrator, integrator_options)
+            text = summary_json(summary)
     if as_json:
         echo(text)
         return

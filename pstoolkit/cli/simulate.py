@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import typer
 
-from pstoolkit.cli.app import app, progress_bar
+from pstoolkit.cli.app import app, echo, progress_bar
 from pstoolkit.errors import UserError
 from pstoolkit.plugin.manager import get_registries
-from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit.sim.config import SimulationConfig
 from pstoolkit.solve.base import resolve_device
 
 _DEFAULTS = SimulationConfig()
@@ -56,12 +57,13 @@ def simulate_command(
     )),
     shadows: bool = typer.Option(True, "--shadows/--no-shadows", help="Render cast shadows."),
     source: Path | None = typer.Option(None, "--source", help="Folder of the geometry scene (normal_map.png, depth_gt.npz, mask.png, K.txt)."),
-    assignments: list[str] = typer.Option([], "--set", help="A scene option as key=value (see `pstoolkit plugins`); repeat for more."),
-    device: str = typer.Option("cpu", "--device", help=(
-        "cpu (the compiled engine for the ggx and lambertian BRDFs), cuda or auto (torch rendering; also any plugin "
-        "BRDF)."
+    assignments: list[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="A scene option (see `pstoolkit plugins`); repeat for more."),
+    device: str = typer.Option("auto", "--device", help=(
+        "auto (CUDA when available, else cpu), cpu or cuda. On cpu the ggx and lambertian BRDFs render with the compiled "
+        "engine and plugin BRDFs with torch; on cuda everything renders with torch."
     )),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress and no summary line."),
+    as_json: bool = typer.Option(False, "--json", help="Print what was written as JSON (file, frames, events, seconds) and no progress."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar and no summary line."),
 ) -> None:
     """Render SCENE under a ring light and write a capture with ground truth: long-exposure frames and
     events (default), or a classic capture of N instantaneous lights (--discrete-lights N), or of the
@@ -96,8 +98,19 @@ def simulate_command(
         shadows=shadows,
         device=resolve_device(device),
     )
-    progress = progress_bar(f"simulate {scene}", quiet)
+    from pstoolkit.sim.simulator import simulate  # deferred: the simulator loads torch and numba
+
+    progress = progress_bar(f"simulate {scene}", quiet or as_json)
     summary = simulate(config, out, progress)
+    if as_json:
+        event_grid = summary.event_size
+        echo(json.dumps({
+            "file": str(summary.path),
+            "frames": {"count": summary.frames, "width": size, "height": size},
+            "events": None if event_grid is None else {"count": summary.events, "width": event_grid[1], "height": event_grid[0]},
+            "seconds": summary.seconds,
+        }, indent=2))
+        return
     if quiet:
         return
     events = (
@@ -105,4 +118,4 @@ def simulate_command(
         if summary.event_size is not None
         else ""
     )
-    typer.echo(f"wrote {summary.path}: {summary.frames} frames at {size}×{size}{events}, {summary.seconds:.1f} s")
+    echo(f"wrote {summary.path}: {summary.frames} frames at {size}×{size}{events}, {summary.seconds:.1f} s")

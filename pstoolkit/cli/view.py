@@ -25,6 +25,7 @@ def view(
     result: str | None = typer.Option(
         None, "--result", help="With a capture: the stored result to show (default: the first one stored, else the ground truth)."
     ),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No notes on stderr (the address is still printed)."),
 ) -> None:
     """Serve a page on this machine that shows a result's maps side by side (normal, albedo, F0,
     roughness, error and depth, whichever exist); relights the surface with the toolkit's BRDF
@@ -67,7 +68,7 @@ def view(
         if exc.errno == errno.EADDRINUSE:
             raise UserError(f"port {port} on {host} is in use: pick another with --port (0: any free port)") from None
         raise UserError(f"cannot serve on {host}:{port}: {exc.strerror or exc}") from None
-    for note in data.notes:
+    for note in [] if quiet else data.notes:
         echo(f"note: {note}", err=True)
     echo(f"serving {data.label} at {server.url} (Ctrl-C to stop)")
     if not no_browser:
@@ -75,7 +76,8 @@ def view(
     try:
         server.serve_forever()
     except KeyboardInterrupt:
-        echo("stopped", err=True)  # Ctrl-C is how a server is meant to stop: not an error
+        if not quiet:
+            echo("stopped", err=True)  # Ctrl-C is how a server is meant to stop: not an error
     finally:
         server.server_close()
         if timeline is not None:

@@ -3,18 +3,29 @@
 The report holds the tables of ``pstoolkit eval`` (object × solver: mean angular error, of the solved
 pixels too, median error, coverage, shares under 11.25°/22.5°/30°, data rate, solver time, with
 average rows; the depth error where a surface was integrated), a plot of the mean angular error
-against the data rate per solver (every object faint, the solver's average bold), and per object one
-figure with each solver's normal map (titled with its MAE and coverage) above its error map
-(unsolved pixels grey) and its depth thumbnail when a surface was integrated
-(``pstoolkit integrate``), plus the pairs a batch failed on (from ``batch.json``).
+against the data rate (one point per object and solver, each at its own data rate: colour the
+solver, marker the object), and per object one figure with each solver's normal map (titled with
+its MAE and coverage) above its error map (unsolved pixels grey, a colour bar in degrees) and its
+depth thumbnail when a surface was integrated (``pstoolkit integrate``; a colour bar in its
+units), plus the pairs a batch failed on (from ``batch.json``).
+
+Ground truth. A result folder holds the error map and the score, not the true normals; those are in
+the capture, and the report never opens a path it finds inside a folder (``result.json`` names its
+capture: following it would let a folder's files lead the report out of the folders it was given).
+So the true normals come only from captures given by the caller (``pstoolkit report
+--ground-truth CAPTURE``), matched to results by object (the capture's file stem, as ``pstoolkit
+run`` names the object): each figure of such an object starts with a ground-truth column (the true
+normal map, and the true depth in mm when a surface row is drawn).
+
 Without ground truth the error tables, the plot and the error maps are left out. Figures are PNGs
 beside the report, named ``<report stem>-…png``, drawn with matplotlib's Agg canvas (no pyplot, so
 no global backend state).
 
 Names and error lines come from files: the markdown escapes them (``markup.md``), the HTML page is
-made from that markdown and escapes them again for HTML, and the figures show them without
-mathtext. The report is written as a unit: every figure and page is made beside its target first,
-and only when all are made do they replace the old ones, so a failed report leaves the old one whole.
+rendered from that markdown by markdown-it-py (CommonMark with tables) with raw HTML turned off, so
+even a string that escaped ``md`` would show as text, and the figures show them without mathtext.
+The report is written as a unit: every figure and page is made beside its target first, and only
+when all are made do they replace the old ones, so a failed report leaves the old one whole.
 """
 
 from __future__ import annotations
@@ -23,17 +34,27 @@ import html
 import json
 import math
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
+import matplotlib
 import numpy as np
+from markdown_it import MarkdownIt
+from matplotlib.axes import Axes
+from matplotlib.cm import ScalarMappable
+from matplotlib.colors import Colormap, ListedColormap, Normalize
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 
+import psfmt
 from psfmt.atomic import check_target, commit, temporary_sibling
+from psfmt.describe import cut
 from psfmt.text import printable
 from pstoolkit.errors import UserError
-from pstoolkit.evaluation.markup import ESCAPE, md
-from pstoolkit.evaluation.scoring import GROUND_TRUTH_METRICS, METRICS, RESULT_FILE, TITLES, Record, averages, collect, markdown_table
+from pstoolkit.evaluation.markup import md
+from pstoolkit.evaluation.scoring import GROUND_TRUTH_METRICS, METRICS, RESULT_FILE, TITLES, Record, collect, markdown_table
 from pstoolkit.io.normalmap import normal_to_rgb, read_normal_npy, read_npy
 from pstoolkit.solve.batch import read_failures
 from pstoolkit.solve.results import error_to_rgb
@@ -43,6 +64,17 @@ PANEL_PX = (240, 260)
 """Width and height in pixels of one panel of a maps figure (a map and its title)."""
 PLOT_PX = (640, 480)
 """Width and height in pixels of the MAE-against-data-rate plot."""
+LEGEND_CHARS = 28
+"""Longest name in a legend or a panel title (names come from files; the tables give them in full)."""
+MARKERS = "osD^vP*Xph<>"
+"""Markers of the objects in the MAE-against-data-rate plot; with more objects, all are circles."""
+ERROR_CMAP = "turbo"
+"""matplotlib's Turbo, the colormap ``error.png`` is drawn with (OpenCV's Turbo), for its colour bar."""
+DEPTH_CMAP: Colormap = ListedColormap(matplotlib.colormaps["gray"](np.linspace(0.2, 1.0, 256)), name="depth").with_extremes(bad="black")
+"""Depth thumbnails: nearer brighter, from 20 % grey so the farthest point stands out from the black
+background (NaN, no depth)."""
+DEPTH_UNITS = {"orthographic": "z (frame pixels)", "perspective": "z (relative: up to scale)"}
+"""Colour-bar label of a result's depth by its projection (``pstoolkit.surface.base``)."""
 
 
 @dataclass(frozen=True)
@@ -54,13 +86,26 @@ class ReportFiles:
     figures: list[Path]
 
 
+@dataclass(frozen=True)
+class Truth:
+    """An object's ground truth, from a capture the caller named: ``normal`` (H, W, 3) float unit
+    normals (zero outside ``mask``), ``mask`` (H, W) bool, ``depth`` (H, W) float z in mm (NaN
+    outside the mask) or None, and ``source``, the capture."""
+
+    normal: np.ndarray
+    mask: np.ndarray
+    depth: np.ndarray | None
+    source: Path
+
+
 def _safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]", "_", name)
 
 
-def _label(name: str) -> str:
-    """A name for a figure: one printable line, ``$`` escaped so matplotlib draws no mathtext."""
-    return printable(name).replace("$", r"\$")
+def _label(name: str, limit: int | None = None) -> str:
+    """A name for a figure: one printable line (cut to ``limit`` characters with ``…``: a legend of
+    long names would squeeze the plot to nothing), ``$`` escaped so matplotlib draws no mathtext."""
+    return (printable(name) if limit is None else cut(name, limit)).replace("$", r"\$")
 
 
 def _save(fig: Figure, path: Path) -> None:
@@ -68,28 +113,71 @@ def _save(fig: Figure, path: Path) -> None:
     fig.savefig(path, dpi=DPI, format="png")
 
 
-def plot_mae_vs_rate(records: list[Record], path: Path) -> None:
-    """MAE (degrees) against data rate (% of 24 RGB frames): per solver its objects as faint points
-    and its average as a large marker."""
+def read_truths(captures: Sequence[Path], objects: Sequence[str]) -> dict[str, Truth]:
+    """The ground truth of each capture in ``captures`` by its object (the file stem). UserError for
+    two captures of one object, a capture whose object no result has (``objects``), or one without
+    ground-truth normals; FormatError for a file that does not read as a capture."""
+    truths: dict[str, Truth] = {}
+    for path in captures:
+        obj = path.stem
+        if obj in truths:
+            raise UserError(f"--ground-truth {path}: a second capture of object {obj!r} (the first: {truths[obj].source})")
+        if obj not in objects:
+            raise UserError(f"--ground-truth {path}: no result is of object {obj!r} (objects: {', '.join(sorted(objects))})")
+        with psfmt.read(path) as capture:
+            gt = capture.ground_truth
+            if gt is None or gt.normal is None:
+                raise UserError(f"--ground-truth {path}: the capture holds no ground-truth normals")
+            normal = np.asarray(gt.normal, dtype=np.float32)
+            mask = np.asarray(gt.mask, dtype=bool) if gt.mask is not None else np.linalg.norm(normal, axis=-1) > 0
+            depth = None if gt.depth is None else np.where(mask, np.asarray(gt.depth, dtype=np.float64), np.nan)
+        truths[obj] = Truth(np.where(mask[..., None], normal, 0.0), mask, depth, path)
+    return truths
+
+
+def mae_rate_figure(records: list[Record]) -> Figure:
+    """MAE (degrees) against data rate (% of 24 RGB frames): one point per object and solver at the
+    data rate of that capture (colour: the solver; marker: the object, while there are no more
+    objects than ``MARKERS``). No averaged point: captures of different data rates averaged into one
+    would sit at a rate no capture has (the tables give the averages)."""
     fig = Figure(figsize=(PLOT_PX[0] / DPI, PLOT_PX[1] / DPI), dpi=DPI, layout="constrained")
     ax = fig.add_subplot()
-    mean = averages(records)
-    for index, solver in enumerate(sorted(mean)):
+    points = [r for r in records if r.mae_deg is not None and r.data_rate is not None]
+    objects = sorted({r.object for r in points})
+    marked = len(objects) <= len(MARKERS)
+    solvers: list[Line2D] = []
+    for index, solver in enumerate(sorted({r.solver for r in points})):
         colour = f"C{index % 10}"
-        points = [(100 * r.data_rate, r.mae_deg) for r in records if r.solver == solver and r.mae_deg is not None and r.data_rate is not None]
-        if not points:
-            continue
-        x, y = np.array(points).T
-        ax.scatter(x, y, s=18, color=colour, alpha=0.35)
-        ax.scatter([x.mean()], [y.mean()], s=90, color=colour, edgecolors="black", label=f"{_label(solver)} (average)", zorder=3)
+        for obj in objects:
+            mine = [(100 * r.data_rate, r.mae_deg) for r in points if r.solver == solver and r.object == obj]  # type: ignore[operator]
+            if mine:
+                x, y = np.array(mine).T
+                marker = MARKERS[objects.index(obj)] if marked else "o"
+                ax.scatter(x, y, s=40, marker=marker, color=colour, edgecolors="black", linewidths=0.5, zorder=3)
+        solvers.append(Line2D([], [], color=colour, marker="o", linestyle="", label=_label(solver, LEGEND_CHARS)))
     ax.set_xlabel("data rate (% of 24 RGB frames)")
     ax.set_ylabel("mean angular error (°)")
     ax.set_title("Mean angular error against data rate")
     ax.set_xlim(left=0)
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize="small")
-    _save(fig, path)
+    # the legends go beside the axes: inside, they would hide the points in their corner
+    fig.legend(handles=solvers, title="solver", loc="outside right upper", fontsize="small")
+    if marked and objects:
+        shapes = [Line2D([], [], color="grey", marker=MARKERS[i], linestyle="", label=_label(obj, LEGEND_CHARS)) for i, obj in enumerate(objects)]
+        fig.legend(handles=shapes, title="object", loc="outside right lower", fontsize="small")
+    return fig
+
+
+def plot_mae_vs_rate(records: list[Record], path: Path) -> None:
+    """Write ``mae_rate_figure`` as a PNG at ``path``."""
+    _save(mae_rate_figure(records), path)
+
+
+def _summary(folder: Path) -> dict[str, Any]:
+    """A result folder's ``result.json`` (checked to be an object when the records were collected)."""
+    data = json.loads((folder / RESULT_FILE).read_text(encoding="utf-8"))
+    return data if isinstance(data, dict) else {}
 
 
 def _error_map(folder: Path) -> tuple[np.ndarray, float] | None:
@@ -101,8 +189,7 @@ def _error_map(folder: Path) -> tuple[np.ndarray, float] | None:
     error = read_npy(path)
     if error.ndim != 2 or error.dtype.kind != "f":
         raise UserError(f"{path}: expected a float (H, W) error map in degrees, got {error.dtype} {error.shape}")
-    data = json.loads((folder / RESULT_FILE).read_text(encoding="utf-8"))
-    top = data.get("error_max_deg")
+    top = _summary(folder).get("error_max_deg")
     usable = isinstance(top, (int, float)) and not isinstance(top, bool) and math.isfinite(top) and top > 0
     return error, float(top) if usable else 30.0
 
@@ -119,41 +206,85 @@ def _depth_map(folder: Path) -> np.ndarray | None:
     return depth
 
 
-def _depth_image(depth: np.ndarray) -> np.ndarray:
-    """Grey (H, W) in [0, 1] of a depth map, nearer brighter, black where it has no depth."""
+def _depth_units(folder: Path) -> str:
+    """The colour-bar label of a folder's depth: its projection's units (``DEPTH_UNITS``)."""
+    surface = _summary(folder).get("surface")
+    projection = surface.get("projection") if isinstance(surface, dict) else None
+    return DEPTH_UNITS.get(projection, "z") if isinstance(projection, str) else "z"
+
+
+def _draw_depth(fig: Figure, ax: Axes, depth: np.ndarray, units: str) -> None:
+    """A depth map, nearer brighter (``DEPTH_CMAP``), black where it has no depth, with a colour bar
+    of z in ``units``."""
     inside = np.isfinite(depth)
-    if not inside.any():
-        return np.zeros(depth.shape)
-    low, high = float(depth[inside].min()), float(depth[inside].max())
-    grey = (depth - low) / (high - low) * 0.8 + 0.2 if high > low else np.full(depth.shape, 0.6)
-    return np.where(inside, grey, 0.0)
+    low, high = (float(depth[inside].min()), float(depth[inside].max())) if inside.any() else (0.0, 1.0)
+    if high <= low:  # a flat surface: one grey, a bar around its level
+        low, high = low - 0.5, high + 0.5
+    image = ax.imshow(np.where(inside, depth, np.nan), cmap=DEPTH_CMAP, norm=Normalize(low, high), interpolation="nearest")
+    bar = fig.colorbar(image, ax=ax, fraction=0.046, pad=0.03)
+    bar.set_label(units, fontsize="x-small")
+    bar.ax.tick_params(labelsize="x-small")
 
 
-def plot_maps(records: list[Record], path: Path) -> None:
-    """One object's figure: a column per solver with its normal map (titled with its MAE and coverage)
-    above its error map (Turbo, 0 to the folder's error scale, grey where the solver left a pixel
-    unsolved: a zero normal) and, where a surface was integrated, its depth (nearer brighter, titled
-    with the depth error); no error row when no result has ground truth, no depth row when no result
-    has a surface."""
+def _draw_error(fig: Figure, ax: Axes, error: np.ndarray, top: float, solved: np.ndarray) -> None:
+    """An error map as ``error.png`` draws it (Turbo 0…``top``°, black outside the mask, grey where
+    unsolved) with a colour bar in degrees, open at the top (larger errors saturate)."""
+    ax.imshow(error_to_rgb(error, top, solved), interpolation="nearest")
+    scale = ScalarMappable(norm=Normalize(0.0, top), cmap=ERROR_CMAP)
+    bar = fig.colorbar(scale, ax=ax, fraction=0.046, pad=0.03, extend="max")
+    bar.set_label("angular error (°)", fontsize="x-small")
+    bar.ax.tick_params(labelsize="x-small")
+
+
+def _check_size(truth: Truth, normal: np.ndarray, folder: Path) -> None:
+    if truth.normal.shape != normal.shape:
+        raise UserError(
+            f"--ground-truth {truth.source}: its normals are {truth.normal.shape[0]}×{truth.normal.shape[1]}, the result in {folder} "
+            f"{normal.shape[0]}×{normal.shape[1]} (not the capture of this result?)"
+        )
+
+
+def maps_figure(records: list[Record], truth: Truth | None = None) -> Figure:
+    """One object's figure: with ``truth``, first a ground-truth column (the true normals, and the
+    true depth in mm when there is a depth row); then a column per solver with its normal map
+    (titled with its MAE and coverage) above its error map (Turbo, 0 to the folder's error scale,
+    grey where the solver left a pixel unsolved: a zero normal; a colour bar in degrees) and, where a
+    surface was integrated, its depth (nearer brighter, titled with the depth error, a colour bar in
+    the surface's units); no error row when no result has ground truth, no depth row when no result
+    has a surface. UserError when ``truth`` is not the size of a result's normals."""
     errors = [_error_map(Path(r.source)) for r in records]
     depths = [_depth_map(Path(r.source)) for r in records]
     has_error, has_depth = any(e is not None for e in errors), any(d is not None for d in depths)
-    rows = 1 + has_error + has_depth
-    fig = Figure(figsize=(len(records) * PANEL_PX[0] / DPI, rows * PANEL_PX[1] / DPI), dpi=DPI, layout="constrained")
-    axes = fig.subplots(rows, len(records), squeeze=False)
-    for column, (record, error, depth) in enumerate(zip(records, errors, depths)):
+    rows, first = 1 + has_error + has_depth, int(truth is not None)
+    columns = first + len(records)
+    fig = Figure(figsize=(columns * PANEL_PX[0] / DPI, rows * PANEL_PX[1] / DPI), dpi=DPI, layout="constrained")
+    axes = fig.subplots(rows, columns, squeeze=False)
+    if truth is not None:
+        axes[0, 0].imshow(normal_to_rgb(truth.normal, truth.mask, bits=8), interpolation="nearest")
+        axes[0, 0].set_title("ground truth\n(normals)", fontsize="small")
+        if has_depth:
+            ax = axes[rows - 1, 0]
+            if truth.depth is None:
+                ax.text(0.5, 0.5, "no true depth", ha="center", va="center", transform=ax.transAxes)
+            else:
+                _draw_depth(fig, ax, truth.depth, "true z (mm)")
+                ax.set_title("true depth", fontsize="small")
+    for index, (record, error, depth) in enumerate(zip(records, errors, depths)):
+        column = first + index
         normal = read_normal_npy(Path(record.source) / "normal.npy")
+        if truth is not None:
+            _check_size(truth, normal, Path(record.source))
         score = f"MAE {record.mae_deg:.2f}°" if record.mae_deg is not None else "no ground truth"
         if record.coverage is not None:
             score += f", {100 * record.coverage:.1f} % solved"
         axes[0, column].imshow(normal_to_rgb(normal, bits=8), interpolation="nearest")
-        axes[0, column].set_title(f"{_label(record.solver)}\n{score}", fontsize="small")
+        axes[0, column].set_title(f"{_label(record.solver, LEGEND_CHARS)}\n{score}", fontsize="small")
         if has_error:
             if error is None:
                 axes[1, column].text(0.5, 0.5, "no ground truth", ha="center", va="center", transform=axes[1, column].transAxes)
             else:
                 solved = np.any(normal != 0, axis=-1)
-                axes[1, column].imshow(error_to_rgb(error[0], error[1], solved), interpolation="nearest")
+                _draw_error(fig, axes[1, column], error[0], error[1], solved)
                 grey = ", grey: unsolved" if np.any(np.isfinite(error[0]) & ~solved) else ""
                 axes[1, column].set_title(f"error 0–{error[1]:g}°{grey}", fontsize="small")
         if has_depth:
@@ -161,18 +292,27 @@ def plot_maps(records: list[Record], path: Path) -> None:
             if depth is None:
                 ax.text(0.5, 0.5, "no surface", ha="center", va="center", transform=ax.transAxes)
             else:
-                ax.imshow(_depth_image(depth), cmap="gray", vmin=0.0, vmax=1.0, interpolation="nearest")
+                _draw_depth(fig, ax, depth, _depth_units(Path(record.source)))
                 detail = "no true depth" if record.depth_error is None else f"RMSE {100 * record.depth_error:.2f} % of range"
                 ax.set_title(f"depth, {detail}", fontsize="small")
-        for ax in axes[:, column]:
-            ax.set_axis_off()
-    fig.suptitle(_label(records[0].object))
-    _save(fig, path)
+    for ax in axes.flat:
+        ax.set_axis_off()
+    fig.suptitle(_label(records[0].object, 8 * LEGEND_CHARS // 3))  # the tables give names in full
+    return fig
 
 
-def report_markdown(records: list[Record], failures: list[str], plot: str | None, maps: dict[str, str], sources: list[Path]) -> str:
-    """The report as markdown; ``plot`` and ``maps`` (object → file) are figure file names beside it.
-    Every name, path and error line is escaped (``markup.md``)."""
+def plot_maps(records: list[Record], path: Path, truth: Truth | None = None) -> None:
+    """Write ``maps_figure`` as a PNG at ``path``."""
+    _save(maps_figure(records, truth), path)
+
+
+def report_markdown(
+    records: list[Record], failures: list[str], plot: str | None, maps: dict[str, str], sources: list[Path],
+    truths: dict[str, Truth] | None = None,
+) -> str:
+    """The report as markdown; ``plot`` and ``maps`` (object → file) are figure file names beside it,
+    ``truths`` the ground truth given per object. Every name, path and error line is escaped
+    (``markup.md``)."""
     objects = sorted({r.object for r in records})
     solvers = sorted({r.solver for r in records})
     has_error = any(r.mae_deg is not None for r in records)
@@ -190,96 +330,48 @@ def report_markdown(records: list[Record], failures: list[str], plot: str | None
             continue
         parts += [f"## {TITLES[metric]}", markdown_table(records, metric)]
     if plot is not None:
-        parts += ["## Mean angular error against data rate", f"![Mean angular error against data rate]({plot})"]
+        parts += [
+            "## Mean angular error against data rate",
+            "One point per object and solver, at the data rate of what the solver read of that capture.",
+            f"![Mean angular error against data rate]({plot})",
+        ]
     parts.append("## Normal and error maps" if has_error else "## Normal maps")
+    if truths:
+        given = ", ".join(f"{md(obj)} ({md(truth.source)})" for obj, truth in sorted(truths.items()))
+        parts.append(f"The first column is the ground truth of the capture given for the object: {given}.")
     parts += [f"![{md(obj)}]({maps[obj]})" for obj in objects]
     if failures:
         parts += ["## Failed pairs", "\n".join(f"- {md(line)}" for line in failures)]
     return "\n\n".join(parts) + "\n"
 
 
-_TOKEN = re.compile(ESCAPE.pattern + r"|(&(?:amp|lt|gt|quot|#\d+);)|\*\*(.+?)\*\*|`([^`]+)`")
-
-
-def _inline(text: str) -> str:
-    """HTML of one line of the report's markdown: backslash escapes as their character, entities kept,
-    ``**strong**`` and ```code```, everything else HTML-escaped."""
-    out, pos = [], 0
-    for m in _TOKEN.finditer(text):
-        out.append(html.escape(text[pos : m.start()], quote=False))
-        if m[1] is not None:
-            out.append(html.escape(m[1], quote=False))
-        elif m[2] is not None:
-            out.append(m[2])
-        elif m[3] is not None:
-            out.append(f"<strong>{_inline(m[3])}</strong>")
-        else:
-            out.append(f"<code>{html.escape(m[4], quote=False)}</code>")
-        pos = m.end()
-    out.append(html.escape(text[pos:], quote=False))
-    return "".join(out)
-
-
-def _literal(text: str) -> str:
-    """The text an escaped markdown string shows (for an HTML attribute, which ``html.escape`` quotes)."""
-    return html.unescape(ESCAPE.sub(r"\1", text))
-
-
-def _cells(line: str) -> list[str]:
-    """A table row's cells, split at the pipes that are not escaped."""
-    return [cell.strip() for cell in re.split(r"(?<!\\)\|", line.strip().removeprefix("|").removesuffix("|"))]
-
-
-def _html_table(lines: list[str]) -> str:
-    align = ["right" if cell.endswith(":") else "left" for cell in _cells(lines[1])]
-    head = "".join(f'<th style="text-align:{a}">{_inline(c)}</th>' for c, a in zip(_cells(lines[0]), align))
-    body = "".join(
-        "<tr>" + "".join(f'<td style="text-align:{a}">{_inline(c)}</td>' for c, a in zip(_cells(line), align)) + "</tr>" for line in lines[2:]
-    )
-    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
-
-
-_IMAGE = re.compile(r"!\[(.*)\]\((.*)\)")
-
-
 def markdown_to_html(text: str, title: str) -> str:
-    """A standalone HTML page of the markdown ``report_markdown`` writes: headings, paragraphs,
-    pipe tables, images and bullet lists (the only constructs it uses)."""
-    body = []
-    for block in text.strip().split("\n\n"):
-        lines = block.splitlines()
-        heading = re.match(r"(#{1,6}) (.*)", block)
-        image = _IMAGE.fullmatch(block)
-        if heading:
-            level = len(heading.group(1))
-            body.append(f"<h{level}>{_inline(heading.group(2))}</h{level}>")
-        elif image:
-            alt, src = (html.escape(_literal(part)) for part in image.groups())
-            body.append(f'<figure><img src="{src}" alt="{alt}"><figcaption>{alt}</figcaption></figure>')
-        elif lines[0].startswith("|"):
-            body.append(_html_table(lines))
-        elif lines[0].startswith("- "):
-            body.append("<ul>" + "".join(f"<li>{_inline(line[2:])}</li>" for line in lines) + "</ul>")
-        else:
-            body.append(f"<p>{_inline(' '.join(lines))}</p>")
+    """A standalone HTML page of the markdown ``report_markdown`` writes, rendered by markdown-it-py
+    (CommonMark with GFM tables). Raw HTML in the markdown is off: a tag is shown as text, never
+    passed through, and markdown-it refuses ``javascript:`` links (names are escaped by ``md`` before
+    that; this is the second line of defence)."""
+    renderer = MarkdownIt("commonmark", {"html": False}).enable("table")
     style = (
         "body{font-family:sans-serif;max-width:72em;margin:2em auto}table{border-collapse:collapse}"
         "td,th{border:1px solid #ccc;padding:.2em .6em}img{max-width:100%}"
     )
-    content = "\n".join(body)
+    content = renderer.render(text)
     head = f'<head><meta charset="utf-8"><title>{html.escape(title)}</title><style>{style}</style></head>'
-    return f'<!DOCTYPE html>\n<html lang="en">\n{head}\n<body>\n{content}\n</body>\n</html>\n'
+    return f'<!DOCTYPE html>\n<html lang="en">\n{head}\n<body>\n{content}</body>\n</html>\n'
 
 
-def write_report(paths: list[Path], out: Path) -> ReportFiles:
+def write_report(paths: list[Path], out: Path, ground_truth: Sequence[Path] = ()) -> ReportFiles:
     """Report on the result folders under ``paths`` (batch folders or single result folders) into the
-    markdown file ``out``, the HTML ``out`` with ``.html`` and PNG figures beside them."""
+    markdown file ``out``, the HTML ``out`` with ``.html`` and PNG figures beside them. The captures
+    in ``ground_truth`` give their objects' figures a ground-truth column (``read_truths``: matched by
+    file stem; UserError for one no result is of, or one without ground-truth normals)."""
     if out.suffix.lower() != ".md":
         raise UserError(f"-o {out}: name the markdown file of the report (….md); the HTML and the figures go beside it")
     for path in paths:
         if not path.is_dir():
             raise UserError(f"{path}: not a folder (the report reads result folders written by `pstoolkit run` or `pstoolkit batch`)")
     records = collect(paths)
+    truths = read_truths(list(ground_truth), sorted({r.object for r in records}))
     failures = [f"{f.object} × {f.solver}: {f.error}" for path in paths for f in read_failures(path)]
     out.parent.mkdir(parents=True, exist_ok=True)
     staged: dict[Path, Path] = {}  # target → its finished temporary file
@@ -296,9 +388,9 @@ def write_report(paths: list[Path], out: Path) -> ReportFiles:
         maps = {}
         for index, obj in enumerate(sorted({r.object for r in records})):
             maps[obj] = f"{out.stem}-maps-{index:03d}-{_safe(obj)}.png"
-            plot_maps([r for r in records if r.object == obj], stage(out.parent / maps[obj]))
+            plot_maps([r for r in records if r.object == obj], stage(out.parent / maps[obj]), truths.get(obj))
         figures = list(staged)
-        text = report_markdown(records, failures, plot, maps, paths)
+        text = report_markdown(records, failures, plot, maps, paths, truths)
         page = out.with_suffix(".html")
         stage(page).write_text(markdown_to_html(text, f"Evaluation report: {', '.join(str(p) for p in paths)}"), encoding="utf-8")
         stage(out).write_text(text, encoding="utf-8")

@@ -15,6 +15,7 @@ A solver is a ``Solver`` subclass registered through ``pstoolkit_register_solver
 
 from __future__ import annotations
 
+import functools
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Collection
@@ -24,8 +25,9 @@ from typing import Any, ClassVar
 import numpy as np
 
 import psfmt
+from psfmt.describe import names
 from pstoolkit.errors import UserError
-from pstoolkit.plugin.options import Option
+from pstoolkit.plugin.options import Option, fill_defaults
 from pstoolkit.plugin.registry import Entry, PluginError
 
 Progress = Callable[[float, str], None]
@@ -68,11 +70,22 @@ class SolverResult:
         if self.mask.shape != self.normal.shape[:2]:
             raise ValueError(f"mask has shape {self.mask.shape}, expected {self.normal.shape[:2]}")
 
+    def __repr__(self) -> str:
+        # one line: the maps are megabytes of numbers
+        height, width = self.mask.shape
+        maps = f", maps: {names(self.maps)}" if self.maps else ""
+        return f"{type(self).__name__}({height}×{width}, {int(self.mask.sum())} pixels in the mask{maps})"
+
 
 class Solver(ABC):
     """Base of photometric-stereo solvers: ``name`` (registry name), ``summary`` (one line),
     ``options`` (typed, set with ``--set key=value``), ``needs`` (keys of ``INPUTS`` the capture must
-    hold). ``device`` is the torch device to compute on ("cpu" or "cuda")."""
+    hold). ``device`` is the torch device to compute on ("cpu" or "cuda").
+
+    A subclass writes ``solve`` for the full options dict; called from Python with only some options
+    (``FramePS().solve(capture, {"robust": True})``) or none, it gets the others at their defaults
+    (and ``resolve_options`` applied) and ``progress`` may be left out: ``__init_subclass__`` wraps
+    each subclass's own ``solve``. An unknown key is the UserError ``--set`` gives."""
 
     name: ClassVar[str]
     summary: ClassVar[str]
@@ -82,10 +95,44 @@ class Solver(ABC):
     def __init__(self, device: str = "cpu") -> None:
         self.device = device
 
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        solve = cls.__dict__.get("solve")
+        # a solver's own solve reads options["frames"] …: from Python with a partial dict it would
+        # fail on a KeyError, so every subclass's solve is wrapped to see the full dict
+        if solve is not None and not getattr(solve, "__isabstractmethod__", False) and not getattr(solve, "_fills_options", False):
+            cls.solve = _filling_options(solve)  # type: ignore[method-assign]
+
+    @classmethod
+    def resolve_options(cls, options: dict[str, Any]) -> dict[str, Any]:
+        """The options a run actually uses, which ``result.json`` records: the full ``options`` dict
+        (defaults filled in) with every placeholder replaced by the value it stands for (``dualres``:
+        ``epochs=-1`` → the preset's 150), so that running with the returned dict does exactly the
+        same — it must be idempotent and keep the keys. Also the place to refuse, with a UserError
+        naming the option, a combination that cannot apply whatever the capture (an option that only
+        matters with another one off). Values that depend on the capture stay as given (the capture
+        is recorded by its checksum). The default returns ``options`` unchanged."""
+        return options
+
     @abstractmethod
     def solve(self, capture: psfmt.Capture, options: dict[str, Any], progress: Progress) -> SolverResult:
         """Estimate normals (and maps) from ``capture`` with the full ``options`` dict (defaults filled
-        in), calling ``progress`` now and then. Bad input is a UserError."""
+        in, resolved by ``resolve_options``), calling ``progress`` now and then. Bad input is a
+        UserError, and so is an option that cannot apply to this capture (no silent no-op)."""
+
+
+def _filling_options(solve: Callable[..., SolverResult]) -> Callable[..., SolverResult]:
+    """``solve`` taking a partial options dict (or None) and an optional ``progress``: the options left
+    out at their defaults (``cls.options``), then ``resolve_options``, both idempotent on full dicts."""
+
+    @functools.wraps(solve)
+    def wrapper(self: Solver, capture: psfmt.Capture, options: dict[str, Any] | None = None, progress: Progress = no_progress) -> SolverResult:
+        cls = type(self)
+        full = fill_defaults(options or {}, cls.options, owner=f"solver {getattr(cls, 'name', cls.__name__)!r}")
+        return solve(self, capture, cls.resolve_options(full), progress)
+
+    wrapper._fills_options = True  # type: ignore[attr-defined]
+    return wrapper
 
 
 def check_inputs(entry: Entry, capture: psfmt.Capture) -> None:
@@ -126,6 +173,22 @@ def input_data_rate(entry: Entry, capture: psfmt.Capture, result: SolverResult) 
     return psfmt.data_rate(capture, frames=frames, events="events" in needs).rate
 
 
+def resolve_options(entry: Entry, options: dict[str, Any]) -> dict[str, Any]:
+    """The solver ``entry``'s ``Solver.resolve_options`` of its parsed ``options``: the values a run
+    uses and records. UserError for options that cannot go together; PluginError, naming the plugin,
+    when the solver returns anything but a dict with the same keys."""
+    resolve = getattr(entry.obj, "resolve_options", None)
+    if resolve is None:
+        return dict(options)
+    resolved = resolve(dict(options))
+    if not isinstance(resolved, dict) or set(resolved) != set(options):
+        got = sorted(resolved) if isinstance(resolved, dict) else type(resolved).__name__
+        raise PluginError(
+            f"plugin {entry.plugin!r}: solver {entry.name!r}: resolve_options returned {got}, expected a dict of the options {sorted(options)}"
+        )
+    return resolved
+
+
 def run_solver(
     entry: Entry,
     capture: psfmt.Capture,
@@ -134,9 +197,14 @@ def run_solver(
     device: str = "cpu",
     progress: Progress = no_progress,
 ) -> tuple[SolverResult, float]:
-    """Run the registered solver ``entry`` on ``capture``; returns its result and the wall seconds.
-    A result of the wrong type or size is a PluginError naming the plugin."""
+    """Run the registered solver ``entry`` on ``capture`` with its ``options`` (resolved here too,
+    ``resolve_options``, which is idempotent: a caller may pass them resolved already); returns its
+    result and the wall seconds. ``options`` may leave options out: they take their defaults (an
+    unknown key is a UserError, as with ``--set``). A result of the wrong type or size is a
+    PluginError naming the plugin."""
     check_inputs(entry, capture)
+    options = fill_defaults(options, entry.options, owner=f"{entry.kind} {entry.name!r}")
+    options = resolve_options(entry, options)
     solver = entry.obj(device=device)
     start = time.perf_counter()
     result = solver.solve(capture, options, progress)

@@ -33,7 +33,7 @@ from pstoolkit.errors import UserError
 from pstoolkit.evaluation.scoring import RESULT_FILE
 from pstoolkit.io.folders import replace_folder
 from pstoolkit.plugin.manager import get_registries
-from pstoolkit.solve.base import Progress, no_progress, resolve_device
+from pstoolkit.solve.base import Progress, no_progress, resolve_device, resolve_options
 from pstoolkit.solve.results import result_summary, solve_capture, summary_json, write_result_folder
 
 LOG_FILE = "batch.json"
@@ -89,8 +89,9 @@ def expand_captures(paths: Sequence[Path]) -> list[Path]:
 
 
 def solver_options(solvers: Sequence[str], assignments: Sequence[str]) -> dict[str, dict[str, Any]]:
-    """The full options of each solver: ``NAME.key=value`` sets an option of solver NAME only, a plain
-    ``key=value`` every listed solver that has the option ``key`` (a key none has is a UserError)."""
+    """The full options of each solver, resolved (``solve.base.resolve_options``: what the result
+    folders record and a rerun compares): ``NAME.key=value`` sets an option of solver NAME only, a
+    plain ``key=value`` every listed solver that has the option ``key`` (a key none has is a UserError)."""
     if not solvers:
         raise UserError("--solver: give at least one solver")
     duplicates = sorted({s for s in solvers if solvers.count(s) > 1})
@@ -111,7 +112,7 @@ def solver_options(solvers: Sequence[str], assignments: Sequence[str]) -> dict[s
             raise UserError(f"--set {pair!r}: none of the solvers {', '.join(solvers)} has an option {key!r}")
         for name in takers:
             mine[name].append(pair)
-    return {name: entries[name].parse_options(mine[name]) for name in solvers}
+    return {name: resolve_options(entries[name], entries[name].parse_options(mine[name])) for name in solvers}
 
 
 def check_output_folder(outdir: Path) -> None:

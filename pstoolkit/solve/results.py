@@ -21,7 +21,10 @@ solver made, so it is not drawn as one.
 from __future__ import annotations
 
 import json
+import os
 import re
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,8 +34,11 @@ import numpy as np
 
 import psfmt
 from pstoolkit import __version__
+from pstoolkit.errors import UserError
 from pstoolkit.evaluation.metrics import SHARE_KEYS
 from pstoolkit.evaluation.scoring import RESULT_FILE, Score, score
+from pstoolkit.io.checksum import file_sha256
+from pstoolkit.io.folders import atomic_folder
 from pstoolkit.io.normalmap import write_normal_npy, write_normal_png, write_npy, write_png
 from pstoolkit.plugin.registry import Entry, PluginError
 from pstoolkit.solve.base import Progress, input_data_rate, no_progress, run_solver
@@ -184,7 +190,11 @@ def result_summary(
     stored: bool = False,
 ) -> dict[str, Any]:
     """The content of ``result.json``: what ran on what, the error statistics and the coverage, the data
-    rate, the options and the files of the further maps.
+    rate, the options and the files of the further maps — and what a repeated run needs
+    (``pstoolkit run --config result.json``): the solver, the options as resolved
+    (``Solver.resolve_options``), the capture's absolute path and the SHA-256 of the file as it is
+    now (``capture_sha256``: call this after anything that writes to the capture, such as ``--store``)
+    and the toolkit's version.
 
     Parameters
     ----------
@@ -201,7 +211,7 @@ def result_summary(
     device
         The torch device the solver ran on.
     options
-        The solver's parsed options.
+        The solver's options as the run used them: parsed and resolved (``solve.base.resolve_options``).
     error_max_deg
         Angular error at the top of ``error.png``'s colour scale, degrees (recorded as None without
         ground truth).
@@ -220,7 +230,8 @@ def result_summary(
         "solver": entry.name,
         "plugin": entry.plugin,
         "object": obj,
-        "capture": str(capture),
+        "capture": os.path.abspath(capture),
+        "capture_sha256": file_sha256(capture),
         "capture_kind": solved.capture_kind,
         "size": list(solved.normal.shape[:2]),
         "seconds": solved.seconds,
@@ -247,6 +258,34 @@ def _jsonable(value: Any) -> Any:
 def summary_json(summary: dict[str, Any]) -> str:
     """``result.json``'s text (numpy values as plain numbers, anything else unknown as a string)."""
     return json.dumps(summary, indent=2, default=_jsonable)
+
+
+def check_result_folder(folder: Path) -> None:
+    """UserError unless ``folder`` may be replaced by a result folder (``result_folder``): it does
+    not exist, or it is an empty folder or one holding ``result.json`` (an earlier result). Anything
+    else — a file, a folder of other files — is refused rather than deleted. Check before solving, so
+    a long run does not end in this error."""
+    if not folder.exists():
+        return
+    if not folder.is_dir():
+        raise UserError(f"{folder}: exists and is not a folder; choose another output folder (-o DIR)")
+    if not (folder / RESULT_FILE).is_file() and any(folder.iterdir()):
+        raise UserError(
+            f"{folder}: is a folder of other files (no {RESULT_FILE}), which writing a result would delete; "
+            "choose another output folder (-o DIR) or empty this one"
+        )
+
+
+@contextmanager
+def result_folder(folder: Path) -> Iterator[Path]:
+    """Yield a new empty folder beside ``folder`` (its parents created) to write a result into; when
+    the block ends it replaces ``folder`` as a unit (``io.folders.atomic_folder``): an earlier result
+    there — maps of another solver included — is gone, none is mixed in, and an error or Ctrl-C leaves
+    the earlier folder as it was. ``check_result_folder`` first."""
+    check_result_folder(folder)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_folder(folder) as partial:
+        yield partial
 
 
 def write_result_folder(folder: Path, solved: SolvedCapture, summary: dict[str, Any]) -> str:

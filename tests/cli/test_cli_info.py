@@ -53,7 +53,8 @@ def test_info_json_numbers_of_a_hybrid_capture(tmp_path: Path, capsys: pytest.Ca
                            "duration_s": pytest.approx(duration_s, rel=1e-12),
                            "rate_ev_per_s": pytest.approx(N_EVENTS / duration_s, rel=1e-12)}
     assert d["event_sensor"] == {"contrast_pos": 0.15, "contrast_neg": 0.2, "refractory_us": 500.0,
-                                 "refractory_rule": "rate-limited", "refractory_rule_recorded": True}
+                                 "refractory_rule": "rate-limited", "refractory_rule_recorded": True,
+                                 "event_to_frame": [[2.0, 0.0, 0.5], [0.0, 2.0, 0.5]], "event_to_frame_recorded": True}
     assert d["lights"] == {"model": "ring", "params": {"elevation_deg": 43.0, "period_us": PERIOD_US,
                                                        "phase_deg": 90.0, "sense": -1, "t0_us": 0}}
     assert d["ground_truth"] == ["normal", "mask", "albedo", "depth", "f0", "roughness"]
@@ -80,6 +81,7 @@ def test_info_text_of_a_hybrid_capture(tmp_path: Path, capsys: pytest.CaptureFix
         "  camera: orthographic",
         "  events: 4,000 at 32×32, 27.994 ms, 0.143 M events/s",
         "  event sensor: contrast +0.15/−0.2, refractory 500 µs, rate-limited",
+        "  event→frame affine: [2 0 0.5; 0 2 0.5] (event pixel centres to frame pixels)",
         "  lights: ring (elevation_deg=43.0, period_us=30000, phase_deg=90.0, sense=-1, t0_us=0)",
         "  ground truth: normal, mask, albedo, depth, f0, roughness",
         "  results: eventps (eventps, 1.25 s)",
@@ -182,3 +184,25 @@ def test_info_shows_a_perspective_camera(tmp_path: Path, capsys: pytest.CaptureF
     assert info_json(path, capsys)["camera"]["skew"] == 0.5
     assert main(["info", str(path)]) == 0
     assert capsys.readouterr().out.splitlines()[3] == "  camera: perspective, fx 500, fy 510, cx 31.5, cy 30.25 px, skew 0.5"
+
+
+def test_info_shows_the_event_to_frame_affine_recorded_or_assumed(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 24 B.5: the calibration's event→frame affine in JSON and text; without one, the affine the
+    solvers assume (the same field of view: 32 event pixels over 64 frame pixels), said to be assumed."""
+    capture = known_capture()
+    capture.calibration.event_to_frame = np.array([[1.98, 0.01, 0.75], [-0.02, 2.01, 0.25]])
+    path = tmp_path / "calibrated.h5"
+    psfmt.write(capture, path)
+    sensor = info_json(path, capsys)["event_sensor"]
+    assert sensor["event_to_frame"] == [[1.98, 0.01, 0.75], [-0.02, 2.01, 0.25]] and sensor["event_to_frame_recorded"] is True
+    assert main(["info", str(path)]) == 0
+    assert "  event→frame affine: [1.98 0.01 0.75; -0.02 2.01 0.25] (event pixel centres to frame pixels)" in (
+        capsys.readouterr().out.splitlines())
+
+    capture.calibration.event_to_frame = None
+    psfmt.write(capture, path)
+    sensor = info_json(path, capsys)["event_sensor"]
+    assert sensor["event_to_frame"] == [[2.0, 0.0, 0.5], [0.0, 2.0, 0.5]] and sensor["event_to_frame_recorded"] is False
+    assert main(["info", str(path)]) == 0
+    assert ("  event→frame affine: [2 0 0.5; 0 2 0.5] (event pixel centres to frame pixels) (not recorded: the same field "
+            "of view assumed)") in capsys.readouterr().out.splitlines()

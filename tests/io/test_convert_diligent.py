@@ -224,6 +224,25 @@ def test_several_objects_become_one_file_each(
             assert capture.description.startswith(f"{name}PNG converted by pstoolkit convert diligent")
 
 
+def test_all_writes_a_folder_even_for_one_object(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 24 B.4: with --all the root decides how many objects there are, so OUT is always a
+    folder (created) holding <object>.h5 — one object too — and a file in its way is an error."""
+    root = tmp_path / "pmsData"
+    write_diligent(root / "bearPNG", seed=3, height=24, width=28)
+    out = tmp_path / "dil"
+    code, stdout, _ = convert(["diligent", str(root), "--all", "-o", str(out)], capsys)
+    assert code == 0 and stdout == f"wrote {out / 'bear.h5'}\n"
+    assert out.is_dir() and sorted(p.name for p in out.iterdir()) == ["bear.h5"]
+    with psfmt.read(out / "bear.h5") as capture:
+        assert capture.frames is not None and capture.frames.count == 96 and capture.frames.width == 28
+    # one named object still goes to OUT as a file
+    single = tmp_path / "bear.h5"
+    assert convert(["diligent", str(root), "--object", "bear", "-o", str(single)], capsys)[0] == 0
+    assert single.is_file()
+    code, _, err = convert(["diligent", str(root), "--all", "-o", str(single)], capsys)
+    assert code == 2 and err == f"pstoolkit: error: {single}: is a file, but --all writes an output folder\n"
+
+
 def test_one_bad_object_stops_all_before_writing(pms_root: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     root = tmp_path / "pmsData"
     shutil.copytree(pms_root, root)
@@ -308,7 +327,7 @@ def test_help_lists_converters_and_their_flags(capsys: pytest.CaptureFixture[str
     assert code == 0 and out.startswith("Usage: pstoolkit convert diligent SRC -o OUT [OPTIONS]")
     assert "  --object (STR, repeatable, default none): " in out and "  --semi-real (flag, default False): " in out
     code, _, err = convert(["nope", "src", "-o", "x"], capsys)
-    assert code == 2 and err == "pstoolkit: error: unknown converter 'nope' (known: diligent, diligent-pi, dsec, raw)\n"
+    assert code == 2 and err == "pstoolkit: error: unknown converter 'nope' (known: dat, diligent, diligent-pi, dsec, raw)\n"
 
 
 def test_repeatable_option_collects_values_and_keeps_its_default() -> None:

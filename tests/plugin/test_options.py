@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from pstoolkit.errors import UserError
-from pstoolkit.plugin.options import Option, defaults, parse_assignments
+from pstoolkit.plugin.options import Option, defaults, format_assignments, parse_assignments, table_assignments
 
 OPTIONS = (
     Option("frames", int, 3, "frames per period", minimum=1, maximum=24),
@@ -81,3 +81,41 @@ def test_unknown_key_when_there_are_no_options() -> None:
 def test_describe_lists_type_default_and_choices() -> None:
     assert OPTIONS[3].describe() == "loss (str, default 'l1'; one of l1, l2): image loss"
     assert OPTIONS[0].describe() == "frames (int, default 3): frames per period"
+
+
+TYPED = (
+    *OPTIONS,
+    Option("views", int, (), "view ids", multiple=True, minimum=0),
+    Option("inner", str, (), "an inner entry's options", multiple=True, nested=True),
+)
+
+
+def test_format_assignments_parse_back_to_the_same_values() -> None:
+    values = parse_assignments(["lr=0.1", "robust=yes", "tag=a=b", "views=2", "views=5", "inner.k=1"], TYPED, owner="solver 'demo'")
+    pairs = format_assignments(values, TYPED)
+    assert pairs == ["frames=3", "lr=0.1", "robust=true", "loss=l1", "tag=a=b", "views=2", "views=5", "inner.k=1"]
+    assert parse_assignments(pairs, TYPED, owner="solver 'demo'") == values
+
+
+def test_table_assignments_check_types_before_the_strings_are_parsed() -> None:
+    """A settings file's typed values (TOML, result.json): an integer is a number too, nothing else
+    converts, and the error names the file and the key (issue 24, part B)."""
+    table = {"frames": 6, "lr": 1, "robust": True, "views": [1, 2], "inner": {"k": 0.5, "on": False}}
+    pairs = table_assignments(table, TYPED, "solver 'demo'", "run.toml: options")
+    assert pairs == ["frames=6", "lr=1.0", "robust=true", "views=1", "views=2", "inner.k=0.5", "inner.on=false"]
+    assert table_assignments({"inner": ["k=1", "x=y"]}, TYPED, "solver 'demo'", "r.json: options") == ["inner.k=1", "inner.x=y"]
+    for table, message in [
+        ({"frames": "6"}, "run.toml: options.frames: expected an integer, got a string '6'"),
+        ({"frames": 6.0}, "run.toml: options.frames: expected an integer, got a number 6.0"),
+        ({"frames": True}, "run.toml: options.frames: expected an integer, got a boolean True"),
+        ({"robust": 1}, "run.toml: options.robust: expected true or false, got an integer 1"),
+        ({"lr": float("nan")}, "run.toml: options.lr: nan is not a finite number"),
+        ({"frames": 30}, "run.toml: options.frames: 30 is above the maximum 24"),
+        ({"views": [1, "2"]}, "run.toml: options.views: expected an integer, got a string '2'"),
+        ({"inner": 3}, "run.toml: options.inner: expected a table of inner's options"),
+        ({"inner": {"k": [1]}}, "run.toml: options.inner.k: expected a single value, got an array"),
+        ({"frame": 6}, "run.toml: options.frame: solver 'demo' has no option 'frame' (options: frames, "),
+    ]:
+        with pytest.raises(UserError) as info:
+            table_assignments(table, TYPED, "solver 'demo'", "run.toml: options")
+        assert str(info.value).startswith(message), str(info.value)

@@ -3,6 +3,7 @@ run end to end through ``pstoolkit run --solver flat``; the solver interface it 
 
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 
@@ -13,7 +14,7 @@ from helpers import REPO
 
 import psfmt
 from pstoolkit.cli import main
-from pstoolkit.cli.app import terminal_progress
+from pstoolkit.cli.app import progress_bar
 from pstoolkit.errors import UserError
 from pstoolkit.optics.lights import build_light_model
 from pstoolkit.plugin import manager as plugins
@@ -266,9 +267,16 @@ def test_resolve_device(monkeypatch: pytest.MonkeyPatch) -> None:
     assert resolve_device("auto") == resolve_device("cuda") == "cuda"
 
 
-def test_terminal_progress_redraws_only_when_the_percentage_changes(capsys: pytest.CaptureFixture[str]) -> None:
-    report = terminal_progress("flat")
+def test_the_progress_bar_ends_once_at_100_percent_on_a_line_of_its_own() -> None:
+    from rich.console import Console
+
+    screen = io.StringIO()
+    report = progress_bar("flat", console=Console(file=screen, force_terminal=True, width=80, color_system=None))
     report(0.5, "frames")
     report(0.504, "frames")
     report(1.2, "done")
-    assert capsys.readouterr().err == "\rflat:  50 % frames              \rflat: 100 % done                \n"
+    report(1.0, "done")  # the end reported twice: still one final line
+    text = screen.getvalue()
+    final = text.split("\r")[-1]
+    assert "flat" in final and "100%" in final and "done" in final and final.endswith("\n\x1b[?25h")
+    assert text.count("\n") == 1

@@ -308,6 +308,19 @@ def test_chunking_does_not_change_the_windows(sphere: psfmt.Capture) -> None:
         list(eventps.stream([events], light, 20, 32, params))
 
 
+def test_options_that_cannot_apply_are_one_line_errors() -> None:
+    """Issue 24 B.6: ``threads`` only fits windows (``window_us``) and ``residual_scale`` only scales
+    the reweighting (``reweight``): changed without the other, each is a UserError, not ignored."""
+    capture = hand_built_capture()
+    with pytest.raises(UserError, match=r"^eventps: option threads=2 cannot apply with window_us=0: it needs window_us > 0 \(threads fit windows at once\)$"):
+        _solve(capture, "threads=2")
+    with pytest.raises(UserError, match=(r"^eventps: option residual_scale=0.1 cannot apply with reweight=0: "
+                                         r"it needs reweight > 0 \(the scale of the Cauchy reweighting\)$")):
+        _solve(capture, "reweight=0", "residual_scale=0.1")
+    assert _solve(capture, "threads=2", "window_us=20000", "fill=false").maps["normal_sequence"].shape[0] == 3
+    assert _solve(capture, "reweight=0", "fill=false").mask.sum() == 1
+
+
 def test_missing_calibration_is_one_clear_error() -> None:
     capture = hand_built_capture()
     capture.calibration = psfmt.Calibration()

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import psfmt
+from pstoolkit.cli import main
 from pstoolkit.errors import UserError
 from pstoolkit.evaluation.metrics import angular_error_deg
 from pstoolkit.plugin.manager import get_registries
@@ -168,3 +169,36 @@ def test_bad_input_is_one_clear_error() -> None:
                                              light_intensity=np.zeros((96, 3))))
     with pytest.raises(UserError, match=r"^frameps: the capture: frame 0 has no light in channel 0$"):
         _solve(dark)
+
+
+def test_options_that_cannot_apply_are_one_line_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 24 B.6: robust selection needs more than 3 observations per pixel (least squares needs 3,
+    and a pixel left with fewer keeps them all), a dark_fraction must drop a frame and leave 3, and the
+    robust-only options are refused without robust=true — each a UserError naming the option, not a
+    run that silently ignores it."""
+    capture = diligent_like_capture(size=16)
+    with pytest.raises(UserError, match=(r"^frameps: option robust=true needs more than 3 frames, the capture gives 3: "
+                                         r"least squares needs 3 observations per pixel, so none can be dropped$")):
+        _solve(capture, "robust=true", "frames=3")
+    with pytest.raises(UserError, match=(r"^frameps: option dark_fraction=0.01 drops none of the 96 frames of the capture "
+                                         r"\(the darkest 0.01 × 96 rounds down to 0; use at least 0.0104\)$")):
+        _solve(capture, "robust=true", "dark_fraction=0.01")
+    with pytest.raises(UserError, match=(r"^frameps: option dark_fraction=0.5 drops 2 of the 4 frames of the capture, leaving "
+                                         r"fewer than the 3 least squares needs, so every pixel would keep all of them$")):
+        _solve(capture, "robust=true", "frames=4", "dark_fraction=0.5")
+    for option in ("dark_fraction=0.5", "saturation_level=0.9"):
+        with pytest.raises(UserError, match=rf"^frameps: option {option} cannot apply: only robust=true drops observations"):
+            _solve(capture, option)
+    # what does apply still runs: 4 frames, the darkest one dropped
+    assert _solve(capture, "robust=true", "frames=4").diagnostics["n_frames"] == 4
+
+    # on the command line: three long exposures cannot be reweighted, one line and exit code 2
+    path = tmp_path / "hybrid.h5"
+    simulate(SimulationConfig(size=16, brdf="lambertian"), path)
+    capsys.readouterr()
+    assert main(["run", str(path), "--solver", "frameps", "--set", "robust=true", "-o", str(tmp_path / "out")]) == 2
+    assert capsys.readouterr().err == (
+        f"pstoolkit: error: frameps: option robust=true needs more than 3 frames, {path} gives 3: "
+        "least squares needs 3 observations per pixel, so none can be dropped\n"
+    )
+    assert not (tmp_path / "out").exists()

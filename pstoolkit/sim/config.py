@@ -1,0 +1,73 @@
+"""What decides a simulated capture: ``SimulationConfig`` and its value sets (``BIT_DEPTHS``,
+``AUTO_GAINS``). numpy only, so that ``pstoolkit simulate --help`` shows the defaults without
+loading torch or numba (the simulator, ``pstoolkit.sim.simulator``, imports them from here)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from pstoolkit.optics.layouts import RING, layout_lights
+from pstoolkit.sim.sensor import EventSensor
+from pstoolkit.sim.timing import CaptureTiming
+
+BIT_DEPTHS = {8: np.uint8, 12: np.uint16, 16: np.uint16}
+AUTO_GAINS = ("diffuse", "peak")
+"""What the automatic gain puts at ``DIFFUSE_LEVEL`` of saturation: the brightest diffuse value of any
+frame (highlights may clip) or the brightest value of all (nothing clips)."""
+
+
+@dataclass
+class SimulationConfig(CaptureTiming):
+    """Everything that decides a simulated capture (``CaptureTiming`` and the scene, light, sensor and
+    renderer). ``scene_options`` are ``key=value`` strings checked against the scene's typed options;
+    ``lights`` is the layout of a classic capture (``pstoolkit.optics.layouts``: ``ring``, ``grid`` or a
+    light-table path; anything but ``ring`` writes a classic capture of all its K lights, and
+    ``discrete_lights`` must then be K or 0); ``noise`` is the read-noise standard deviation as a
+    fraction of saturation, with Poisson shot noise of a full well of 1/noise² electrons (0 = none);
+    ``exposure_gain`` (pixel units per irradiance·second) overrides the automatic gain, which
+    ``auto_gain`` (``AUTO_GAINS``) sets from the brightest diffuse or the brightest value."""
+
+    scene: str = "sphere"
+    scene_options: list[str] = field(default_factory=list)
+    lights: str = RING
+    elevation_deg: float = 45.0
+    contrast_sigma: float = 0.0
+    noise: float = 0.0
+    brdf: str = "ggx"
+    bit_depth: int = 8
+    exposure_gain: float | None = None
+    auto_gain: str = AUTO_GAINS[0]
+    shadows: bool = True
+    device: str = "cpu"
+
+    def sensor(self) -> EventSensor:
+        """``CaptureTiming.sensor`` with the per-pixel contrast mismatch."""
+        return replace(super().sensor(), sigma=self.contrast_sigma)
+
+    @property
+    def discrete(self) -> bool:
+        """Whether the capture is a classic one (instantaneous lights, no events)."""
+        return self.discrete_lights > 0 or self.lights != RING
+
+    def check(self) -> None:
+        """Raise UserError naming the first option out of range (a light-table file is read)."""
+        limits: list[tuple[str, bool, str]] = [
+            ("--frames", 1 <= self.frames <= 1000, "must be between 1 and 1000"),
+            ("--discrete-lights", 0 <= self.discrete_lights <= 10000, "must be between 0 (hybrid capture) and 10000"),
+            ("--period-ms", self.period_us >= 10 * max(self.frames, 1), "is too short for the frames (at least 10 µs per frame)"),
+            ("--elevation-deg", 0 < self.elevation_deg <= 90, "must be in (0, 90] degrees"),
+            ("--contrast-sigma", 0 <= self.contrast_sigma <= 1, "must be between 0 and 1"),
+            ("--noise", 0 <= self.noise <= 0.5, "must be between 0 and 0.5"),
+            ("--bit-depth", self.bit_depth in BIT_DEPTHS, "must be 8, 12 or 16"),
+            ("--auto-gain", self.auto_gain in AUTO_GAINS, f"must be {' or '.join(AUTO_GAINS)}"),
+        ]
+        layout = layout_lights(self.lights)
+        if layout is not None:
+            k = len(layout[0])
+            limits.append(("--lights", k <= 10000, f"holds {k} lights, more than the 10000 of a capture"))
+            limits.append(("--discrete-lights", self.discrete_lights in (0, k), f"must be {k} or 0 (all of them) with --lights {self.lights}"))
+        if self.exposure_gain is not None:
+            limits.append(("--exposure-gain", self.exposure_gain > 0, "must be positive"))
+        self.check_with(limits)
