@@ -103,9 +103,10 @@ class FrameTerms:
         src = self.source
         if "shared_t" in src:
             t, half = src["shared_t"], 0.5 * src["shared_dt_us"]
-            p = np.repeat(pixels, t.size)
-            lit = 1.0 - shadows.shadowed_us(p, np.tile(t - half, pixels.size), np.tile(t + half, pixels.size)) / np.tile(2.0 * half, pixels.size)
-            visible = np.clip(lit, 0.0, 1.0).reshape(pixels.size, t.size)
+            # one sample time at a time, for the memory of the lookups (see ``preprocess.start``)
+            shadowed = np.stack([shadows.shadowed_us(pixels, np.full(pixels.size, a), np.full(pixels.size, b))
+                                 for a, b in zip(t - half, t + half)], axis=1)
+            visible = np.clip(1.0 - shadowed / (2.0 * half), 0.0, 1.0)
             # no mask, no (P, K·S) product in every step
             self.shared_visible = _like(visible, self.measured) if len(shadows) else None
             return (1.0 - visible) @ (2.0 * half) / US_PER_S

@@ -51,6 +51,24 @@ def deterministic(warn_only: bool) -> Iterator[None]:
         torch.use_deterministic_algorithms(enabled, warn_only=warn)
 
 
+class Stopwatch:
+    """Wall seconds of a run's stages, for its diagnostics: ``lap(name)`` books the time since the
+    previous lap (or the start) under ``name``, adding up when a name repeats."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self._last = time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.seconds[name] = self.seconds.get(name, 0.0) + now - self._last
+        self._last = now
+
+    def record(self) -> dict[str, float]:
+        """The stages in the order first booked, rounded to 0.1 ms, with their ``total``."""
+        return {**{k: round(v, 4) for k, v in self.seconds.items()}, "total": round(sum(self.seconds.values()), 4)}
+
+
 def build_field(preset: Preset, problem: Problem, model: FitModel) -> nn.Module:
     """``pyramid`` → PyramidField from the closed-form start; ``mlp`` → the paper's NeuralField."""
     geometry = problem.geometry
@@ -135,23 +153,30 @@ class DualRes(Solver):
             raise UserError(f"dualres: BRDF {options['brdf']!r} declares no fit parameters (BRDF.fit) to estimate")
         model = FitModel(brdf).to(self.device)
         started = time.perf_counter()
+        clock = Stopwatch()
         progress(0.0, "preprocessing")
         pre = preprocess(capture, PreprocessOptions(scale_rule=options["scale_rule"]),
                          lambda fraction, message: progress(PREPROCESS_SHARE * fraction, message))
+        clock.lap("preprocess")
         shadows = detector.detect(pre.evidence, detector_options)
+        clock.lap("detect")
         init = pre.closed_form(shadows) if len(shadows) else pre.init
+        clock.lap("closed_form")
         problem = build_problem(pre, capture.calibration.view_direction, device=self.device, frame_samples=preset.frame_samples,
                                 init=init)
         problem.apply_mask(shadows)
+        clock.lap("problem")
         seconds_pre = time.perf_counter() - started
         bounds = _stage_bounds(preset, detector)
         stages: list[dict[str, Any]] = [{"epoch": 0, "shadow_intervals": len(shadows), "cast_shadow_share": problem.diagnostics["cast_shadow_share"]}]
         history: list[dict[str, float]] = []
         with deterministic(warn_only=str(self.device) != "cpu"):
             field = build_field(preset, problem, model)
+            clock.lap("field")
             for stage, (first, last) in enumerate(zip(bounds[:-1], bounds[1:])):
                 if stage > 0:
                     shadows = self._detect_again(detector, detector_options, pre, problem, field, model)
+                    clock.lap(f"redetect_{stage}")
                     stages.append({"epoch": first, "shadow_intervals": len(shadows),
                                    "cast_shadow_share": problem.diagnostics["cast_shadow_share"]})
                 config = self._stage(preset, options, last - first, options["seed"] + stage)
@@ -161,15 +186,17 @@ class DualRes(Solver):
                     progress(PREPROCESS_SHARE + (1.0 - PREPROCESS_SHARE) * done, message)
 
                 history += train(problem, field, model, config, report)
+                clock.lap(f"train_{stage}")
             self.shadows = shadows
             with torch.no_grad():
                 normal, pixel_raw, smooth_raw = field()
                 maps = {name: value.cpu().numpy() for name, value in model.maps(pixel_raw, smooth_raw).items()}
                 normal_np = normal.cpu().numpy()
+        clock.lap("output")
         return self._result(problem, model, normal_np, maps, {
             **problem.diagnostics, "preset": preset.record(), "brdf": model.name,
             "shadow_detector": detector_entry.name, "shadow_options": detector_options, "stages": stages,
-            "preprocess_seconds": seconds_pre, "final_loss": history[-1] if history else None,
+            "preprocess_seconds": seconds_pre, "seconds": clock.record(), "final_loss": history[-1] if history else None,
             "device": str(self.device), "preprocess": pre.diagnostics,
         })
 

@@ -26,6 +26,11 @@ from pstoolkit_dualres.reflectance import FitModel
 # Final learning rate of a stage as a share of its first: an exponential decay over its epochs.
 LR_DECAY = 0.1
 PROGRESS_EVERY = 10
+# Pixels per chunk of the frame term on the shared time grid (``grid_frame_loss``): the rendering's
+# intermediates, (chunk, K·S, 3) float32 each (4.5 MiB at 16384 pixels and K·S = 24), stay below
+# glibc's largest mmap threshold (32 MiB), so the allocator reuses them from chunk to chunk instead
+# of mapping and faulting in fresh pages for every tensor of every step.
+FRAME_CHUNK = 16384
 
 
 @dataclass(frozen=True)
@@ -169,6 +174,72 @@ def mini_batches(problem: Problem, tiling: Tiling, config: StageConfig, generato
     return out
 
 
+def grid_frame_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], light: Tensor, weight: Tensor,
+                    visible: Tensor | None, view: Tensor, frames: int, measured: Tensor, saturated: Tensor,
+                    chunk: int = FRAME_CHUNK) -> Tensor:
+    """``frame_loss`` of ``frame_prediction_grid`` over all P pixels, its graph held one chunk of
+    ``chunk`` pixels at a time.
+
+    With gradients enabled, each chunk's rendering is differentiated at once into the gradient of
+    the loss with respect to ``normal`` and ``maps`` (and into the ``.grad`` of the model's own
+    parameters, if any: zero them before calling), then freed; the result is the loss value plus a
+    term that is zero in value and whose gradient with respect to ``normal`` and ``maps`` is the one
+    gathered, so the caller's backward carries it on. The (P, K·S, 3) graph of the whole frame term —
+    some 10 kB per pixel, whose pages were faulted in afresh every step — never exists: a step's
+    time and memory grow linearly with P (numbers in benchmarks/dualres_scale.py).
+
+    Parameters
+    ----------
+    model, light, weight, view, frames
+        As for ``frame_prediction_grid``: the BRDF, (K·S, 3) light directions and weights, (3,) view
+        direction, K frames.
+    normal
+        (P, 3) unit normals.
+    maps
+        The BRDF's maps, (P, channels) each.
+    visible
+        (P, K·S) lit share of each sample, or None.
+    measured, saturated
+        (K·P, 3) frame values and (K·P,) clipped flags, rows frame·P + pixel.
+    chunk
+        Pixels per chunk.
+
+    Returns
+    -------
+    Tensor
+        The scalar mean |Ã − A| of ``frame_loss`` (equal up to float rounding of the chunked sum).
+    """
+    p = normal.shape[0]
+    if p <= chunk:
+        predicted = frame_prediction_grid(model, normal, maps, light, weight, visible, view, frames)
+        return frame_loss(predicted, measured, saturated)
+    names = list(maps)
+    inputs = [normal, *(maps[name] for name in names)]
+    differentiate = torch.is_grad_enabled() and any(x.requires_grad for x in inputs)
+    measured_k, saturated_k = measured.reshape(frames, p, -1), saturated.reshape(frames, p)
+    value = normal.new_zeros(())
+    grads: list[list[Tensor]] = [[] for _ in inputs]
+    for start in range(0, p, chunk):
+        part = slice(start, start + chunk)
+        # leaves of the chunk's own rows: a slice of a whole-P leaf would backward into a (P, C) buffer per chunk
+        leaves = [x[part].detach().requires_grad_(differentiate and x.requires_grad) for x in inputs]
+        predicted = frame_prediction_grid(model, leaves[0], dict(zip(names, leaves[1:])), light, weight,
+                                          None if visible is None else visible[part], view, frames)
+        rows = measured_k[:, part].reshape(predicted.shape)
+        # frame_loss is a mean: each chunk weighs by its share of the values
+        loss = frame_loss(predicted, rows, saturated_k[:, part].reshape(-1)) * (predicted.shape[0] / (frames * p))
+        if differentiate:
+            loss.backward()
+            for store, leaf in zip(grads, leaves):
+                store.append(leaf.grad if leaf.grad is not None else torch.zeros_like(leaf))
+        value = value + loss.detach()
+    if not differentiate:
+        return value
+    dot = sum(torch.sum(x * torch.cat(g)) for x, g in zip(inputs, grads) if x.requires_grad)
+    # zero in value, the gathered gradient in backward
+    return value + (dot - dot.detach())
+
+
 def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageConfig, batch: Batch,
            tv_share: float) -> tuple[Tensor, dict[str, float]]:
     """The total loss of eq. 26 (with the field's own smoothness penalty) and its parts on ``batch``.
@@ -205,18 +276,21 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
         visible = frames.shared_visible
         if visible is not None and batch.pixels is not None:
             visible = visible[batch.pixels[:n]]
-        predicted = frame_prediction_grid(model, own_normal, own_maps, frames.shared_light, frames.shared_weight,
-                                          visible, view, frames.count)
+        measured, saturated = frames.measured, frames.saturated
+        if batch.frame_rows is not None:
+            measured, saturated = measured[batch.frame_rows], saturated[batch.frame_rows]
+        lf = grid_frame_loss(model, own_normal, own_maps, frames.shared_light, frames.shared_weight, visible, view,
+                             frames.count, measured, saturated)
     else:
         light, weight = frames.sample_light, frames.sample_weight
         if batch.samples is not None:
             light, weight = light[batch.samples], weight[batch.samples]
         predicted = frame_prediction(model, own_normal, own_maps, batch.sample_pixel, batch.sample_group, light, weight,
                                      view, frames.count * own_normal.shape[0])
-    measured, saturated = frames.measured, frames.saturated
-    if batch.frame_rows is not None:
-        measured, saturated = measured[batch.frame_rows], saturated[batch.frame_rows]
-    lf = frame_loss(predicted, measured, saturated)
+        measured, saturated = frames.measured, frames.saturated
+        if batch.frame_rows is not None:
+            measured, saturated = measured[batch.frame_rows], saturated[batch.frame_rows]
+        lf = frame_loss(predicted, measured, saturated)
     total = config.frame_weight * lf + field.penalty()
     parts = {"frame": float(lf.detach())}
     e = batch.events
@@ -282,8 +356,9 @@ def train(problem: Problem, field: nn.Module, model: FitModel, config: StageConf
         totals: dict[str, float] = {}
         tv_share = 0.0 if warm_start else max(0.0, 1.0 - epoch / warmup)
         for batch in batches:
-            loss, parts = losses(problem, field, model, config, batch, tv_share)
+            # before the losses: the chunked frame term already adds to the model's own gradients
             optimizer.zero_grad(set_to_none=True)
+            loss, parts = losses(problem, field, model, config, batch, tv_share)
             loss.backward()
             optimizer.step()
             for name, value in {"loss": float(loss.detach()), **parts}.items():

@@ -17,7 +17,7 @@ import numpy as np
 
 from pstoolkit.plugin.options import Option
 from pstoolkit.shadows.base import ShadowDetector, ShadowEvidence, ShadowMask
-from pstoolkit.shadows.geometry import GEOMETRY_OPTIONS, surface_shadows
+from pstoolkit.shadows.geometry import GEOMETRY_OPTIONS, SWEEP_CHUNK, surface_shadows
 from pstoolkit.shadows.intervals import intervals_from_grid, rasterize
 from pstoolkit.shadows.silences import dark_spans, min_gap_us
 
@@ -49,5 +49,8 @@ class FusedDetector(ShadowDetector):
         surface = surface_shadows(evidence, steps, options["margin_px"])
         pixels = np.flatnonzero(np.asarray(evidence.mask).ravel())
         dark = event_darkness(evidence, steps, min_gap_us(options["min_gap_ms"], evidence.refractory_us, 1.0))
-        both = surface & dark[:, evidence.super_pixel[pixels]]
-        return evidence.frame_mask(intervals_from_grid(both, evidence.period_us, pixels))
+        covering = evidence.super_pixel[pixels]
+        # in place, a block of times at a time: two more (steps, P) maps were the detector's peak memory
+        for start in range(0, steps, SWEEP_CHUNK):
+            surface[start : start + SWEEP_CHUNK] &= dark[start : start + SWEEP_CHUNK, covering]
+        return evidence.frame_mask(intervals_from_grid(surface, evidence.period_us, pixels))

@@ -20,10 +20,12 @@ from pstoolkit.shadows.score import true_shadows
 from pstoolkit.sim.simulator import SimulationConfig, simulate
 from pstoolkit.solve.base import no_progress
 from pstoolkit_dualres.fields import NeuralField, PyramidField, collapse, decompose
+from pstoolkit_dualres.forward_model import frame_prediction_grid
+from pstoolkit_dualres.losses import frame_loss
 from pstoolkit_dualres.preprocess import Preprocessed, PreprocessOptions, preprocess
 from pstoolkit_dualres.problem import Problem, build_problem
 from pstoolkit_dualres.reflectance import FitModel
-from pstoolkit_dualres.train import StageConfig, Tiling, mini_batches, train
+from pstoolkit_dualres.train import StageConfig, Tiling, grid_frame_loss, mini_batches, train
 
 STAGE = StageConfig(epochs=1, lr=1e-3, material_lr=1e-3, frame_weight=1.0, event_weight=0.05, tv_weight=0.02,
                     tv_fraction=0.3, event_batch=0, batch_pixels=256, tile=8, seed=0)
@@ -187,3 +189,43 @@ def test_shadow_intervals_of_a_frame_mask_reach_problem_pixels(blobs: tuple[psfm
     problem.apply_mask(mask)
     lit = problem.frames.shared_visible.numpy()[100].reshape(3, 8)
     np.testing.assert_allclose(lit, [[1.0] * 8, [0.0] * 8, [1.0] * 8], atol=1e-9)
+
+
+def test_the_chunked_frame_term_has_the_whole_terms_value_and_gradients() -> None:
+    """``grid_frame_loss`` differentiates chunk by chunk; the value and the gradients that reach the
+    normals and maps are those of ``frame_loss`` on the whole ``frame_prediction_grid`` (float noise)."""
+    generator = torch.Generator().manual_seed(0)
+    p, frames, per_frame = 1000, 3, 4
+    model = FitModel(GGX())
+    raw_normal = torch.randn(p, 3, generator=generator) * 0.3 + torch.tensor([0.0, 0.0, 1.0])
+    pixel_raw = torch.randn(p, 3, generator=generator) * 0.2
+    smooth_raw = torch.randn(p, 4, generator=generator) * 0.2
+    light = torch.nn.functional.normalize(torch.randn(frames * per_frame, 3, generator=generator) + torch.tensor([0.0, 0.0, 1.5]), dim=1)
+    weight = torch.rand(frames * per_frame, 3, generator=generator)
+    visible = torch.rand(p, frames * per_frame, generator=generator)
+    view = torch.tensor([0.0, 0.0, 1.0])
+    measured = torch.rand(frames * p, 3, generator=generator)
+    saturated = torch.rand(frames * p, generator=generator) > 0.9
+
+    def run(chunk: int | None) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        leaves = [x.clone().requires_grad_() for x in (raw_normal, pixel_raw, smooth_raw)]
+        normal = torch.nn.functional.normalize(leaves[0], dim=1)
+        maps = model.maps(leaves[1], leaves[2])
+        if chunk is None:
+            loss = frame_loss(frame_prediction_grid(model, normal, maps, light, weight, visible, view, frames), measured, saturated)
+        else:
+            loss = grid_frame_loss(model, normal, maps, light, weight, visible, view, frames, measured, saturated, chunk=chunk)
+        (2.0 * loss).backward()
+        return loss.detach(), [leaf.grad for leaf in leaves]
+
+    whole, whole_grads = run(None)
+    for chunk in (96, 1000):
+        value, grads = run(chunk)
+        assert float(value) == pytest.approx(float(whole), rel=1e-5)
+        for got, expected in zip(grads, whole_grads):
+            torch.testing.assert_close(got, expected, rtol=1e-4, atol=1e-7)
+    with torch.no_grad():
+        normal = torch.nn.functional.normalize(raw_normal, dim=1)
+        value = grid_frame_loss(model, normal, model.maps(pixel_raw, smooth_raw), light, weight, visible, view, frames,
+                                measured, saturated, chunk=96)
+    assert float(value) == pytest.approx(float(whole), rel=1e-5)
