@@ -180,15 +180,23 @@ def _summary(folder: Path) -> dict[str, Any]:
     return data if isinstance(data, dict) else {}
 
 
+def _float_map(path: Path, what: str) -> np.ndarray | None:
+    """The float (H, W) map at ``path`` (else a UserError naming ``what`` it should be), None when the
+    file does not exist."""
+    if not path.is_file():
+        return None
+    values = read_npy(path)
+    if values.ndim != 2 or values.dtype.kind != "f":
+        raise UserError(f"{path}: expected a float (H, W) {what}, got {values.dtype} {values.shape}")
+    return values
+
+
 def _error_map(folder: Path) -> tuple[np.ndarray, float] | None:
     """``error.npy`` of a result folder (a float (H, W) map of degrees, else a UserError) and the top
     of its colour scale, or None without ground truth."""
-    path = folder / "error.npy"
-    if not path.is_file():
+    error = _float_map(folder / "error.npy", "error map in degrees")
+    if error is None:
         return None
-    error = read_npy(path)
-    if error.ndim != 2 or error.dtype.kind != "f":
-        raise UserError(f"{path}: expected a float (H, W) error map in degrees, got {error.dtype} {error.shape}")
     top = _summary(folder).get("error_max_deg")
     usable = isinstance(top, (int, float)) and not isinstance(top, bool) and math.isfinite(top) and top > 0
     return error, float(top) if usable else 30.0
@@ -197,13 +205,7 @@ def _error_map(folder: Path) -> tuple[np.ndarray, float] | None:
 def _depth_map(folder: Path) -> np.ndarray | None:
     """``depth.npy`` of a result folder with an integrated surface (a float (H, W) map, else a
     UserError), None without one."""
-    path = folder / "depth.npy"
-    if not path.is_file():
-        return None
-    depth = read_npy(path)
-    if depth.ndim != 2 or depth.dtype.kind != "f":
-        raise UserError(f"{path}: expected a float (H, W) depth map, got {depth.dtype} {depth.shape}")
-    return depth
+    return _float_map(folder / "depth.npy", "depth map")
 
 
 def _depth_units(folder: Path) -> str:

@@ -19,12 +19,15 @@ from typing import Any
 import numpy as np
 
 import psfmt
+from psfmt.text import printable
 from pstoolkit.errors import UserError
 from pstoolkit.evaluation.markup import md
 from pstoolkit.evaluation.metrics import SHARE_KEYS, THRESHOLDS_DEG, angular_error_deg, error_stats
 
 MISSING = "–"
 RESULT_FILE = "result.json"
+MAX_JSON_BYTES = 16 << 20
+"""Largest ``result.json`` read (a solver's diagnostics make it kilobytes, not megabytes)."""
 METRICS = ("mae_deg", "mae_solved_deg", "median_deg", "coverage", *SHARE_KEYS, "data_rate", "seconds", "depth_error")
 TITLES = {
     "mae_deg": "Mean angular error (degrees)",
@@ -105,6 +108,23 @@ def _depth_error(data: dict[str, Any], where: Path) -> float | None:
     if surface is not None and not isinstance(surface, dict) or error is not None and not isinstance(error, dict):
         raise UserError(f"{where}: 'surface' is malformed, expected an object with a 'depth_error' object or null")
     return None if error is None else _number(error, "rmse_of_range", where)
+
+
+def read_result_json(path: Path) -> dict[str, Any]:
+    """``result.json`` as a dict ({} when absent). Raises UserError when it is too large or not a
+    JSON object (a crafted file may be either)."""
+    if not path.is_file():
+        return {}
+    size = path.stat().st_size
+    if size > MAX_JSON_BYTES:
+        raise UserError(f"{path}: {size} bytes, over the {MAX_JSON_BYTES} a result.json may have")
+    try:
+        value = json.loads(path.read_bytes())
+    except (ValueError, RecursionError) as exc:
+        raise UserError(f"{path}: not valid JSON ({printable(exc)})") from None
+    if not isinstance(value, dict):
+        raise UserError(f"{path}: expected a JSON object")
+    return value
 
 
 def read_result_folder(folder: Path) -> Record:

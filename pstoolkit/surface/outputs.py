@@ -19,7 +19,6 @@ last, each atomically, so a folder's ``result.json`` lists only files that exist
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,7 +28,7 @@ import numpy as np
 import psfmt
 from pstoolkit.errors import UserError
 from pstoolkit.evaluation.metrics import depth_error
-from pstoolkit.evaluation.scoring import RESULT_FILE
+from pstoolkit.evaluation.scoring import RESULT_FILE, read_result_json
 from pstoolkit.io.normalmap import read_normal_npy, read_npy, write_npy, write_png
 from pstoolkit.plugin.registry import Entry
 from pstoolkit.solve.results import summary_json
@@ -37,8 +36,6 @@ from pstoolkit.surface.base import Camera, Surface, points
 
 DEPTH_NPY, DEPTH_PNG, MESH_PLY, MESH_OBJ = "depth.npy", "depth.png", "mesh.ply", "mesh.obj"
 PNG_LEVELS = 65534
-# Largest result.json read back: a result's summary is a few kB; more is not one of ours.
-MAX_SUMMARY_BYTES = 16 << 20
 
 
 @dataclass
@@ -185,19 +182,11 @@ def integrate_inputs(
 
 def read_summary(folder: Path) -> dict[str, Any]:
     """``folder``'s ``result.json`` as a dict; UserError naming the file when it is missing, too
-    large, or not a JSON object."""
+    large, or not a JSON object (``scoring.read_result_json``)."""
     path = folder / RESULT_FILE
     if not path.is_file():
         raise UserError(f"{path}: no result.json (not a result folder)")
-    if path.stat().st_size > MAX_SUMMARY_BYTES:
-        raise UserError(f"{path}: larger than {MAX_SUMMARY_BYTES >> 20} MiB, not a result summary")
-    try:
-        summary = json.loads(path.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise UserError(f"{path}: not valid JSON ({exc.__class__.__name__})") from None
-    if not isinstance(summary, dict):
-        raise UserError(f"{path}: expected a JSON object")
-    return summary
+    return read_result_json(path)
 
 
 def folder_inputs(folder: Path, capture: Path | None) -> SurfaceInputs:

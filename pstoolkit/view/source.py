@@ -15,7 +15,6 @@ naming the file; a further map that does not fit is left out with a note instead
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,13 +24,12 @@ import numpy as np
 
 from psfmt.text import printable
 from pstoolkit.errors import UserError
+from pstoolkit.evaluation.scoring import read_result_json
 
 MAP_NAMES = ("normal", "albedo", "f0", "roughness", "error", "depth")
 """The maps the viewer shows, in this order, whichever exist (``normal`` always does)."""
 MAX_PIXELS = 1 << 24
 """Most pixels (4096²) of a map; a browser would not draw more at interactive rates anyway."""
-MAX_JSON_BYTES = 16 << 20
-"""Largest ``result.json`` read (a solver's diagnostics make it kilobytes, not megabytes)."""
 DISPLAY_WHITE = 0.8
 """The brightest diffuse pixel (the 99th percentile of the albedo) under a light of intensity 1 along
 the normal is shown at this share of white by default, as the simulator's diffuse auto gain does."""
@@ -147,23 +145,6 @@ def _normal_and_mask(normal: np.ndarray, mask: np.ndarray | None = None) -> tupl
     if mask is not None:
         keep &= mask
     return np.where(keep[..., None], normal, np.float32(0.0)).astype(np.float32), keep
-
-
-def read_result_json(path: Path) -> dict[str, Any]:
-    """``result.json`` as a dict ({} when absent). Raises UserError when it is too large or not a
-    JSON object."""
-    if not path.is_file():
-        return {}
-    size = path.stat().st_size
-    if size > MAX_JSON_BYTES:
-        raise UserError(f"{path}: {size} bytes, over the {MAX_JSON_BYTES} a result.json may have")
-    try:
-        value = json.loads(path.read_bytes())
-    except (ValueError, RecursionError) as exc:
-        raise UserError(f"{path}: not valid JSON ({printable(exc)})") from None
-    if not isinstance(value, dict):
-        raise UserError(f"{path}: expected a JSON object")
-    return value
 
 
 def _summary_fields(summary: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers.prophesee import GEN3_EVT2, GEN41_EVT3
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -22,14 +23,6 @@ from psfmt.text import printable
 CORPUS = Path(__file__).resolve().parents[1] / "fuzz" / "corpus" / "raw_headers"
 EXPECTED = json.loads((CORPUS / "expected.json").read_text())
 
-GEN41_EVT3 = (
-    "% Date 2020-09-25 07:48:29\n% evt 3.0\n% firmware_version 3.2.3\n% integrator_name Prophesee\n"
-    "% plugin_name hal_plugin_gen41_evk3\n% serial_number 00000307\n% system_ID 48\n"
-)
-GEN3_EVT2 = (
-    "% Date 2020-09-14 09:03:25\n% firmware_version 2.0.2\n% integrator_name Prophesee\n"
-    "% plugin_name hal_plugin_gen3_fx3\n% serial_number 30384338\n% system_ID 21\n% evt 2.0\n"
-)
 
 
 def stream(width: int, height: int, n: int = 4000, seed: int = 0) -> EventArray:
