@@ -28,11 +28,13 @@ from torch import nn
 import psfmt
 from pstoolkit import BRDF, Option, Progress, ShadowDetector, ShadowMask, Solver, SolverResult, UserError, get_registries
 from pstoolkit.plugin.options import format_assignments
+from pstoolkit.solve.tiled import solve_tiles
 from pstoolkit_dualres.fields import NeuralField, PyramidField
 from pstoolkit_dualres.preprocess import SCALE_RULES, Preprocessed, PreprocessOptions, preprocess
 from pstoolkit_dualres.presets import OVERRIDES, PRESETS, Preset, resolve
 from pstoolkit_dualres.problem import Problem, build_problem, start_values
 from pstoolkit_dualres.reflectance import FitModel
+from pstoolkit_dualres.tiling import plan
 from pstoolkit_dualres.train import StageConfig, train
 
 # Share of the progress bar given to preprocessing.
@@ -117,8 +119,18 @@ class DualRes(Solver):
         Option("scale_rule", str, "windows",
                "where the irradiance scale s may change: windows (exposure-window bounds) or spikes (the strongest "
                "event bursts, at most three values per turn, as in the paper)", choices=SCALE_RULES),
+        Option("memory_gb", float, 0.0,
+               "memory the run may use, GB: the capture is solved in tiles when it needs more (on this machine: this "
+               "process and its local cluster together; with --scheduler, per worker); 0 = half the machine's",
+               minimum=0.0),
+        Option("tile_px", int, 0,
+               "frame pixels per side of a tile's core; 0 = as memory_gb allows (one tile when the capture fits), "
+               "-1 = never tile", minimum=-1),
+        Option("overlap_px", int, 32, "frame pixels each tile reaches into its neighbours; the seams are blended over this width",
+               minimum=0),
     )
     needs = frozenset({"frames", "events", "lights"})
+    tiled = True
     shadows: ShadowMask | None = None
     """The cast-shadow mask the last ``solve`` ended with (for inspection from Python)."""
 
@@ -142,6 +154,16 @@ class DualRes(Solver):
         return {**options, **{name: getattr(preset, name) for name in OVERRIDES}, "shadow": tuple(shadow)}
 
     def solve(self, capture: psfmt.Capture, options: dict[str, Any], progress: Progress) -> SolverResult:
+        """The whole capture in one piece, or in tiles (``tiling.plan``) on Dask when it needs more
+        memory than ``memory_gb``, ``tile_px`` asks for tiles, or a scheduler is given."""
+        tiles = plan(psfmt.target_size(capture), options, scheduler=self.scheduler, workers=self.workers)
+        if tiles is None:
+            return self.solve_whole(capture, options, progress)
+        return solve_tiles(capture, tiles, solver=self.name, device=str(self.device), options={**options, "tile_px": -1},
+                           overlap_px=options["overlap_px"], scheduler=self.scheduler, workers=self.workers, progress=progress)
+
+    def solve_whole(self, capture: psfmt.Capture, options: dict[str, Any], progress: Progress) -> SolverResult:
+        """DualResPS on the whole capture at once (the module docstring's pipeline)."""
         torch.manual_seed(options["seed"])
         preset = resolve(options)
         registries = get_registries()

@@ -24,7 +24,7 @@ import numpy as np
 import psfmt
 from pstoolkit import Option, Progress, Solver, SolverResult, UserError, build_light_model
 from pstoolkit.events import eventps
-from pstoolkit.solve.batch import available_cpus
+from pstoolkit.solve.cluster import available_cpus
 from pstoolkit_eventps.resample import Resampler, event_to_frame_affine
 
 MAX_SEQUENCE_BYTES = 4 << 30

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
 
 import typer
 
@@ -12,26 +11,6 @@ from pstoolkit.cli.app import app, echo, progress_bar
 from pstoolkit.cli.config import batch_assignments, config_option, file_value
 from pstoolkit.errors import UserError
 from pstoolkit.solve.base import DEVICES
-
-
-def _client(scheduler: str | None, workers: int | None) -> tuple[Any, Any]:
-    """A ``distributed.Client`` of the scheduler at ``scheduler``, or of a new LocalCluster sized to
-    the machine (returned too, to close it; None for an existing scheduler)."""
-    from distributed import Client  # deferred: loading dask takes a second that other commands never need
-
-    from pstoolkit.solve.batch import local_cluster, quiet_worker_logs
-
-    if scheduler is None:
-        cluster = local_cluster(workers)
-        client = Client(cluster, set_as_default=False)
-        client.run(quiet_worker_logs)
-        return client, cluster
-    if workers is not None:
-        raise UserError("--workers: only for the local cluster; an existing scheduler (--scheduler) has its own workers")
-    try:
-        return Client(scheduler, timeout="20s", set_as_default=False), None
-    except (OSError, ValueError, TypeError) as exc:
-        raise UserError(f"--scheduler {scheduler!r}: cannot connect ({exc})") from None
 
 
 @app.command()
@@ -65,12 +44,12 @@ def batch(
         expand_captures,
         is_complete,
         plan,
-        quiet_loop_errors,
         run_batch,
         solver_options,
         status_counts,
         write_log,
     )
+    from pstoolkit.solve.cluster import connect, quiet_loop_errors
 
     captures = list(captures or file_value(ctx, "captures") or [])
     if not captures:
@@ -89,7 +68,7 @@ def batch(
         outcomes = run_batch(pairs, None, progress)  # nothing to compute: no cluster to start
     else:
         with quiet_loop_errors():
-            client, cluster = _client(scheduler, workers)
+            client, cluster = connect(scheduler, workers)
             try:
                 outcomes = run_batch(pairs, client, progress)
             finally:

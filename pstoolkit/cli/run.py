@@ -13,7 +13,7 @@ from pstoolkit.cli.app import app, echo, progress_bar
 from pstoolkit.cli.config import check_capture, config_option, integrator_assignments_of, solver_assignments
 from pstoolkit.errors import UserError
 from pstoolkit.plugin.manager import get_registries
-from pstoolkit.solve.base import Progress, resolve_device, resolve_options
+from pstoolkit.solve.base import Progress, check_tiling, resolve_device, resolve_options
 
 _RESULT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
 
@@ -35,6 +35,11 @@ def run(
     out: Path | None = typer.Option(None, "-o", "--out", help="Output folder (default: out/<capture stem>-<name>)."),
     assignments: list[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="A solver option; repeat for more."),
     device: str = typer.Option("auto", "--device", help="auto (CUDA when available), cpu or cuda."),
+    scheduler: str | None = typer.Option(None, "--scheduler", help=(
+        "A tiled solver (dualres): send its tiles to the Dask scheduler at this address (tcp://host:8786); "
+        "default: a local cluster when the capture is cut into tiles."
+    )),
+    workers: int | None = typer.Option(None, "--workers", help="A tiled solver: worker processes of the local cluster (default: one per CPU core)."),
     as_json: bool = typer.Option(False, "--json", help="Print result.json and no progress."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar and no notes on stderr (the summary line is still printed)."),
     store: bool = typer.Option(False, "--store/--no-store", help="Also store the maps in the capture under /results/<name>."),
@@ -72,6 +77,7 @@ def run(
     integrator_options = {} if integrator is None else integrator.parse_options(integrator_assignments)
     if integrator is None and integrator_assignments:
         raise UserError("--integrator-set needs --integrate NAME")
+    check_tiling(entry, scheduler, workers)
     device = resolve_device(device)
     if not error_max > 0:
         raise UserError(f"--error-max {error_max:g}: must be a positive number of degrees")
@@ -87,7 +93,8 @@ def run(
     check_result_folder(outdir)  # before solving, so that a long run does not end in this error
     if capture is None:
         capture = _demo_capture(progress_bar("simulate demo", quiet), notes)
-    solved = solve_capture(entry, capture, options, device=device, progress=progress_bar(entry.name, quiet))
+    solved = solve_capture(entry, capture, options, device=device, scheduler=scheduler, workers=workers,
+                           progress=progress_bar(entry.name, quiet))
     if store:
         stored = psfmt.Result(
             name=result_name,

@@ -91,6 +91,13 @@ class Solver(ABC):
     summary: ClassVar[str]
     options: ClassVar[tuple[Option, ...]] = ()
     needs: ClassVar[Collection[str]] = frozenset()
+    tiled: ClassVar[bool] = False
+    """True when the solver can work in spatial tiles on Dask (``pstoolkit.solve.tiled``): it then
+    honours ``scheduler`` and ``workers``, which ``pstoolkit run --scheduler/--workers`` set."""
+    scheduler: str | None = None
+    """Address of the Dask scheduler to send tiles to (None: a local cluster when tiling)."""
+    workers: int | None = None
+    """Processes of the local cluster when tiling (None: one per core)."""
 
     def __init__(self, device: str = "cpu") -> None:
         self.device = device
@@ -147,6 +154,20 @@ def check_inputs(entry: Entry, capture: psfmt.Capture) -> None:
         raise UserError(f"solver {entry.name!r} needs {' and '.join(missing)}, but {where} has none ({capture.kind} capture)")
 
 
+def check_tiling(entry: Entry, scheduler: str | None, workers: int | None) -> None:
+    """UserError when ``--scheduler`` or ``--workers`` is given for a solver that does not work in
+    tiles, or ``workers`` is below 1 or given with a scheduler (which has its own workers)."""
+    if scheduler is None and workers is None:
+        return
+    flag = "--scheduler" if scheduler is not None else "--workers"
+    if not getattr(entry.obj, "tiled", False):
+        raise UserError(f"{flag}: solver {entry.name!r} does not work in tiles; only a tiled solver (dualres) sends work to Dask")
+    if workers is not None and scheduler is not None:
+        raise UserError("--workers: only for the local cluster; an existing scheduler (--scheduler) has its own workers")
+    if workers is not None and workers < 1:
+        raise UserError(f"--workers {workers}: need at least one worker")
+
+
 def resolve_device(device: str) -> str:
     """``auto`` → ``cuda`` when a GPU is usable, else ``cpu``; ``cuda`` without a GPU is a UserError."""
     if device not in DEVICES:
@@ -195,17 +216,22 @@ def run_solver(
     options: dict[str, Any],
     *,
     device: str = "cpu",
+    scheduler: str | None = None,
+    workers: int | None = None,
     progress: Progress = no_progress,
 ) -> tuple[SolverResult, float]:
     """Run the registered solver ``entry`` on ``capture`` with its ``options`` (resolved here too,
     ``resolve_options``, which is idempotent: a caller may pass them resolved already); returns its
     result and the wall seconds. ``options`` may leave options out: they take their defaults (an
-    unknown key is a UserError, as with ``--set``). A result of the wrong type or size is a
-    PluginError naming the plugin."""
+    unknown key is a UserError, as with ``--set``). ``scheduler`` and ``workers`` go to a solver
+    that works in tiles (``Solver.tiled``; for any other a UserError). A result of the wrong type or
+    size is a PluginError naming the plugin."""
     check_inputs(entry, capture)
+    check_tiling(entry, scheduler, workers)
     options = fill_defaults(options, entry.options, owner=f"{entry.kind} {entry.name!r}")
     options = resolve_options(entry, options)
     solver = entry.obj(device=device)
+    solver.scheduler, solver.workers = scheduler, workers
     start = time.perf_counter()
     result = solver.solve(capture, options, progress)
     seconds = time.perf_counter() - start

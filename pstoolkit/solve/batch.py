@@ -13,15 +13,10 @@ its error in ``batch.json`` and the other pairs go on.
 from __future__ import annotations
 
 import json
-import logging
-import os
 import secrets
 import shutil
-import signal
-import threading
 import traceback
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -301,81 +296,3 @@ def read_failures(outdir: Path) -> list[Outcome]:
         return [Outcome(**entry) for entry in data["pairs"] if entry["status"] == "failed"]
     except (ValueError, KeyError, TypeError) as exc:
         raise UserError(f"{path}: not a batch log written by `pstoolkit batch` ({exc})") from None
-
-
-def available_cpus() -> int:
-    """CPU cores this process may use (the affinity mask where the system has one)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-
-
-@contextmanager
-def quiet_loop_errors() -> Iterator[None]:
-    """Silence the callback errors of the client's event loop (tornado's ``tornado.application``
-    logger) for the block: they are Dask's own slips — a Ctrl-C while the client waits makes
-    distributed's cancel callback log a NameError traceback — and a pair that fails is reported as
-    its outcome anyway. After an exception (a Ctrl-C) they stay silenced: the loop's thread runs the
-    cancel callbacks after the block has been left, while the process ends."""
-    logger = logging.getLogger("tornado.application")
-    level = logger.level
-    logger.setLevel(logging.CRITICAL)
-    yield
-    logger.setLevel(level)
-
-
-def local_cluster(workers: int | None = None) -> Any:
-    """A ``LocalCluster`` of ``workers`` processes (default: one per available core) with one thread
-    each, so a worker holds one capture at a time; each worker takes a task only when it is idle, so a
-    worker that dies takes down only the pair it was running.
-
-    Ctrl-C (SIGINT, which a terminal sends to every process of the command) reaches this process
-    only, which cancels the tasks and closes the cluster: the user sees one line, not every worker's
-    traceback. Where it can (``_quiet_forkserver``), the workers are forked from a fork server that
-    ignores SIGINT, which they inherit."""
-    import dask  # deferred: only batch runs need dask
-    from distributed import LocalCluster
-
-    count = available_cpus() if workers is None else workers
-    if count < 1:
-        raise UserError(f"--workers {count}: need at least one worker")
-    settings: dict[str, Any] = {"distributed.scheduler.worker-saturation": 1.0}
-    if _quiet_forkserver():
-        settings["distributed.worker.multiprocessing-method"] = "forkserver"
-    with dask.config.set(settings):
-        # the scheduler serves HTTP whatever the dashboard: on a free port of this machine only (its
-        # default, 8787 on every interface, warns when taken and is reachable from the network).
-        return LocalCluster(
-            n_workers=count, threads_per_worker=1, processes=True, dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR
-        )
-
-
-def quiet_worker_logs() -> None:
-    """Run in each worker of the local cluster (``Client.run``): Dask's own logs there up to
-    CRITICAL. A worker still heartbeating while a Ctrl-C closes the cluster logs its broken stream as
-    an ERROR traceback on the command's stderr; a pair that fails is reported as its outcome."""
-    logging.getLogger("distributed").setLevel(logging.CRITICAL)
-
-
-def _quiet_forkserver() -> bool:
-    """Start multiprocessing's fork server with SIGINT ignored, which every process it forks inherits
-    (a signal handler or mask would not survive); False where that cannot be done: no fork server
-    (Windows), not the main thread, or a fork server already running."""
-    import multiprocessing
-    import multiprocessing.forkserver
-
-    import dask
-    from distributed.utils import get_mp_context
-
-    if "forkserver" not in multiprocessing.get_all_start_methods() or threading.current_thread() is not threading.main_thread():
-        return False
-    server = multiprocessing.forkserver._forkserver  # type: ignore[attr-defined]
-    if server._forkserver_pid is not None:
-        return False
-    with dask.config.set({"distributed.worker.multiprocessing-method": "forkserver"}):
-        get_mp_context()  # sets the modules the server imports once for every worker
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        # the server process is started here (milliseconds); it imports its modules on its own
-        multiprocessing.forkserver.ensure_running()
-    finally:
-        signal.signal(signal.SIGINT, previous)
-    return True

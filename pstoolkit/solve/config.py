@@ -42,6 +42,8 @@ RUN_FLAGS = {
     "solver": ("solver", "str"),
     "out": ("out", "path"),
     "device": ("device", "str"),
+    "scheduler": ("scheduler", "str"),
+    "workers": ("workers", "int"),
     "name": ("name", "str"),
     "error-max": ("error_max", "float"),
     "integrate": ("integrate", "str"),

@@ -164,11 +164,13 @@ class SolvedCapture:
 
 
 def solve_capture(
-    entry: Entry, capture: Path, options: dict[str, Any], *, device: str, progress: Progress = no_progress
+    entry: Entry, capture: Path, options: dict[str, Any], *, device: str, scheduler: str | None = None,
+    workers: int | None = None, progress: Progress = no_progress
 ) -> SolvedCapture:
-    """Read ``capture`` (verified), run the registered solver ``entry`` on it and score the result."""
+    """Read ``capture`` (verified), run the registered solver ``entry`` on it (a tiled solver's tiles
+    on ``scheduler`` or a local cluster of ``workers``, ``run_solver``) and score the result."""
     with psfmt.read(capture, verify=True) as data:
-        result, seconds = run_solver(entry, data, options, device=device, progress=progress)
+        result, seconds = run_solver(entry, data, options, device=device, scheduler=scheduler, workers=workers, progress=progress)
         normal = np.where(result.mask[..., None], result.normal, np.float32(0.0))
         scored = score(normal, data.ground_truth)
         rate = input_data_rate(entry, data, result)
