@@ -139,7 +139,8 @@ def test_the_file_s_assignments_come_first_and_the_table_after_set(tmp_path: Pat
     ("text", "message"),
     [
         ('solver = "frameps"\ndevise = "cpu"\n',
-         "unknown key 'devise' (keys: capture, device, error-max, integrate, integrator-options, integrator-set, name, options, out, scheduler, set, solver, store, workers)"),
+         "unknown key 'devise' (keys: capture, device, error-max, integrate, integrator-options, integrator-set, name, options, out, "
+         "scheduler, set, solver, store, workers)"),
         ('solver = 3\n', "solver: expected a string, got an integer 3"),
         ('solver = "frameps"\nerror-max = "30"\n', "error-max: expected a number, got a string '30'"),
         ('solver = "frameps"\nstore = "yes"\n', "store: expected true or false, got a string 'yes'"),
