@@ -1,13 +1,15 @@
 """How the ``dualres`` solver's time and memory grow with the capture's resolution (issue 26).
 
-For each ``--sizes`` N: the simulator's ``blobs`` scene at N² frame pixels (events at half that per
-axis, the defaults of ``pstoolkit simulate``), kept in ``--data`` between runs, solved by ``dualres``
-with its default preset in a child process, so that the peak resident memory is the solve's own (the
-child's VmHWM, read from /proc as tests/psfmt/test_fuzz.py does: ru_maxrss of a child carries the
-parent's size over the fork). Per size: solve seconds, microseconds per frame pixel, peak memory,
-MAE, and the wall seconds of the solver's stages (``diagnostics["seconds"]``: preprocess, detect,
-closed_form, problem, field, train_<stage>, redetect_<stage>, output; preprocessing's own split under
-``preprocess_split``).
+For each ``--sizes`` N (or HxW): the simulator's ``blobs`` scene at N² frame pixels (events at half
+that per axis, the defaults of ``pstoolkit simulate``; an H×W capture is the top-left crop of the
+max(H, W)² scene, cut as the tiled solver cuts tiles), kept in ``--data`` between runs, solved by
+``dualres`` with its default preset and ``--dualres-options`` in a child process. Peak memory is
+that of the child and every process it starts (a tiled solve's local cluster: scheduler, nannies,
+workers), their resident sizes summed and sampled every 0.2 s (``peak_gb``); ``driver_peak_gb`` is
+the child's own VmHWM. Per size: solve seconds, microseconds per frame pixel, peak memory, MAE, the
+tiling (tiles, largest crop) and, untiled, the wall seconds of the solver's stages
+(``diagnostics["seconds"]``: preprocess, detect, closed_form, problem, field, train_<stage>,
+redetect_<stage>, output; preprocessing's own split under ``preprocess_split``).
 
 Acceptance (printed, stored in the JSON; a criterion whose size was not run is None): time per pixel
 at 1024² within 1.3× of 256²; 1024² solved in at most 120 s; peak memory at 1024² at most 3 GB.
@@ -18,6 +20,8 @@ Prints the table and writes ``benchmarks/results/dualres_scale.json`` (``--out``
 
     python benchmarks/dualres_scale.py                          # 256, 512, 1024
     python benchmarks/dualres_scale.py --sizes 256 512 --data /tmp/blobs
+    python benchmarks/dualres_scale.py --sizes 512 1024 2048x2448 --dualres-options memory_gb=3 \
+        --out benchmarks/results/dualres_scale-tiled.json
 """
 
 from __future__ import annotations
@@ -29,10 +33,14 @@ import platform
 import subprocess
 import sys
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any
 
+import psutil
 from results_io import write_results
+
+import psfmt
 
 RESULTS = Path(__file__).resolve().parent / "results" / "dualres_scale.json"
 SIZES = (256, 512, 1024)
@@ -50,67 +58,121 @@ import psfmt
 import torch
 from pstoolkit.evaluation.scoring import score
 from pstoolkit.plugin.manager import get_registries
+from pstoolkit.solve.base import run_solver
 
 path, threads, assignments = sys.argv[1], int(sys.argv[2]), sys.argv[3:]
 if threads:
     torch.set_num_threads(threads)
-capture = psfmt.load(path)
+capture = psfmt.read(path)
 entry = get_registries().solvers.get("dualres")
-solver = entry.obj(device="cpu")
 options = entry.parse_options(assignments)
 started = time.perf_counter()
-result = solver.solve(capture, options, lambda fraction, message: None)
+result, _ = run_solver(entry, capture, options, device="cpu")
 seconds = time.perf_counter() - started
 scored = score(np.where(result.mask[..., None], result.normal, np.float32(0.0)), capture.ground_truth)
 with open("/proc/self/status") as status:
     peak_kb = next(int(line.split()[1]) for line in status if line.startswith("VmHWM:"))
 d = result.diagnostics
 print(json.dumps({"seconds": seconds, "mae_deg": scored.stats["mae_deg"], "coverage": scored.stats["coverage"],
-                  "peak_gb": peak_kb * 1024 / 1e9, "pixels": int(result.mask.sum()), "event_pairs": d.get("event_pairs"),
+                  "driver_peak_gb": peak_kb * 1024 / 1e9, "pixels": int(result.mask.sum()), "event_pairs": d.get("event_pairs"),
                   "stages": d.get("seconds", {}), "preprocess_split": d.get("preprocess", {}).get("seconds", {}),
-                  "torch_threads": torch.get_num_threads()}))
+                  "tiling": d.get("tiling"), "torch_threads": torch.get_num_threads()}))
 """
 
 
-def capture_path(folder: Path, size: int, seed: int) -> Path:
-    """The blobs capture of ``size``² frame pixels in ``folder``, simulated the first time."""
-    path = folder / f"blobs-{size}-seed{seed}.h5"
-    if not path.exists():
+def parse_size(text: str) -> tuple[int, int]:
+    """``N`` → (N, N); ``HxW`` → (H, W)."""
+    height, _, width = text.lower().partition("x")
+    return int(height), int(width or height)
+
+
+def size_name(shape: tuple[int, int]) -> str:
+    return f"{shape[0]}²" if shape[0] == shape[1] else f"{shape[0]}×{shape[1]}"
+
+
+def capture_path(folder: Path, shape: tuple[int, int], seed: int) -> Path:
+    """The blobs capture of ``shape`` frame pixels in ``folder``, simulated (and cropped) the first time."""
+    height, width = shape
+    side = max(height, width)
+    square = folder / f"blobs-{side}-seed{seed}.h5"
+    if not square.exists():
         from pstoolkit.sim.simulator import SimulationConfig, simulate
 
-        simulate(SimulationConfig(scene="blobs", size=size, seed=seed), path)
+        simulate(SimulationConfig(scene="blobs", size=side, seed=seed), square)
+    if height == width:
+        return square
+    path = folder / f"blobs-{height}x{width}-seed{seed}.h5"
+    if not path.exists():
+        from pstoolkit.solve.tiles import Tile, crop_capture
+
+        whole = Tile(0, 1, 1, 0, height, 0, width, 0, height, 0, width)
+        with psfmt.read(square) as capture:
+            psfmt.write(crop_capture(capture, whole), path)
     return path
 
 
+def _tree_rss(process: psutil.Process) -> int:
+    """Resident bytes of ``process`` and all its descendants (those that vanish meanwhile count 0)."""
+    total = 0
+    for p in [process, *process.children(recursive=True)]:
+        try:
+            total += p.memory_info().rss
+        except psutil.Error:
+            pass
+    return total
+
+
 def solve_in_child(path: Path, threads: int, assignments: list[str]) -> dict[str, Any]:
-    """The child's JSON line for one capture (its last line of output); RuntimeError when it fails."""
-    done = subprocess.run([sys.executable, "-c", CHILD, str(path), str(threads), *assignments],
-                          capture_output=True, text=True, env=os.environ.copy(), check=False)
-    if done.returncode != 0:
-        raise RuntimeError(f"dualres on {path} failed ({done.returncode}):\n{done.stderr[-4000:]}")
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    """The child's JSON line for one capture (its last line of output) with ``peak_gb``, the peak of
+    its process tree's summed resident memory; RuntimeError when it fails."""
+    child = subprocess.Popen([sys.executable, "-c", CHILD, str(path), str(threads), *assignments],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ.copy())
+    peak = 0
+    watched = psutil.Process(child.pid)
+    done = threading.Event()
+
+    def sample() -> None:
+        nonlocal peak
+        while not done.wait(0.2):
+            peak = max(peak, _tree_rss(watched))
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    out, err = child.communicate()
+    done.set()
+    sampler.join()
+    if child.returncode != 0:
+        raise RuntimeError(f"dualres on {path} failed ({child.returncode}):\n{err[-4000:]}")
+    return {**json.loads(out.strip().splitlines()[-1]), "peak_gb": max(peak, 0) / 1e9}
 
 
-def row_of(size: int, child: dict[str, Any]) -> dict[str, Any]:
-    frame_pixels = size * size
-    return {"size": size, "event_size": size // 2, **child, "us_per_pixel": child["seconds"] / frame_pixels * 1e6}
+def row_of(shape: tuple[int, int], child: dict[str, Any]) -> dict[str, Any]:
+    height, width = shape
+    frame_pixels = height * width
+    return {"size": size_name(shape), "height": height, "width": width, "event_size": size_name((height // 2, width // 2)),
+            **child, "us_per_pixel": child["seconds"] / frame_pixels * 1e6}
 
 
 def table(rows: list[dict[str, Any]]) -> None:
-    """Print one line per size, then the stage split."""
-    print(f"\n{'frames':>8} {'events':>8} {'solve s':>9} {'µs/px':>7} {'peak GB':>8} {'MAE°':>6}")
+    """Print one line per size, then the stage split of the untiled ones."""
+    print(f"\n{'frames':>10} {'events':>10} {'tiles':>5} {'solve s':>9} {'µs/px':>7} {'peak GB':>8} {'MAE°':>6}")
     for r in rows:
-        print(f"{r['size']:>7}² {r['event_size']:>7}² {r['seconds']:9.1f} {r['us_per_pixel']:7.1f} {r['peak_gb']:8.2f} {r['mae_deg']:6.2f}")
-    stages = list(dict.fromkeys(k for r in rows for k in r["stages"] if k != "total"))
-    print(f"\nstage seconds{'':>7}" + "".join(f"{r['size']:>9}²" for r in rows))
+        tiles = r["tiling"]["tiles"] if r.get("tiling") else 1
+        print(f"{r['size']:>10} {r['event_size']:>10} {tiles:>5} {r['seconds']:9.1f} {r['us_per_pixel']:7.1f} {r['peak_gb']:8.2f} "
+              f"{r['mae_deg']:6.2f}")
+    whole = [r for r in rows if r["stages"]]
+    if not whole:
+        return
+    stages = list(dict.fromkeys(k for r in whole for k in r["stages"] if k != "total"))
+    print(f"\nstage seconds{'':>7}" + "".join(f"{r['size']:>10}" for r in whole))
     for stage in stages:
-        print(f"{stage:<20}" + "".join(f"{r['stages'].get(stage, float('nan')):10.2f}" for r in rows))
+        print(f"{stage:<20}" + "".join(f"{r['stages'].get(stage, float('nan')):10.2f}" for r in whole))
 
 
 def verdict(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """The issue's acceptance criteria, each True/False (None when its size was not run)."""
     by = {r["size"]: r for r in rows}
-    large, small = by.get(LARGE), by.get(SMALL)
+    large, small = by.get(size_name((LARGE, LARGE))), by.get(size_name((SMALL, SMALL)))
     ratio = large["us_per_pixel"] / small["us_per_pixel"] if large and small else None
     return {
         "per_pixel_ratio_1024_to_256": ratio,
@@ -124,7 +186,8 @@ def verdict(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sizes", type=int, nargs="*", default=list(SIZES), help="frame sizes in pixels (default 256 512 1024)")
+    parser.add_argument("--sizes", nargs="*", default=[str(n) for n in SIZES],
+                        help="frame sizes in pixels, N or HxW (default 256 512 1024)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads of the solve (default: torch's choice)")
     parser.add_argument("--dualres-options", nargs="*", default=[], help="extra --set assignments (default: the default preset)")
@@ -135,10 +198,11 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         folder = args.data or Path(tmp)
         folder.mkdir(parents=True, exist_ok=True)
-        for size in args.sizes:
-            row = row_of(size, solve_in_child(capture_path(folder, size, args.seed), args.threads, args.dualres_options))
+        for text in args.sizes:
+            shape = parse_size(text)
+            row = row_of(shape, solve_in_child(capture_path(folder, shape, args.seed), args.threads, args.dualres_options))
             rows.append(row)
-            print(f"  {size}²: {row['seconds']:.1f} s, {row['us_per_pixel']:.1f} µs/px, {row['peak_gb']:.2f} GB, "
+            print(f"  {row['size']}: {row['seconds']:.1f} s, {row['us_per_pixel']:.1f} µs/px, {row['peak_gb']:.2f} GB, "
                   f"MAE {row['mae_deg']:.2f}°", flush=True)
     table(rows)
     checks = verdict(rows)

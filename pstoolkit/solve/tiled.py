@@ -35,7 +35,8 @@ IN_FLIGHT_PER_WORKER = 2
 def solve_tile(solver: str, device: str, options: dict[str, Any], threads: int, crop: psfmt.Capture) -> SolverResult:
     """Worker side: the registered ``solver`` on one crop with ``options`` (which must make it solve
     the crop whole), on ``threads`` torch threads."""
-    import torch  # deferred: the driver of a tiled run need not load torch for this
+    import numba  # deferred: the driver of a tiled run need not load numba or torch for this
+    import torch
 
     from pstoolkit._shared.allocator import keep_freed_memory
     from pstoolkit.plugin.manager import get_registries
@@ -44,6 +45,9 @@ def solve_tile(solver: str, device: str, options: dict[str, Any], threads: int, 
     # every array of the solve's steps would come as fresh pages (4× slower tiles, measured)
     keep_freed_memory()
     torch.set_num_threads(max(1, threads))
+    # numba's parallel kernels too: threads it keeps beyond the worker's share spin between kernels
+    # and took the cores of the other workers (training after the shadow re-detection ran 5× slower)
+    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
     entry = get_registries().solvers.get(solver)
     return entry.obj(device=device).solve(crop, options)
 

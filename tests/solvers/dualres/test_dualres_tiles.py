@@ -5,6 +5,7 @@ apply are refused with one line."""
 
 from __future__ import annotations
 
+import json
 import socket
 import subprocess
 import sys
@@ -126,3 +127,16 @@ def test_options_that_cannot_apply_are_one_line(blobs_48: Path, tmp_path: Path, 
     assert main(["run", str(blobs_48), *args, "-o", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
+
+
+def test_a_batch_pair_sends_its_tiles_to_the_batch_cluster(blobs_48: Path, tmp_path: Path) -> None:
+    sets = [arg for option in (EPOCHS, *TILES) for arg in ("--set", option)]
+    assert main(["run", str(blobs_48), "--solver", "dualres", *sets, "--workers", "2", "-q", "-o", str(tmp_path / "run")]) == 0
+    assert main(["batch", str(blobs_48), "--solver", "dualres", *sets, "--workers", "2", "-q", "-o", str(tmp_path / "batch")]) == 0
+    folder = next((tmp_path / "batch").glob("*-dualres"))
+    tiling = json.loads((folder / "result.json").read_text())["diagnostics"]["tiling"]
+    assert tiling["tiles"] == 4 and tiling["where"] == "the running Dask cluster"
+    run, batch = (np.load(path / "normal.npy") for path in (tmp_path / "run", folder))
+    mask = np.linalg.norm(run, axis=-1) > 0
+    angle = np.degrees(np.arccos(np.clip(np.sum(run * batch, axis=-1), -1.0, 1.0)))[mask]
+    assert angle.mean() < 0.005 and angle.max() < 0.1
