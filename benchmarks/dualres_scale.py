@@ -7,7 +7,7 @@ max(H, W)² scene, cut as the tiled solver cuts tiles), kept in ``--data`` betwe
 that of the child and every process it starts (a tiled solve's local cluster: scheduler, nannies,
 workers), their resident sizes summed and sampled every 0.2 s (``peak_gb``); ``driver_peak_gb`` is
 the child's own VmHWM. Per size: solve seconds, microseconds per frame pixel, peak memory, MAE, the
-tiling (tiles, largest crop) and, untiled, the wall seconds of the solver's stages
+tiling (tiles, largest crop), the MAE in the seams' blending bands and off them, and, untiled, the wall seconds of the solver's stages
 (``diagnostics["seconds"]``: preprocess, detect, closed_form, problem, field, train_<stage>,
 redetect_<stage>, output; preprocessing's own split under ``preprocess_split``).
 
@@ -56,6 +56,7 @@ import json, sys, time
 import numpy as np
 import psfmt
 import torch
+from pstoolkit.evaluation.metrics import angular_error_deg
 from pstoolkit.evaluation.scoring import score
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.solve.base import run_solver
@@ -73,10 +74,23 @@ scored = score(np.where(result.mask[..., None], result.normal, np.float32(0.0)),
 with open("/proc/self/status") as status:
     peak_kb = next(int(line.split()[1]) for line in status if line.startswith("VmHWM:"))
 d = result.diagnostics
+seam = None
+if d.get("tiling"):
+    # the error in the blending bands (overlap_px wide, centred on each core boundary) and off them
+    truth = capture.ground_truth
+    error = angular_error_deg(result.normal, truth.normal, truth.mask)
+    tiling, half = d["tiling"], d["tiling"]["overlap_px"] / 2
+    rows, cols = np.mgrid[0:error.shape[0], 0:error.shape[1]] + 0.5
+    band = np.zeros(error.shape, dtype=bool)
+    for cut in tiling["row_cuts"]:
+        band |= np.abs(rows - cut) < half
+    for cut in tiling["col_cuts"]:
+        band |= np.abs(cols - cut) < half
+    seam = {"band_mae_deg": float(error[truth.mask & band].mean()), "off_band_mae_deg": float(error[truth.mask & ~band].mean())}
 print(json.dumps({"seconds": seconds, "mae_deg": scored.stats["mae_deg"], "coverage": scored.stats["coverage"],
                   "driver_peak_gb": peak_kb * 1024 / 1e9, "pixels": int(result.mask.sum()), "event_pairs": d.get("event_pairs"),
                   "stages": d.get("seconds", {}), "preprocess_split": d.get("preprocess", {}).get("seconds", {}),
-                  "tiling": d.get("tiling"), "torch_threads": torch.get_num_threads()}))
+                  "tiling": d.get("tiling"), "seam": seam, "torch_threads": torch.get_num_threads()}))
 """
 
 
@@ -155,11 +169,12 @@ def row_of(shape: tuple[int, int], child: dict[str, Any]) -> dict[str, Any]:
 
 def table(rows: list[dict[str, Any]]) -> None:
     """Print one line per size, then the stage split of the untiled ones."""
-    print(f"\n{'frames':>10} {'events':>10} {'tiles':>5} {'solve s':>9} {'µs/px':>7} {'peak GB':>8} {'MAE°':>6}")
+    print(f"\n{'frames':>10} {'events':>10} {'tiles':>5} {'solve s':>9} {'µs/px':>7} {'peak GB':>8} {'MAE°':>6} {'seams°':>7}")
     for r in rows:
         tiles = r["tiling"]["tiles"] if r.get("tiling") else 1
+        seam = f"{r['seam']['band_mae_deg']:.2f}/{r['seam']['off_band_mae_deg']:.2f}" if r.get("seam") else "-"
         print(f"{r['size']:>10} {r['event_size']:>10} {tiles:>5} {r['seconds']:9.1f} {r['us_per_pixel']:7.1f} {r['peak_gb']:8.2f} "
-              f"{r['mae_deg']:6.2f}")
+              f"{r['mae_deg']:6.2f} {seam:>9}")
     whole = [r for r in rows if r["stages"]]
     if not whole:
         return

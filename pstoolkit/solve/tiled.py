@@ -102,7 +102,8 @@ def solve_tiles(
 ) -> SolverResult:
     """The stitched result of the registered ``solver`` run with ``options`` on each tile's crop,
     its diagnostics the tiles' own (``tiles``) and a record of the tiling (``tiling``: tiles, grid,
-    overlap, largest crop, where, torch threads per tile, seconds). See the module docstring.
+    overlap, the inner core boundaries ``row_cuts``/``col_cuts``, largest crop, where, torch threads
+    per tile, seconds). See the module docstring.
 
     Parameters
     ----------
@@ -168,6 +169,7 @@ def solve_tiles(
                 client.cancel(list(running))
                 raise
     record = {"tiles": len(tiles), "grid": [tiles[0].rows, tiles[0].cols], "overlap_px": overlap_px,
+              "row_cuts": sorted({t.top for t in tiles} - {0}), "col_cuts": sorted({t.left for t in tiles} - {0}),
               "largest_crop": list(max((t.crop_shape for t in tiles), key=lambda s: s[0] * s[1])),
               "where": where, "torch_threads_per_tile": threads, "seconds": round(time.perf_counter() - started, 4)}
     return stitcher.result({"tiling": record})

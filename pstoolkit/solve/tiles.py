@@ -213,8 +213,9 @@ class Stitcher:
 
     def __init__(self, height: int, width: int, overlap_px: int) -> None:
         self.height, self.width, self.overlap_px = height, width, overlap_px
-        self._normal = np.zeros((height, width, 3), dtype=np.float64)
-        self._weight = np.zeros((height, width), dtype=np.float64)
+        # float32 sums: a megapixel frame's maps are a dozen channels, and weights in [0, 1] lose nothing
+        self._normal = np.zeros((height, width, 3), dtype=np.float32)
+        self._weight = np.zeros((height, width), dtype=np.float32)
         self._maps: dict[str, np.ndarray] = {}
         self.diagnostics: list[dict[str, object]] = []
 
@@ -224,13 +225,13 @@ class Stitcher:
         if result.normal.shape[:2] != tile.crop_shape:
             raise ValueError(f"tile {tile.label()}: result of {result.normal.shape[:2]}, expected {tile.crop_shape}")
         rows, cols = slice(tile.crop_top, tile.crop_bottom), slice(tile.crop_left, tile.crop_right)
-        weight = blend_weights(tile, self.overlap_px) * result.mask
+        weight = (blend_weights(tile, self.overlap_px) * result.mask).astype(np.float32)
         self._normal[rows, cols] += weight[..., None] * result.normal
         self._weight[rows, cols] += weight
         for name, value in result.maps.items():
-            value = np.asarray(value, dtype=np.float64)
+            value = np.asarray(value, dtype=np.float32)
             if name not in self._maps:
-                self._maps[name] = np.zeros((self.height, self.width) + value.shape[2:], dtype=np.float64)
+                self._maps[name] = np.zeros((self.height, self.width) + value.shape[2:], dtype=np.float32)
             self._maps[name][rows, cols] += weight.reshape(weight.shape + (1,) * (value.ndim - 2)) * value
         self.diagnostics.append({"tile": tile.label(), **result.diagnostics})
 
