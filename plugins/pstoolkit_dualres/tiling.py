@@ -1,11 +1,12 @@
 """When and how ``dualres`` cuts a capture into tiles (``plan``), from a model of its peak memory.
 
-The solve's memory grows with the frame pixels it holds at once: a worker process with torch
-loaded holds ``WORKER_BASE_BYTES`` before the solve, which then adds ``BYTES_PER_PIXEL`` per frame
-pixel of its crop (frames, per-pixel time samples, shadow grids of 720 steps, the field and Adam's
-moments); the driver of a tiled run holds its own process, the local cluster's scheduler and
-``STITCH_BYTES_PER_PIXEL`` per frame pixel of the whole frame for the blended maps. The constants
-are measured with ``benchmarks/dualres_scale.py`` (docs/dualres-tuning.md, "Tiles").
+The solve's memory grows with the frame pixels it holds at once: a Dask worker process with torch
+and numba loaded holds ``WORKER_BASE_BYTES`` before the solve, which then adds ``BYTES_PER_PIXEL``
+per frame pixel of its crop (frames, per-pixel time samples, shadow grids of 720 steps, the field
+and Adam's moments); the driver of a tiled run holds its own process with torch, the local
+cluster's scheduler and nannies (``DRIVER_BYTES``) and ``STITCH_BYTES_PER_PIXEL`` per frame pixel of
+the whole frame for the blended maps. The constants are measured with
+``benchmarks/dualres_scale.py`` (docs/dualres-tuning.md, "Tiles").
 """
 
 from __future__ import annotations
@@ -17,9 +18,11 @@ from pstoolkit import UserError
 from pstoolkit.solve.cluster import available_cpus, available_memory_bytes
 from pstoolkit.solve.tiles import ALIGN_PX, Tile, plan_tiles
 
-WORKER_BASE_BYTES = 0.45e9
+WORKER_BASE_BYTES = 0.65e9
+# a plain process with torch loaded, solving the whole capture itself
+UNTILED_BASE_BYTES = 0.45e9
 BYTES_PER_PIXEL = 3.8e3
-DRIVER_BYTES = 0.6e9
+DRIVER_BYTES = 1.1e9
 STITCH_BYTES_PER_PIXEL = 80.0
 # The smallest core a memory budget may ask for: below it the overlaps cost more than the tiles.
 MIN_TILE_PX = 96
@@ -33,7 +36,7 @@ def budget_bytes(memory_gb: float) -> float:
 
 def whole_bytes(pixels: int) -> float:
     """Predicted peak of solving ``pixels`` frame pixels in one piece, in this process."""
-    return WORKER_BASE_BYTES + BYTES_PER_PIXEL * pixels
+    return UNTILED_BASE_BYTES + BYTES_PER_PIXEL * pixels
 
 
 def tile_px_for(budget: float, pixels: int, workers: int, overlap_px: int, *, local: bool) -> int:
