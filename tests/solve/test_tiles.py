@@ -4,6 +4,7 @@ affine moved along, and stitching returns what the tiles said."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -80,6 +81,16 @@ def test_a_crop_holds_the_frames_and_events_of_its_pixels_and_the_affine_moves_w
     assert ue_all.max() <= right - left - 0.5 and ve_all.max() <= bottom - top - 0.5
     assert nearest_super_pixel(moved, h, w, bottom - top, right - left).max() < (bottom - top) * (right - left)
     assert crop.ground_truth.normal.shape == (h, w, 3)
+
+
+def test_a_perspective_cameras_principal_point_moves_with_the_crop(blobs_48: Path) -> None:
+    with psfmt.read(blobs_48) as capture:
+        k = np.array([[60.0, 0.0, 24.0], [0.0, 60.0, 23.5], [0.0, 0.0, 1.0]])
+        capture.calibration = replace(capture.calibration, camera_model="perspective", intrinsics=k)
+        tile = plan_tiles(48, 48, tile_px=24, overlap_px=8)[1]
+        crop = crop_capture(capture, tile)
+    np.testing.assert_allclose(crop.calibration.intrinsics, [[60, 0, 24 - tile.crop_left], [0, 60, 23.5 - tile.crop_top], [0, 0, 1]])
+    assert crop.calibration.camera_model == "perspective" and capture.calibration.intrinsics[0, 2] == 24.0
 
 
 def test_stitching_tiles_that_agree_returns_their_values_and_tiles_that_differ_blend_smoothly() -> None:
