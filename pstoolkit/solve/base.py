@@ -29,6 +29,7 @@ from psfmt.describe import names
 from pstoolkit.errors import UserError
 from pstoolkit.plugin.options import Option, fill_defaults
 from pstoolkit.plugin.registry import Entry, PluginError
+from pstoolkit.solve.cluster import check_workers
 
 Progress = Callable[[float, str], None]
 """``progress(fraction, message)``: fraction of the work done in [0, 1] and what is happening."""
@@ -156,16 +157,13 @@ def check_inputs(entry: Entry, capture: psfmt.Capture) -> None:
 
 def check_tiling(entry: Entry, scheduler: str | None, workers: int | None) -> None:
     """UserError when ``--scheduler`` or ``--workers`` is given for a solver that does not work in
-    tiles, or ``workers`` is below 1 or given with a scheduler (which has its own workers)."""
+    tiles, or ``workers`` is below 1 or given with a scheduler (``cluster.check_workers``)."""
     if scheduler is None and workers is None:
         return
     flag = "--scheduler" if scheduler is not None else "--workers"
     if not getattr(entry.obj, "tiled", False):
         raise UserError(f"{flag}: solver {entry.name!r} does not work in tiles; only a tiled solver (dualres) sends work to Dask")
-    if workers is not None and scheduler is not None:
-        raise UserError("--workers: only for the local cluster; an existing scheduler (--scheduler) has its own workers")
-    if workers is not None and workers < 1:
-        raise UserError(f"--workers {workers}: need at least one worker")
+    check_workers(scheduler, workers)
 
 
 def resolve_device(device: str) -> str:

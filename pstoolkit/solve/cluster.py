@@ -28,19 +28,28 @@ def available_memory_bytes() -> int:
     return min(total, int(limit)) if limit.isdigit() else total
 
 
+def check_workers(scheduler: str | None, workers: int | None) -> None:
+    """UserError for ``workers`` below 1, or given with a ``scheduler`` (which has its own workers)."""
+    if workers is None:
+        return
+    if scheduler is not None:
+        raise UserError("--workers: only for the local cluster; an existing scheduler (--scheduler) has its own workers")
+    if workers < 1:
+        raise UserError(f"--workers {workers}: need at least one worker")
+
+
 def connect(scheduler: str | None, workers: int | None) -> tuple[Any, Any]:
     """A ``distributed.Client`` of the scheduler at ``scheduler``, or of a new LocalCluster of
     ``workers`` processes (default: one per core; returned too, to close it; None for an existing
     scheduler). UserError when the scheduler cannot be reached, or for ``workers`` with a scheduler."""
     from distributed import Client  # deferred: loading dask takes a second that other commands never need
 
+    check_workers(scheduler, workers)
     if scheduler is None:
         cluster = local_cluster(workers)
         client = Client(cluster, set_as_default=False)
         client.run(quiet_worker_logs)
         return client, cluster
-    if workers is not None:
-        raise UserError("--workers: only for the local cluster; an existing scheduler (--scheduler) has its own workers")
     try:
         return Client(scheduler, timeout="20s", set_as_default=False), None
     except (OSError, ValueError, TypeError) as exc:
@@ -78,9 +87,8 @@ def local_cluster(workers: int | None = None) -> Any:
     import dask  # deferred: only batch runs need dask
     from distributed import LocalCluster
 
+    check_workers(None, workers)
     count = available_cpus() if workers is None else workers
-    if count < 1:
-        raise UserError(f"--workers {count}: need at least one worker")
     settings: dict[str, Any] = {"distributed.scheduler.worker-saturation": 1.0}
     if _quiet_forkserver():
         settings["distributed.worker.multiprocessing-method"] = "forkserver"

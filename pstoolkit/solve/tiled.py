@@ -32,6 +32,7 @@ from pstoolkit.solve.tiles import Stitcher, Tile, crop_capture
 # Crops submitted per worker before the driver waits for a result.
 IN_FLIGHT_PER_WORKER = 2
 
+
 def solve_tile(solver: str, device: str, options: dict[str, Any], threads: int, crop: psfmt.Capture) -> SolverResult:
     """Worker side: the registered ``solver`` on one crop with ``options`` (which must make it solve
     the crop whole), on ``threads`` torch threads."""
@@ -46,7 +47,7 @@ def solve_tile(solver: str, device: str, options: dict[str, Any], threads: int, 
     keep_freed_memory()
     torch.set_num_threads(max(1, threads))
     # numba's parallel kernels too: threads it keeps beyond the worker's share spin between kernels
-    # and took the cores of the other workers (training after the shadow re-detection ran 5× slower)
+    # and took the cores of the other workers (training after the shadow re-detection ran 2.5× slower)
     numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
     entry = get_registries().solvers.get(solver)
     return entry.obj(device=device).solve(crop, options)
@@ -131,9 +132,8 @@ def solve_tiles(
     where = "this process"
     if len(tiles) == 1 and scheduler is None and local_workers == 1:
         threads = cpus
-        for done, tile in enumerate(tiles, start=1):
-            stitcher.add(tile, solve_tile(solver, device, options, threads, crop_capture(capture, tile)))
-            progress(done / len(tiles), eta_text(done, len(tiles), time.perf_counter() - started))
+        stitcher.add(tiles[0], solve_tile(solver, device, options, threads, crop_capture(capture, tiles[0])))
+        progress(1.0, eta_text(1, 1, time.perf_counter() - started))
     else:
         from distributed import as_completed
 

@@ -18,7 +18,6 @@ changes source abruptly.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -247,8 +246,3 @@ class Stitcher:
         return SolverResult(normal=normal.astype(np.float32), mask=mask, maps=maps,
                             diagnostics={**diagnostics, "tiles": self.diagnostics})
 
-
-def iter_crops(capture: psfmt.Capture, tiles: list[Tile]) -> Iterator[tuple[Tile, psfmt.Capture]]:
-    """Each tile with its crop of the capture, cut when asked for (one crop in memory at a time)."""
-    for tile in tiles:
-        yield tile, crop_capture(capture, tile)
