@@ -139,6 +139,7 @@ def closed_form(
     iterations: int,
     n_samples: int,
     super_normal: np.ndarray | None = None,
+    base: ClosedFormStart | None = None,
 ) -> ClosedFormStart:
     """Initial normal and albedo maps inside ``mask`` from the long exposures (see the module docstring).
 
@@ -163,6 +164,11 @@ def closed_form(
         (H, W, 3) the normals of the super pixels from their events, interpolated to the frame pixels
         (zero where unknown), or None; where known they fill the pixels with fewer than three
         effective lights.
+    base
+        An earlier start over a larger mask whose pixels outside ``mask`` stand as they are (a cast-
+        shadow mask that changes only the pixels of ``mask``): their normals with three effective
+        lights and their albedos with one feed the fills here, as their own solve would. None: the
+        pixels outside ``mask`` are unknown.
 
     Returns
     -------
@@ -202,9 +208,14 @@ def closed_form(
     full = solved & (effective.sum(axis=0) >= 3)
     count = effective.sum(axis=0)
     normal_map = np.zeros((height * width, 3))
+    known = np.zeros(height * width, dtype=bool)
+    outside = np.zeros(height * width, dtype=bool) if base is None else ~mask.ravel()
+    if base is not None:
+        held = outside & (base.effective.ravel() >= 3)
+        normal_map[held] = base.normal.reshape(-1, 3)[held]
+        known[held] = True
     normal_map[pixels[full]] = normal[full]
     normal_map = normal_map.reshape(height, width, 3)
-    known = np.zeros(height * width, dtype=bool)
     known[pixels[full]] = True
     filled = unit(fill(normal_map, known.reshape(height, width), mask)).reshape(-1, 3)[pixels]
     if super_normal is not None:
@@ -221,8 +232,12 @@ def closed_form(
     normal = unit(normal)
     albedo = _albedo(rgb, lights, effective, normal)
     albedo_map = np.zeros((height * width, 3))
-    albedo_map[pixels] = albedo
     has_light = np.zeros(height * width, dtype=bool)
+    if base is not None:
+        lit = outside & (base.effective.ravel() >= 1)
+        albedo_map[lit] = base.albedo.reshape(-1, 3)[lit]
+        has_light[lit] = True
+    albedo_map[pixels] = albedo
     has_light[pixels[count >= 1]] = True
     albedo_map = fill(albedo_map.reshape(height, width, 3), has_light.reshape(height, width), mask)
     normal_out = np.zeros((height * width, 3))

@@ -28,6 +28,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from pstoolkit_dualres.closed_form import fill
+from pstoolkit_dualres.gather import gather_sum
 
 FieldOutput = tuple[Tensor, Tensor, Tensor]
 """(normal (P, 3) unit, per-pixel raw channels (P, Cp), smooth raw channels (P, Cs))."""
@@ -126,7 +127,8 @@ class PyramidField(nn.Module):
         return list(self.smooth)
 
     def _values(self) -> Tensor:
-        return collapse(self.levels)[0].reshape(self.channels, -1).T[self.pixels]
+        # index_select differentiates into index_add_, advanced indexing into a slower index_put_
+        return collapse(self.levels)[0].reshape(self.channels, -1).index_select(1, self.pixels).T
 
     def forward(self, index: Tensor | None = None) -> FieldOutput:
         """The maps at the masked pixels ``index`` (all when None)."""
@@ -136,7 +138,7 @@ class PyramidField(nn.Module):
         if self.smooth_channels:
             grid = collapse(self.smooth)[0].reshape(self.smooth_channels, -1).T
             taps, weights = (self.tap_index, self.tap_weight) if index is None else (self.tap_index[index], self.tap_weight[index])
-            smooth = torch.sum(grid[taps] * weights[..., None], dim=1)
+            smooth = gather_sum(grid, taps, weights)
         else:
             smooth = values.new_zeros((values.shape[0], 0))
         return _unit(values[:, :3]), values[:, 3:], smooth

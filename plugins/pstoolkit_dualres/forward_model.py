@@ -72,7 +72,7 @@ def frame_prediction_grid(model: FitModel, normal: Tensor, maps: Maps, light: Te
     weight
         (S, 3) RGB intensity × Δt of each sample.
     visible
-        (P, S) the lit share of each sample, or None (all lit).
+        (S, P) the lit share of each sample, or None (all lit).
     view
         (3,) unit direction to the camera.
     frames
@@ -86,7 +86,7 @@ def frame_prediction_grid(model: FitModel, normal: Tensor, maps: Maps, light: Te
     p, s = normal.shape[0], light.shape[0]
     shaded = model.shade(normal[:, None, :], light[None], view, {k: v[:, None, :] for k, v in maps.items()}) * weight
     if visible is not None:
-        shaded = shaded * visible[..., None]
+        shaded = shaded * visible.T[..., None]
     return shaded.reshape(p, frames, s // frames, 3).sum(dim=2).transpose(0, 1).reshape(frames * p, 3)
 
 

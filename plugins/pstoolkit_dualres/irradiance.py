@@ -215,11 +215,16 @@ def _fit_scale(irradiance: Irradiance, frame_values: np.ndarray) -> np.ndarray:
         dt_s = width / SCALE_SAMPLES / US_PER_S
         for start in range(0, n_pixels, SCALE_BLOCK):
             pix = np.arange(start, min(start + SCALE_BLOCK, n_pixels))
-            grid_pixel = np.repeat(pix, SCALE_SAMPLES)
-            grid_phase = np.tile(phase, len(pix))
-            unscaled = np.exp(irradiance.log_level(grid_pixel, grid_phase)) * dt_s
-            piece = irradiance.piece(grid_pixel, grid_phase)
-            slot = np.repeat(np.arange(len(pix)), SCALE_SAMPLES) * pieces + piece
+            unscaled = np.exp(irradiance.log_level(np.repeat(pix, SCALE_SAMPLES), np.tile(phase, len(pix)))) * dt_s
+            # ``Irradiance.piece`` on the window's phase grid, shared by all pixels: one (pixels, samples)
+            # comparison per change point instead of a (pixels·samples, pieces) gather
+            changes = irradiance.change_us[pix]
+            k = np.sum(np.isfinite(changes), axis=1)
+            passed = np.zeros((len(pix), SCALE_SAMPLES), dtype=np.int64)
+            for m in range(pieces):
+                passed += changes[:, m, None] <= phase[None, :]
+            piece = np.where(k[:, None] > 0, np.mod(passed - 1, np.maximum(k, 1)[:, None]), 0)
+            slot = (np.arange(len(pix))[:, None] * pieces + piece).ravel()
             integrals[pix, j] = np.bincount(slot, weights=unscaled, minlength=len(pix) * pieces).reshape(-1, pieces)
     scale = np.einsum("pmj,pj->pm", np.linalg.pinv(integrals), frame_values)
     # one constant s where the pieces' fit is not physical

@@ -13,6 +13,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from pstoolkit_dualres.gather import gather_sum
+
 
 def frame_loss(predicted: Tensor, measured: Tensor, saturated: Tensor) -> Tensor:
     """Mean |Ã − A| over (values, 3); ``saturated`` (values,) bool marks clipped measurements."""
@@ -30,4 +32,5 @@ def tv_loss(values: Tensor, pairs: Tensor) -> Tensor:
     """Mean |v_a − v_b| over neighbour pairs (Q, 2) of rows of ``values`` (P, C)."""
     if pairs.numel() == 0:
         return values.sum() * 0.0
-    return (values[pairs[:, 0]] - values[pairs[:, 1]]).abs().mean()
+    difference = values.new_tensor([1.0, -1.0]).expand(pairs.shape[0], 2)
+    return gather_sum(values, pairs, difference).abs().mean()

@@ -148,15 +148,19 @@ class Preprocessed:
     options: PreprocessOptions
     diagnostics: dict[str, Any] = field(default_factory=dict)
 
-    def closed_form(self, shadows: ShadowMask | None) -> ClosedFormStart:
+    def closed_form(self, shadows: ShadowMask | None, only: np.ndarray | None = None) -> ClosedFormStart:
         """The closed-form start with the equivalent lights of eq. 14/16 under the cast-shadow mask
-        ``shadows`` (None: none)."""
-        return start(self.per_window, self.windows_us + self.t0_us, self.mask, self.light, self.super_normal,
-                     self.options, shadows)
+        ``shadows`` (None: none); with ``only`` (H, W) bool, solved at those pixels of the mask alone
+        (zero elsewhere), the others standing as in ``init`` — exact where ``only`` holds every pixel
+        the mask shadows, which the unmasked start already solved."""
+        mask, base = (self.mask, None) if only is None else (self.mask & only, self.init)
+        return start(self.per_window, self.windows_us + self.t0_us, mask, self.light, self.super_normal,
+                     self.options, shadows, base)
 
 
 def start(per_window: np.ndarray, windows_us: np.ndarray, mask: np.ndarray, light: LightModel,
-          super_normal: np.ndarray, options: PreprocessOptions, shadows: ShadowMask | None) -> ClosedFormStart:
+          super_normal: np.ndarray, options: PreprocessOptions, shadows: ShadowMask | None,
+          base: ClosedFormStart | None = None) -> ClosedFormStart:
     """The closed-form start (``closed_form.closed_form``) of the window means under a cast-shadow mask.
 
     Parameters
@@ -176,6 +180,8 @@ def start(per_window: np.ndarray, windows_us: np.ndarray, mask: np.ndarray, ligh
         The preprocessing options; ``init_iterations`` and ``light_samples`` apply.
     shadows
         The cast-shadow mask at frame pixels, or None or empty (none).
+    base
+        The start of the pixels outside ``mask`` (``closed_form.closed_form``), or None.
 
     Returns
     -------
@@ -185,12 +191,10 @@ def start(per_window: np.ndarray, windows_us: np.ndarray, mask: np.ndarray, ligh
     visibility = None
     if shadows is not None and len(shadows):
         def visibility(t_us: np.ndarray, pixels: np.ndarray) -> np.ndarray:
-            # one time at a time: the lookups' int64/float64 temporaries of all T·P queries at once
-            # were the run's peak memory at 1024² pixels
-            return np.stack([~shadows.contains(pixels, np.full(pixels.size, t)) for t in t_us]).reshape(len(t_us), pixels.size)
+            return ~shadows.contains_grid(pixels, t_us)
 
     return closed_form(per_window, windows_us, mask, light, visibility=visibility, iterations=options.init_iterations,
-                       n_samples=options.light_samples, super_normal=super_normal)
+                       n_samples=options.light_samples, super_normal=super_normal, base=base)
 
 
 def _where(capture: psfmt.Capture) -> str:

@@ -72,7 +72,7 @@ class FrameTerms:
 
     - S samples per frame on a time grid shared by all pixels (``shared_*``, None otherwise):
       ``shared_light`` (K·S, 3) unit light directions in frame order, ``shared_weight`` (K·S, 3) RGB
-      intensity × Δt (s) × albedo scale, ``shared_visible`` (P, K·S) the lit share of each sample's
+      intensity × Δt (s) × albedo scale, ``shared_visible`` (K·S, P) the lit share of each sample's
       sub-interval under the mask (None without one);
     - M importance samples grouped by pixel (``sample_*``, empty with the shared grid):
       ``sample_pixel`` (M,) int64 position among the P, ``sample_group`` (M,) int64
@@ -103,13 +103,11 @@ class FrameTerms:
         src = self.source
         if "shared_t" in src:
             t, half = src["shared_t"], 0.5 * src["shared_dt_us"]
-            # one sample time at a time, for the memory of the lookups (see ``preprocess.start``)
-            shadowed = np.stack([shadows.shadowed_us(pixels, np.full(pixels.size, a), np.full(pixels.size, b))
-                                 for a, b in zip(t - half, t + half)], axis=1)
-            visible = np.clip(1.0 - shadowed / (2.0 * half), 0.0, 1.0)
-            # no mask, no (P, K·S) product in every step
+            shadowed = shadows.shadowed_grid(pixels, t - half, t + half)
+            visible = np.clip(1.0 - shadowed / (2.0 * half[:, None]), 0.0, 1.0)
+            # no mask, no (K·S, P) product in every step
             self.shared_visible = _like(visible, self.measured) if len(shadows) else None
-            return (1.0 - visible) @ (2.0 * half) / US_PER_S
+            return (2.0 * half) @ (1.0 - visible) / US_PER_S
         lit = ~shadows.contains(pixels[src["sample_pixel"]], src["sample_t"])
         self.sample_weight = _like(src["sample_weight"] * lit[:, None], self.measured)
         return np.bincount(src["sample_pixel"], weights=src["sample_dt_s"] * ~lit, minlength=pixels.size)

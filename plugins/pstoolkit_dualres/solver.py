@@ -243,8 +243,10 @@ class DualRes(Solver):
         shadows = detector.detect(pre.evidence.with_normal(full.reshape(h, w, 3)), detector_options)
         problem.apply_mask(shadows)
         if isinstance(field, PyramidField) and len(shadows):
-            init = pre.closed_form(shadows)
             shadowed = np.flatnonzero(shadows.coverage()[pixels] > 0)
+            only = np.zeros(h * w, dtype=bool)
+            only[pixels[shadowed]] = True
+            init = pre.closed_form(shadows, only.reshape(h, w))
             n, albedo = start_values(init.normal, init.albedo, pixels[shadowed], problem.albedo_scale)
             index = torch.as_tensor(shadowed, dtype=torch.int64, device=problem.device)
             field.reset(index, torch.as_tensor(n, dtype=problem.dtype, device=problem.device),

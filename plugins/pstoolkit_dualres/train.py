@@ -19,6 +19,7 @@ from torch import Tensor, nn
 from pstoolkit import Progress
 from pstoolkit.events.rule import LOG_EPS
 from pstoolkit_dualres.forward_model import frame_prediction, frame_prediction_grid, superpixel_grey
+from pstoolkit_dualres.frame_kernel import fused_frame_loss, supports
 from pstoolkit_dualres.losses import event_loss, frame_loss, tv_loss
 from pstoolkit_dualres.problem import Problem
 from pstoolkit_dualres.reflectance import FitModel
@@ -177,8 +178,9 @@ def mini_batches(problem: Problem, tiling: Tiling, config: StageConfig, generato
 def grid_frame_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], light: Tensor, weight: Tensor,
                     visible: Tensor | None, view: Tensor, frames: int, measured: Tensor, saturated: Tensor,
                     chunk: int = FRAME_CHUNK) -> Tensor:
-    """``frame_loss`` of ``frame_prediction_grid`` over all P pixels, its graph held one chunk of
-    ``chunk`` pixels at a time.
+    """``frame_loss`` of ``frame_prediction_grid`` over all P pixels: for the built-in GGX and
+    Lambertian on the CPU in one compiled pass with its own derivatives (``frame_kernel``), for any
+    other BRDF through torch with its graph held one chunk of ``chunk`` pixels at a time.
 
     With gradients enabled, each chunk's rendering is differentiated at once into the gradient of
     the loss with respect to ``normal`` and ``maps`` (and into the ``.grad`` of the model's own
@@ -198,7 +200,7 @@ def grid_frame_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], li
     maps
         The BRDF's maps, (P, channels) each.
     visible
-        (P, K·S) lit share of each sample, or None.
+        (K·S, P) lit share of each sample, or None.
     measured, saturated
         (K·P, 3) frame values and (K·P,) clipped flags, rows frame·P + pixel.
     chunk
@@ -209,6 +211,8 @@ def grid_frame_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], li
     Tensor
         The scalar mean |Ã − A| of ``frame_loss`` (equal up to float rounding of the chunked sum).
     """
+    if supports(model, normal):
+        return fused_frame_loss(model, normal, maps, light, weight, visible, view, frames, measured, saturated)
     p = normal.shape[0]
     if p <= chunk:
         predicted = frame_prediction_grid(model, normal, maps, light, weight, visible, view, frames)
@@ -224,7 +228,7 @@ def grid_frame_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], li
         # leaves of the chunk's own rows: a slice of a whole-P leaf would backward into a (P, C) buffer per chunk
         leaves = [x[part].detach().requires_grad_(differentiate and x.requires_grad) for x in inputs]
         predicted = frame_prediction_grid(model, leaves[0], dict(zip(names, leaves[1:])), light, weight,
-                                          None if visible is None else visible[part], view, frames)
+                                          None if visible is None else visible[:, part], view, frames)
         rows = measured_k[:, part].reshape(predicted.shape)
         # frame_loss is a mean: each chunk weighs by its share of the values
         loss = frame_loss(predicted, rows, saturated_k[:, part].reshape(-1)) * (predicted.shape[0] / (frames * p))
@@ -275,7 +279,7 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
     if frames.shared_light is not None:
         visible = frames.shared_visible
         if visible is not None and batch.pixels is not None:
-            visible = visible[batch.pixels[:n]]
+            visible = visible[:, batch.pixels[:n]]
         measured, saturated = frames.measured, frames.saturated
         if batch.frame_rows is not None:
             measured, saturated = measured[batch.frame_rows], saturated[batch.frame_rows]

@@ -69,6 +69,18 @@ class ShadowMask:
         t0 = np.asarray(t0_us, dtype=np.float64) - self.t0_us
         return self.table.shadowed_us(cell, t0, t0 + (np.asarray(t1_us, dtype=np.float64) - np.asarray(t0_us, dtype=np.float64)))
 
+    def contains_grid(self, frame_pixel: np.ndarray, t_us: np.ndarray) -> np.ndarray:
+        """(T, N) bool: ``contains`` for every frame pixel (N,) at every time ``t_us`` (T,)."""
+        cell = self.cell[np.asarray(frame_pixel, dtype=np.int64)]
+        return self.table.contains_grid(cell, np.asarray(t_us, dtype=np.float64) - self.t0_us)
+
+    def shadowed_grid(self, frame_pixel: np.ndarray, t0_us: np.ndarray, t1_us: np.ndarray) -> np.ndarray:
+        """(T, N) µs: ``shadowed_us`` for every frame pixel (N,) in every window ``t0_us`` ≤ ``t1_us``
+        (T,), each at most one period long."""
+        cell = self.cell[np.asarray(frame_pixel, dtype=np.int64)]
+        t0 = np.asarray(t0_us, dtype=np.float64)
+        return self.table.shadowed_grid(cell, t0 - self.t0_us, np.asarray(t1_us, dtype=np.float64) - self.t0_us)
+
     def coverage(self) -> np.ndarray:
         """(H·W,) share of the period each frame pixel spends in shadow."""
         return self.table.coverage(int(self.cell.max()) + 1 if self.cell.size else 0)[self.cell]

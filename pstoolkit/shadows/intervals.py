@@ -136,6 +136,31 @@ class ShadowTable:
         wrapped = self._cumulative(self._key(pixel, np.where(wraps, b - self.period_us, 0.0))) - self._cumulative(self._key(pixel, np.zeros_like(a)))
         return high - low + np.where(wraps, wrapped, 0.0)
 
+    def _rows(self, pixel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each pixel's (N,) first and end table rows and its key offset pixel·2·period."""
+        base = np.asarray(pixel, dtype=np.int64).astype(np.float64) * (2.0 * self.period_us)
+        return (np.searchsorted(self.start, base, side="left"),
+                np.searchsorted(self.start, base + self.period_us, side="right"), base)
+
+    def contains_grid(self, pixel: np.ndarray, t_us: np.ndarray) -> np.ndarray:
+        """(T, N) bool: ``contains`` for every pixel (N,) at every phase ``t_us`` (T,)."""
+        from pstoolkit.shadows.interval_kernels import contains_on_grid
+
+        out = np.empty((np.size(t_us), np.size(pixel)), dtype=bool)
+        contains_on_grid(self.start, self.end, *self._rows(pixel), np.mod(np.asarray(t_us, dtype=np.float64).ravel(), self.period_us), out)
+        return out
+
+    def shadowed_grid(self, pixel: np.ndarray, t0_us: np.ndarray, t1_us: np.ndarray) -> np.ndarray:
+        """(T, N) µs: ``shadowed_us`` for every pixel (N,) in every window ``t0_us`` ≤ ``t1_us`` (T,)."""
+        from pstoolkit.shadows.interval_kernels import overlap_on_grid
+
+        t0 = np.asarray(t0_us, dtype=np.float64).ravel()
+        a = np.mod(t0, self.period_us)
+        b = a + np.clip(np.asarray(t1_us, dtype=np.float64).ravel() - t0, 0.0, self.period_us)
+        out = np.empty((t0.size, np.size(pixel)))
+        overlap_on_grid(self.start, self.end, *self._rows(pixel), a, b, self.period_us, out)
+        return out
+
     def coverage(self, n_pixels: int) -> np.ndarray:
         """(n_pixels,) share of the period each pixel spends in shadow."""
         pixel = np.floor(self.start / (2.0 * self.period_us)).astype(np.int64)
@@ -165,24 +190,26 @@ def intervals_from_grid(shadowed: np.ndarray, period_us: float, pixels: np.ndarr
     """Intervals of a (steps, P) bool map of the bins of ``grid_times`` (True: in shadow): each run
     of bins k..j of a pixel becomes [k, j + 1]·period/steps. ``pixels`` (P,) names the columns (default
     0..P−1)."""
+    # deferred: compiled with numba, which `pstoolkit plugins` need not load
+    from pstoolkit.shadows.interval_kernels import run_bounds, run_counts
+
     steps, count = shadowed.shape
     step_us = float(period_us) / steps
     names = np.arange(count) if pixels is None else np.asarray(pixels, dtype=np.int64)
-    # only the columns ever in shadow: the transposed (count, steps) copies below cost ~3 bytes per
-    # cell of the map, and most pixels are never shadowed
-    some = np.flatnonzero(shadowed.any(axis=0))
-    padded = np.zeros((some.size, steps + 2), dtype=np.int8)
-    padded[:, 1:-1] = shadowed[:, some].T
-    change = np.diff(padded, axis=1)
-    col, first = np.nonzero(change == 1)
-    _, after = np.nonzero(change == -1)
-    # both come row by row and in time order within a row, so the k-th start pairs with the k-th end
-    return ShadowIntervals(names[some[col]], first * step_us, after * step_us)
+    cells = np.ascontiguousarray(shadowed, dtype=bool).view(np.uint8)
+    counts = run_counts(cells)
+    columns = np.flatnonzero(counts)
+    first = np.empty(int(counts.sum()), dtype=np.int64)
+    after = np.empty_like(first)
+    run_bounds(cells, columns, np.cumsum(counts[columns]) - counts[columns], first, after)
+    return ShadowIntervals(np.repeat(names, counts), first * step_us, after * step_us)
 
 
 def rasterize(intervals: ShadowIntervals, n_pixels: int, period_us: float, steps: int) -> np.ndarray:
     """(steps, n_pixels) bool: whether each pixel 0..n_pixels−1 is inside one of ``intervals`` at the
     centre of each bin of ``grid_times(period_us, steps)`` (closed intervals, wrapping ones too)."""
+    from pstoolkit.shadows.interval_kernels import covered, mark_bounds
+
     step_us = float(period_us) / steps
     t0, t1 = _phases(intervals, float(period_us))
     # bins whose centre (k + ½)·step lies in [t0, t1]; a wrapping interval covers [t0, end) and [0, t1]
@@ -193,12 +220,8 @@ def rasterize(intervals: ShadowIntervals, n_pixels: int, period_us: float, steps
     starts = np.concatenate([first, np.zeros(int(wraps.sum()), np.int64)])
     stops = np.concatenate([np.where(wraps, steps - 1, last), last[wraps]])
     owners = np.concatenate([pixel, pixel[wraps]])
-    valid = stops >= starts
     change = np.zeros((steps + 1, n_pixels), dtype=np.int32)
-    np.add.at(change, (np.clip(starts[valid], 0, steps), owners[valid]), 1)
-    np.add.at(change, (np.clip(stops[valid] + 1, 0, steps), owners[valid]), -1)
-    # the running sum over time one row at a time: np.cumsum along axis 0 strides across the rows for
-    # every pixel and took 20× as long at 256² pixels
-    for k in range(1, steps):
-        change[k] += change[k - 1]
-    return change[:-1] > 0
+    mark_bounds(change, starts, stops, owners)
+    out = np.empty((steps, n_pixels), dtype=bool)
+    covered(change, out)
+    return out

@@ -129,6 +129,28 @@ def test_shadow_table_merges_wraps_and_measures() -> None:
     np.testing.assert_allclose(spent, [290.0, 50.0, 90.0, 0.0, 10.0])
 
 
+def test_the_grid_lookups_answer_as_the_single_ones() -> None:
+    """``contains_grid``/``shadowed_grid`` (a compiled scan of each pixel's rows) give what
+    ``contains``/``shadowed_us`` give query by query, wrapping windows and unshadowed pixels too."""
+    rng = np.random.default_rng(1)
+    pixel = rng.integers(0, 300, 500)
+    t0 = rng.uniform(0.0, T, pixel.size)
+    table = ShadowTable.build(ShadowIntervals(pixel, t0, np.mod(t0 + rng.uniform(0.0, 0.6 * T, pixel.size), T)), T)
+    query = np.arange(-5, 320)
+    times = np.r_[rng.uniform(-2 * T, 3 * T, 30), 0.0, T]
+    single = np.stack([table.contains(query, np.full(query.size, t)) for t in times])
+    np.testing.assert_array_equal(table.contains_grid(query, times), single)
+    start = rng.uniform(-2 * T, 2 * T, 30)
+    stop = start + np.r_[rng.uniform(0.0, T, 28), 0.0, T]
+    single = np.stack([table.shadowed_us(query, np.full(query.size, a), np.full(query.size, b)) for a, b in zip(start, stop)])
+    np.testing.assert_allclose(table.shadowed_grid(query, start, stop), single, atol=1e-6)
+    mask = ShadowMask(table, np.arange(400)[::-1].copy(), 1234.0)
+    frame = np.arange(90, 120)
+    np.testing.assert_array_equal(mask.contains_grid(frame, times), np.stack([mask.contains(frame, np.full(frame.size, t)) for t in times]))
+    np.testing.assert_allclose(mask.shadowed_grid(frame, start, stop), np.stack(
+        [mask.shadowed_us(frame, np.full(frame.size, a), np.full(frame.size, b)) for a, b in zip(start, stop)]), atol=1e-6)
+
+
 def test_a_grid_of_shadows_becomes_intervals_and_back() -> None:
     rng = np.random.default_rng(0)
     grid = rng.random((72, 5)) < 0.3
@@ -140,6 +162,11 @@ def test_a_grid_of_shadows_becomes_intervals_and_back() -> None:
     np.testing.assert_array_equal(back, grid)
     table = ShadowTable.build(found, T)
     np.testing.assert_array_equal(table.contains(np.repeat(np.arange(5) + 10, 72), np.tile(grid_times(T, 72), 5)).reshape(5, 72).T, grid)
+    # more columns than one block of the compiled scan, runs at both ends of the period among them
+    wide = rng.random((40, 1000)) < 0.5
+    found = intervals_from_grid(wide, T)
+    np.testing.assert_array_equal(rasterize(found, 1000, T, 40), wide)
+    assert np.all(np.diff(found.pixel) >= 0)
 
 
 def test_every_builtin_detector_is_registered_with_its_options() -> None:

@@ -163,6 +163,14 @@ def test_a_cast_shadow_mask_reaches_the_closed_form(tmp_path: Path) -> None:
     masked = pre.closed_form(truth)
     assert _mae(masked.normal, gt.normal, gt.mask) < 0.6 * _mae(pre.init.normal, gt.normal, gt.mask)  # measured 0.43° vs 0.97°
     np.testing.assert_array_equal(pre.closed_form(None).normal, pre.init.normal)
+    # solved only where the mask shadows, the others standing as in the unmasked start: the same start there
+    shadowed = (truth.coverage() > 0).reshape(pre.mask.shape) & pre.mask
+    assert 0 < shadowed.sum() < 0.5 * pre.mask.sum()
+    only = pre.closed_form(truth, shadowed)
+    np.testing.assert_allclose(only.normal[shadowed], masked.normal[shadowed], atol=1e-6)
+    np.testing.assert_allclose(only.albedo[shadowed], masked.albedo[shadowed], atol=1e-6)
+    np.testing.assert_array_equal(only.effective[shadowed], masked.effective[shadowed])
+    assert not only.normal[~shadowed].any()
 
 
 def test_bad_input_is_a_user_error(sphere_path: Path, tmp_path: Path) -> None:

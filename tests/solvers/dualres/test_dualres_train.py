@@ -14,13 +14,15 @@ import torch
 
 import psfmt
 from pstoolkit.evaluation.metrics import angular_error_deg
-from pstoolkit.optics.brdf import GGX, MetallicGGX
+from pstoolkit.optics.brdf import GGX, Lambertian, MetallicGGX
 from pstoolkit.shadows import ShadowIntervals, ShadowMask
 from pstoolkit.shadows.score import true_shadows
 from pstoolkit.sim.simulator import SimulationConfig, simulate
 from pstoolkit.solve.base import no_progress
 from pstoolkit_dualres.fields import NeuralField, PyramidField, collapse, decompose
 from pstoolkit_dualres.forward_model import frame_prediction_grid
+from pstoolkit_dualres.frame_kernel import supports
+from pstoolkit_dualres.gather import gather_sum
 from pstoolkit_dualres.losses import frame_loss
 from pstoolkit_dualres.preprocess import Preprocessed, PreprocessOptions, preprocess
 from pstoolkit_dualres.problem import Problem, build_problem
@@ -187,36 +189,92 @@ def test_shadow_intervals_of_a_frame_mask_reach_problem_pixels(blobs: tuple[psfm
     mask = ShadowMask.from_intervals(ShadowIntervals(np.array([pixel]), window[:1], window[1:]),
                                      np.arange(pre.height * pre.width), pre.t0_us, pre.period_us)
     problem.apply_mask(mask)
-    lit = problem.frames.shared_visible.numpy()[100].reshape(3, 8)
+    lit = problem.frames.shared_visible.numpy()[:, 100].reshape(3, 8)
     np.testing.assert_allclose(lit, [[1.0] * 8, [0.0] * 8, [1.0] * 8], atol=1e-9)
 
 
-def test_the_chunked_frame_term_has_the_whole_terms_value_and_gradients() -> None:
-    """``grid_frame_loss`` differentiates chunk by chunk; the value and the gradients that reach the
-    normals and maps are those of ``frame_loss`` on the whole ``frame_prediction_grid`` (float noise)."""
-    generator = torch.Generator().manual_seed(0)
-    p, frames, per_frame = 1000, 3, 4
-    model = FitModel(GGX())
+def _frame_case(brdf: object, p: int, seed: int) -> tuple:
+    generator = torch.Generator().manual_seed(seed)
+    frames, per_frame = 3, 4
+    model = FitModel(brdf)
     raw_normal = torch.randn(p, 3, generator=generator) * 0.3 + torch.tensor([0.0, 0.0, 1.0])
-    pixel_raw = torch.randn(p, 3, generator=generator) * 0.2
-    smooth_raw = torch.randn(p, 4, generator=generator) * 0.2
+    pixel_raw = torch.randn(p, model.pixel_channels, generator=generator) * 0.2
+    smooth_raw = torch.randn(p, model.smooth_channels, generator=generator) * 0.5
     light = torch.nn.functional.normalize(torch.randn(frames * per_frame, 3, generator=generator) + torch.tensor([0.0, 0.0, 1.5]), dim=1)
     weight = torch.rand(frames * per_frame, 3, generator=generator)
-    visible = torch.rand(p, frames * per_frame, generator=generator)
+    visible = (1.5 * torch.rand(frames * per_frame, p, generator=generator)).clamp(max=1.0)
     view = torch.tensor([0.0, 0.0, 1.0])
     measured = torch.rand(frames * p, 3, generator=generator)
     saturated = torch.rand(frames * p, generator=generator) > 0.9
+    return model, (raw_normal, pixel_raw, smooth_raw), light, weight, visible, view, frames, measured, saturated
+
+
+def _frame_term(case: tuple, term: object) -> tuple[torch.Tensor, list]:
+    """The frame term's value and the gradients of twice it with respect to the raw normal and
+    channels, through ``term(model, normal, maps, visible)``."""
+    model, raw, *_ = case
+    leaves = [x.clone().requires_grad_() for x in raw]
+    normal = torch.nn.functional.normalize(leaves[0], dim=1)
+    loss = term(normal, model.maps(leaves[1], leaves[2]))
+    (2.0 * loss).backward()
+    return loss.detach(), [leaf.grad for leaf in leaves]
+
+
+@pytest.mark.parametrize("brdf", [GGX(), Lambertian()], ids=["ggx", "lambertian"])
+@pytest.mark.parametrize("lit", [True, False], ids=["mask", "no-mask"])
+def test_the_compiled_frame_term_is_the_rendered_one(brdf: object, lit: bool) -> None:
+    """For the built-in GGX and Lambertian ``grid_frame_loss`` runs one compiled pass with its own
+    derivatives (``frame_kernel``); value and gradients are torch's autograd of the BRDF's ``shade``
+    through ``frame_prediction_grid`` (float32 rounding)."""
+    case = _frame_case(brdf, 2000, 0)
+    model, _, light, weight, visible, view, frames, measured, saturated = case
+    visible = visible if lit else None
+    assert supports(model, torch.zeros(1, 3))
+    rendered, rendered_grads = _frame_term(case, lambda n, m: frame_loss(
+        frame_prediction_grid(model, n, m, light, weight, visible, view, frames), measured, saturated))
+    fused, fused_grads = _frame_term(case, lambda n, m: grid_frame_loss(
+        model, n, m, light, weight, visible, view, frames, measured, saturated))
+    assert float(fused) == pytest.approx(float(rendered), rel=1e-5)
+    for got, expected in zip(fused_grads, rendered_grads):
+        if expected is None:
+            assert got is None or not got.any()
+            continue
+        torch.testing.assert_close(got, expected, rtol=1e-3, atol=1e-6 * float(expected.abs().max()))
+
+
+def test_gathered_sums_and_their_gradient_are_those_of_indexing() -> None:
+    """``gather_sum`` (compiled gather, scatter in index order) against torch's indexing: the bilinear
+    taps of the smooth materials and the ±1 pairs of the TV term, repeated rows included."""
+    generator = torch.Generator().manual_seed(3)
+    source = torch.randn(500, 4, generator=generator)
+    index = torch.randint(0, 500, (3000, 4), generator=generator)
+    index[:10] = 7
+    weight = torch.rand(3000, 4, generator=generator)
+    upstream = torch.randn(3000, 4, generator=generator)
+    results = []
+    for gather in (gather_sum, lambda x, i, w: torch.sum(x[i] * w[..., None], dim=1)):
+        leaf = source.clone().requires_grad_()
+        out = gather(leaf, index, weight)
+        torch.sum(out * upstream).backward()
+        results.append((out.detach(), leaf.grad))
+    torch.testing.assert_close(results[0][0], results[1][0], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(results[0][1], results[1][1], rtol=1e-5, atol=1e-5)
+
+
+def test_the_chunked_frame_term_has_the_whole_terms_value_and_gradients() -> None:
+    """``grid_frame_loss`` differentiates a BRDF without a compiled pass chunk by chunk; the value
+    and the gradients that reach the normals and maps are those of ``frame_loss`` on the whole
+    ``frame_prediction_grid`` (float noise)."""
+    case = _frame_case(MetallicGGX(), 1000, 0)
+    model, (raw_normal, pixel_raw, smooth_raw), light, weight, visible, view, frames, measured, saturated = case
+    assert not supports(model, raw_normal)
 
     def run(chunk: int | None) -> tuple[torch.Tensor, list[torch.Tensor]]:
-        leaves = [x.clone().requires_grad_() for x in (raw_normal, pixel_raw, smooth_raw)]
-        normal = torch.nn.functional.normalize(leaves[0], dim=1)
-        maps = model.maps(leaves[1], leaves[2])
         if chunk is None:
-            loss = frame_loss(frame_prediction_grid(model, normal, maps, light, weight, visible, view, frames), measured, saturated)
-        else:
-            loss = grid_frame_loss(model, normal, maps, light, weight, visible, view, frames, measured, saturated, chunk=chunk)
-        (2.0 * loss).backward()
-        return loss.detach(), [leaf.grad for leaf in leaves]
+            return _frame_term(case, lambda n, m: frame_loss(frame_prediction_grid(model, n, m, light, weight, visible, view, frames),
+                                                             measured, saturated))
+        return _frame_term(case, lambda n, m: grid_frame_loss(model, n, m, light, weight, visible, view, frames, measured,
+                                                              saturated, chunk=chunk))
 
     whole, whole_grads = run(None)
     for chunk in (96, 1000):

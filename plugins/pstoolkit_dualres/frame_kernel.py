@@ -1,0 +1,244 @@
+"""The frame term of eq. 24 on the shared time grid as one compiled pass, for the built-in ``ggx`` and
+``lambertian`` BRDFs (``fused_frame_loss``).
+
+Through torch, the term renders (P, K·S, 3) intermediates for every operation of the BRDF and again
+for each one's backward: some sixty passes over memory per step, which is most of a step's time. The
+kernel instead walks each pixel's K·S samples once and keeps in registers, per frame and channel, the
+sums the prediction is linear in: with E = D·V·[n·l]₊ the specular factor of the sample,
+
+    Ã_kc = ρ_d,c·Σ_s u_sc·[n·l]₊ + F0_c·Σ_s u_sc·E,      u_sc = e_c·Δt·lit share,
+
+and the same sums of the derivatives of [n·l]₊ and E with respect to n and the roughness. The L1
+residual of eq. 24 then gives the gradient with respect to the normal and every map from those sums,
+in the same pass. The formulas are ``pstoolkit.optics.brdf.GGX.shade`` differentiated by hand
+(including the clamps and the |n × h|² form of 1 − (n·h)²); tests compare value and gradients with
+torch's autograd of the BRDF itself.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+import torch
+from numba import prange
+from torch import Tensor
+
+from pstoolkit.optics.brdf import GGX, HALF_EPS, MIN_ROUGHNESS, Lambertian
+from pstoolkit_dualres.reflectance import FitModel
+
+INV_PI = 1.0 / math.pi
+# Pixels a thread takes at once: the innermost loop's length (128 measured fastest at 512² pixels).
+BLOCK = 128
+
+
+@numba.njit(cache=True, parallel=True, nogil=True, error_model="numpy", fastmath=True)
+def _frame_pass(normal: np.ndarray, albedo: np.ndarray, f0: np.ndarray, roughness: np.ndarray, light: np.ndarray,
+                half: np.ndarray, half_eps: np.ndarray, weight: np.ndarray, visible: np.ndarray, view: np.ndarray,
+                frames: int, measured: np.ndarray, saturated: np.ndarray, gradient: bool, loss: np.ndarray,
+                grads: np.ndarray) -> None:
+    """Per pixel i: ``loss[i]`` the summed residual of its K·3 frame values, and (``gradient``)
+    ``grads[:, i]`` the derivatives of that sum with respect to its normal (rows 0–2), albedo (3–5),
+    F0 (6–8) and roughness (9).
+
+    ``normal``, ``albedo``, ``f0`` (3, P) float32, ``roughness`` (P,), ``light``/``half`` (K·S, 3) unit
+    light directions and half vectors with ``half_eps`` (K·S,) the HALF_EPS share of |l + v|²,
+    ``weight`` (K·S, 3), ``visible`` (K·S, P) or (0, 0) when all is lit, ``view`` (3,), ``measured``
+    (K, P, 3), ``saturated`` (K, P). Pixels go in blocks of BLOCK, the innermost loop over a block's
+    pixels, so the compiler vectorises it; the sums live in a (27, BLOCK) scratch."""
+    p = normal.shape[1]
+    per = light.shape[0] // frames
+    shadows = visible.shape[0] > 0
+    vx, vy, vz = view[0], view[1], view[2]
+    zero, one = np.float32(0.0), np.float32(1.0)
+    for block in prange((p + BLOCK - 1) // BLOCK):
+        i0 = block * BLOCK
+        n = min(BLOCK, p - i0)
+        # per pixel: α², k, the view term b of V, n·v, whether n·v and r are inside their clamps, r
+        own = np.empty((7, BLOCK), dtype=np.float32)
+        sums = np.empty((27, BLOCK), dtype=np.float32)
+        out = np.zeros((11, BLOCK), dtype=np.float32)
+        for j in range(n):
+            i = i0 + j
+            nv_raw = normal[0, i] * vx + normal[1, i] * vy + normal[2, i] * vz
+            nv = max(nv_raw, zero)
+            r = max(roughness[i], np.float32(MIN_ROUGHNESS))
+            k = (r + one) * (r + one) / np.float32(8.0)
+            own[0, j] = r * r * r * r
+            own[1, j] = k
+            own[2, j] = nv * (one - k) + k
+            own[3, j] = nv
+            # torch's clamp passes the gradient where the input reaches the bound
+            own[4, j] = one if nv_raw >= zero else zero
+            own[5, j] = one if roughness[i] >= np.float32(MIN_ROUGHNESS) else zero
+            own[6, j] = r
+        for fk in range(frames):
+            sums[:, :n] = zero
+            for s in range(fk * per, (fk + 1) * per):
+                lx, ly, lz = light[s, 0], light[s, 1], light[s, 2]
+                hx, hy, hz = half[s, 0], half[s, 1], half[s, 2]
+                he = half_eps[s]
+                w0, w1, w2 = weight[s, 0], weight[s, 1], weight[s, 2]
+                for j in range(n):
+                    i = i0 + j
+                    nx, ny, nz = normal[0, i], normal[1, i], normal[2, i]
+                    nl_raw = nx * lx + ny * ly + nz * lz
+                    # below the horizon a sample renders 0 with a zero gradient
+                    lit = (visible[s, i] if shadows else one) if nl_raw >= zero else zero
+                    nl = max(nl_raw, zero)
+                    alpha2, k, b, r = own[0, j], own[1, j], own[2, j], own[6, j]
+                    nh = nx * hx + ny * hy + nz * hz
+                    cx = ny * hz - nz * hy
+                    cy = nz * hx - nx * hz
+                    cz = nx * hy - ny * hx
+                    q = cx * cx + cy * cy + cz * cz + he + nh * nh * alpha2
+                    d = alpha2 * np.float32(INV_PI) / (q * q)
+                    a = nl * (one - k) + k
+                    vis = one / (np.float32(4.0) * a * b)
+                    e = d * vis * nl
+                    u0, u1, u2 = w0 * lit, w1 * lit, w2 * lit
+                    sums[0, j] += u0 * nl
+                    sums[1, j] += u1 * nl
+                    sums[2, j] += u2 * nl
+                    sums[3, j] += u0 * e
+                    sums[4, j] += u1 * e
+                    sums[5, j] += u2 * e
+                    if gradient:
+                        # dE/dn = E·(−2/q·dq/dn − (1−k)/a·l − (1−k)/b·v) + D·V·l, dq/dn = 2 h × (n × h) + 2 n·h α² h
+                        tq = np.float32(-4.0) * e / q
+                        qx = (hy * cz - hz * cy) + nh * alpha2 * hx
+                        qy = (hz * cx - hx * cz) + nh * alpha2 * hy
+                        qz = (hx * cy - hy * cx) + nh * alpha2 * hz
+                        tl = d * vis - e * (one - k) / a
+                        tv = -e * (one - k) / b * own[4, j]
+                        dx = tq * qx + tl * lx + tv * vx
+                        dy = tq * qy + tl * ly + tv * vy
+                        dz = tq * qz + tl * lz + tv * vz
+                        dr = e * ((one / alpha2 - np.float32(2.0) * nh * nh / q) * np.float32(4.0) * r * r * r
+                                  - ((one - nl) / a + (one - own[3, j]) / b) * (r + one) / np.float32(4.0)) * own[5, j]
+                        sums[6, j] += u0 * lx
+                        sums[7, j] += u0 * ly
+                        sums[8, j] += u0 * lz
+                        sums[9, j] += u1 * lx
+                        sums[10, j] += u1 * ly
+                        sums[11, j] += u1 * lz
+                        sums[12, j] += u2 * lx
+                        sums[13, j] += u2 * ly
+                        sums[14, j] += u2 * lz
+                        sums[15, j] += u0 * dx
+                        sums[16, j] += u0 * dy
+                        sums[17, j] += u0 * dz
+                        sums[18, j] += u1 * dx
+                        sums[19, j] += u1 * dy
+                        sums[20, j] += u1 * dz
+                        sums[21, j] += u2 * dx
+                        sums[22, j] += u2 * dy
+                        sums[23, j] += u2 * dz
+                        sums[24, j] += u0 * dr
+                        sums[25, j] += u1 * dr
+                        sums[26, j] += u2 * dr
+            # eq. 24 per channel: L1, or for a clipped value only the shortfall below 1
+            for c in range(3):
+                for j in range(n):
+                    i = i0 + j
+                    pred = albedo[c, i] * sums[c, j] + f0[c, i] * sums[3 + c, j]
+                    if saturated[fk, i]:
+                        residual = one - pred
+                        g = -one if residual > zero else zero
+                        out[10, j] += max(residual, zero)
+                    else:
+                        residual = pred - measured[fk, i, c]
+                        g = one if residual > zero else (-one if residual < zero else zero)
+                        out[10, j] += abs(residual)
+                    if gradient:
+                        out[3 + c, j] += g * sums[c, j]
+                        out[6 + c, j] += g * sums[3 + c, j]
+                        for x in range(3):
+                            out[x, j] += g * (albedo[c, i] * sums[6 + 3 * c + x, j] + f0[c, i] * sums[15 + 3 * c + x, j])
+                        out[9, j] += g * f0[c, i] * sums[24 + c, j]
+        for j in range(n):
+            loss[i0 + j] = out[10, j]
+        if gradient:
+            for x in range(10):
+                for j in range(n):
+                    grads[x, i0 + j] = out[x, j]
+
+
+def supports(model: FitModel, normal: Tensor) -> bool:
+    """True where ``fused_frame_loss`` computes the term: the built-in GGX or Lambertian (not a
+    subclass, which may shade otherwise) on CPU tensors."""
+    return type(model.brdf) in (GGX, Lambertian) and normal.device.type == "cpu"
+
+
+def _rows(x: Tensor) -> np.ndarray:
+    """A C-contiguous float32 copy (or view) of ``x`` for the kernel."""
+    return x.detach().to(torch.float32).contiguous().numpy()
+
+
+class _FusedFrameLoss(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, normal: Tensor, albedo: Tensor, f0: Tensor, roughness: Tensor, light: Tensor, weight: Tensor,
+                visible: Tensor, view: Tensor, frames: int, measured: Tensor, saturated: Tensor) -> Tensor:
+        p = normal.shape[0]
+        gradient = any(ctx.needs_input_grad[:4])
+        view64 = view.detach().double()
+        s = light.detach().double() + view64
+        ss = torch.sum(s * s, dim=1, keepdim=True)
+        loss = np.empty(p, dtype=np.float32)
+        grads = np.empty((10, p if gradient else 0), dtype=np.float32)
+        _frame_pass(_rows(normal.T), _rows(albedo.T), _rows(f0.T), _rows(roughness.reshape(-1)), _rows(light),
+                    _rows(s / torch.sqrt(ss + HALF_EPS)), _rows((HALF_EPS / (ss + HALF_EPS)).reshape(-1)), _rows(weight),
+                    _rows(visible), _rows(view64), frames, _rows(measured).reshape(frames, p, 3),
+                    saturated.reshape(frames, p).contiguous().numpy(), gradient, loss, grads)
+        count = frames * p * 3
+        if gradient:
+            ctx.grads = torch.from_numpy(grads)
+            ctx.count = count
+        return normal.new_tensor(loss.sum(dtype=np.float64) / max(count, 1))
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        g = ctx.grads * (grad / max(ctx.count, 1))
+        need = ctx.needs_input_grad
+        parts = (g[0:3].T, g[3:6].T, g[6:9].T, g[9:10].T)
+        return (*(part if wanted else None for part, wanted in zip(parts, need[:4])), *(None,) * 7)
+
+
+def fused_frame_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], light: Tensor, weight: Tensor,
+                     visible: Tensor | None, view: Tensor, frames: int, measured: Tensor, saturated: Tensor) -> Tensor:
+    """``frame_loss(frame_prediction_grid(...), measured, saturated)`` in one compiled pass, with the
+    gradient with respect to ``normal`` and the maps; only where ``supports(model, normal)``.
+
+    Parameters
+    ----------
+    model
+        A FitModel of the built-in GGX or Lambertian.
+    normal
+        (P, 3) unit normals.
+    maps
+        ``albedo`` (P, 3), and for GGX ``f0`` (P, 3) and ``roughness`` (P, 1).
+    light, weight
+        (K·S, 3) unit light directions and RGB weights of the shared time grid, in frame order.
+    visible
+        (K·S, P) lit share of each sample, or None.
+    view
+        (3,) unit direction to the camera.
+    frames
+        K; divides K·S.
+    measured, saturated
+        (K·P, 3) frame values and (K·P,) clipped flags, rows frame·P + pixel.
+
+    Returns
+    -------
+    Tensor
+        The scalar mean of eq. 24's residual over the K·P·3 values, differentiable.
+    """
+    albedo = maps["albedo"]
+    if type(model.brdf) is GGX:
+        f0, roughness = maps["f0"], maps["roughness"]
+    else:
+        # Lambertian: GGX with F0 = 0 (finite D and V at r = 1, so the specular terms vanish exactly)
+        f0, roughness = albedo.new_zeros((normal.shape[0], 3)), albedo.new_ones((normal.shape[0], 1))
+    lit = visible if visible is not None else normal.new_zeros((0, 0))
+    return _FusedFrameLoss.apply(normal, albedo, f0, roughness, light, weight, lit, view, frames, measured, saturated)
