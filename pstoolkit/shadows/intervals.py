@@ -208,7 +208,7 @@ def intervals_from_grid(shadowed: np.ndarray, period_us: float, pixels: np.ndarr
 def rasterize(intervals: ShadowIntervals, n_pixels: int, period_us: float, steps: int) -> np.ndarray:
     """(steps, n_pixels) bool: whether each pixel 0..n_pixels−1 is inside one of ``intervals`` at the
     centre of each bin of ``grid_times(period_us, steps)`` (closed intervals, wrapping ones too)."""
-    from pstoolkit.shadows.interval_kernels import covered, mark_bounds
+    from pstoolkit.shadows.interval_kernels import fill_runs
 
     step_us = float(period_us) / steps
     t0, t1 = _phases(intervals, float(period_us))
@@ -216,12 +216,11 @@ def rasterize(intervals: ShadowIntervals, n_pixels: int, period_us: float, steps
     first = np.ceil(t0 / step_us - 0.5).astype(np.int64)
     last = np.floor(t1 / step_us - 0.5).astype(np.int64)
     wraps = t1 < t0
-    pixel = np.asarray(intervals.pixel, dtype=np.int64)
-    starts = np.concatenate([first, np.zeros(int(wraps.sum()), np.int64)])
-    stops = np.concatenate([np.where(wraps, steps - 1, last), last[wraps]])
-    owners = np.concatenate([pixel, pixel[wraps]])
-    change = np.zeros((steps + 1, n_pixels), dtype=np.int32)
-    mark_bounds(change, starts, stops, owners)
-    out = np.empty((steps, n_pixels), dtype=bool)
-    covered(change, out)
+    owners = np.asarray(intervals.pixel, dtype=np.int64)
+    # detectors list their intervals pixel by pixel: sorted already, as a rule
+    order = np.argsort(owners, kind="stable") if np.any(np.diff(owners) < 0) else np.arange(owners.size)
+    owners = owners[order]
+    groups = np.r_[0, np.flatnonzero(np.diff(owners)) + 1, owners.size]
+    out = np.zeros((steps, n_pixels), dtype=bool)
+    fill_runs(out, first[order], last[order], wraps[order], owners, groups)
     return out

@@ -162,6 +162,13 @@ def test_a_grid_of_shadows_becomes_intervals_and_back() -> None:
     np.testing.assert_array_equal(back, grid)
     table = ShadowTable.build(found, T)
     np.testing.assert_array_equal(table.contains(np.repeat(np.arange(5) + 10, 72), np.tile(grid_times(T, 72), 5)).reshape(5, 72).T, grid)
+    # intervals in any pixel order, wrapping ones among them: the bins whose centres they hold
+    pixel = rng.integers(0, 50, 200)
+    t0 = rng.uniform(0.0, T, pixel.size)
+    intervals = ShadowIntervals(pixel, t0, np.mod(t0 + rng.uniform(0.0, 0.5 * T, pixel.size), T))
+    assert np.any(intervals.t1_us < intervals.t0_us)
+    np.testing.assert_array_equal(rasterize(intervals, 60, T, 72),
+                                  ShadowTable.build(intervals, T).contains_grid(np.arange(60), grid_times(T, 72)))
     # more columns than one block of the compiled scan, runs at both ends of the period among them
     wide = rng.random((40, 1000)) < 0.5
     found = intervals_from_grid(wide, T)
