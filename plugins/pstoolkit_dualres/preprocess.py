@@ -13,7 +13,7 @@ Steps (one light period of events from the first exposure's start, ``t0_us``):
    paper: ``scale_rule``), fitted to the super pixels' frame values; it weighs the event pairs and
    places the importance samples.
 4. Importance samples of each window (``sampling``, eq. 21, 23) per super pixel, shared by its frame
-   pixels (the ``paper`` preset integrates the frames on them).
+   pixels (the ``paper`` preset integrates the frames on them), made when first asked for.
 5. Event pairs (eq. 25, ``pairs``): consecutive events of a super pixel related exactly by the
    capture's refractory rule, with a confidence weight.
 6. The super pixels' normals from their events alone (the EventPS relation, ``eventnormal``), and the
@@ -35,7 +35,7 @@ from pstoolkit.grid import default_affine, nearest_super_pixel, to_frames
 from pstoolkit.shadows import ShadowEvidence, ShadowMask, interval_profile
 from pstoolkit.shadows.spikes import spike_threshold
 from pstoolkit_dualres.closed_form import ClosedFormStart, closed_form
-from pstoolkit_dualres.irradiance import approximate
+from pstoolkit_dualres.irradiance import Irradiance, approximate
 from pstoolkit_dualres.pairs import EventSamples, event_samples, refractory_rule
 from pstoolkit_dualres.sampling import Samples, importance_samples
 from pstoolkit_dualres.super_pixel_normals import event_normals
@@ -113,10 +113,11 @@ class Preprocessed:
     the period's ``windows_us`` (J, 2) phase windows frame k covers; ``per_window`` (J, H, W, 3) the
     mean frame of each window. ``mask`` (H, W) bool: frame pixels on the object.
 
-    ``evidence``: what shadow detectors read. ``samples``: the importance samples of eq. 21/23 at the
-    super pixels (phases). ``events``: the event pairs of eq. 25. ``super_normal`` (H, W, 3): the
-    super pixels' event normals interpolated to the frame pixels (0 where unknown). ``init``: the
-    closed-form start without a cast-shadow mask.
+    ``evidence``: what shadow detectors read. ``irradiance``: Î of the super pixels over the period;
+    ``samples`` the importance samples of eq. 21/23 placed on it (phases), made on first use.
+    ``events``: the event pairs of eq. 25. ``super_normal`` (H, W, 3): the super pixels' event normals
+    interpolated to the frame pixels (0 where unknown). ``init``: the closed-form start without a
+    cast-shadow mask.
     """
 
     height: int
@@ -141,12 +142,28 @@ class Preprocessed:
     per_window: np.ndarray
     mask: np.ndarray
     evidence: ShadowEvidence
-    samples: Samples
+    irradiance: Irradiance
     events: EventSamples
     super_normal: np.ndarray
     init: ClosedFormStart
     options: PreprocessOptions
     diagnostics: dict[str, Any] = field(default_factory=dict)
+    _samples: Samples | None = field(default=None, repr=False)
+
+    @property
+    def samples(self) -> Samples:
+        """The importance samples of eq. 21/23 at the super pixels, made the first time they are asked
+        for (``diagnostics["importance_samples"]`` counts them then): only a fit on the importance
+        samples (``frame_samples`` 0, the ``paper`` preset) needs them, and they take some 32 bytes
+        each, 0.64 GB at 512² event pixels."""
+        if self._samples is None:
+            profile = self.evidence.profile
+            self._samples = importance_samples(
+                self.irradiance, profile.pixel, profile.t_us, n_pixels=self.event_height * self.event_width,
+                sigma=self.options.sigma, max_step_us=self.period_us * self.options.max_step_deg / 360.0,
+            )
+            self.diagnostics["importance_samples"] = len(self._samples.pixel)
+        return self._samples
 
     def closed_form(self, shadows: ShadowMask | None, only: np.ndarray | None = None) -> ClosedFormStart:
         """The closed-form start with the equivalent lights of eq. 14/16 under the cast-shadow mask
@@ -294,10 +311,6 @@ def preprocess(capture: psfmt.Capture, options: PreprocessOptions, progress: Pro
     progress(0.35, "sampling")
 
     tick = time.perf_counter()
-    samples = importance_samples(
-        irradiance, profile.pixel, profile.t_us, n_pixels=n_events_px, sigma=options.sigma,
-        max_step_us=period * options.max_step_deg / 360.0,
-    )
     pairs = event_samples(events, event_width, irradiance, rule=rule, refractory_us=refractory, contrast_pos=c_pos,
                           contrast_neg=c_neg, t0_us=t0, period_us=period, confidence=options.confidence,
                           dark_level=options.dark_level, max_pair_share=options.max_pair_share)
@@ -314,7 +327,6 @@ def preprocess(capture: psfmt.Capture, options: PreprocessOptions, progress: Pro
     diagnostics = {
         "refractory_rule": rule,
         "profile_samples": len(profile),
-        "importance_samples": len(samples.pixel),
         "event_pairs": len(pairs.pixel),
         "effective_lights": {str(n): int(np.sum(init.effective[mask] == n)) for n in range(4)},
         "init_iterations": int(init.iterations),
@@ -326,6 +338,6 @@ def preprocess(capture: psfmt.Capture, options: PreprocessOptions, progress: Pro
         super_pixel=super_pixel, period_us=period, t0_us=t0, light=light, contrast_pos=c_pos, contrast_neg=c_neg,
         refractory_us=refractory, refractory_rule=rule, frames=frames, saturated=saturated,
         t_start_us=frames_in.t_start_us.copy(), t_end_us=frames_in.t_end_us.copy(), frame_window=frame_window,
-        windows_us=windows, per_window=per_window, mask=mask, evidence=evidence, samples=samples, events=pairs,
+        windows_us=windows, per_window=per_window, mask=mask, evidence=evidence, irradiance=irradiance, events=pairs,
         super_normal=super_normal, init=init, options=options, diagnostics=diagnostics,
     )

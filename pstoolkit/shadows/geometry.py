@@ -10,13 +10,14 @@ step casts comes out too short. ``fused`` checks the prediction against the even
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import Any, ClassVar
 
 import numpy as np
 
 from pstoolkit.plugin.options import Option
 from pstoolkit.shadows.base import ShadowDetector, ShadowEvidence, ShadowMask
-from pstoolkit.shadows.intervals import grid_times, intervals_from_grid
+from pstoolkit.shadows.intervals import RunCollector, grid_times
 
 # Light directions swept at once: bounds the (chunk, H, W) float32 margins held in memory.
 SWEEP_CHUNK = 32
@@ -26,23 +27,32 @@ GEOMETRY_OPTIONS: tuple[Option, ...] = (
 )
 
 
-def surface_shadows(evidence: ShadowEvidence, time_steps: int, margin_px: float) -> np.ndarray:
-    """(time_steps, P) bool, P the masked frame pixels in flat order: cast shadows of the surface
-    ``evidence.normal`` (H, W, 3; not None) at the bin centres of ``intervals.grid_times`` from
-    ``evidence.t0_us``."""
-    # deferred: the sweep is compiled with numba, which `pstoolkit plugins` need not load
-    from pstoolkit.sim.shadow_sweep import ShadowCaster
+def surface_height(evidence: ShadowEvidence) -> np.ndarray:
+    """(H, W) float32 height map (pixels) of the surface ``evidence.normal`` (not None), integrated
+    over ``evidence.mask`` (``pstoolkit.surface.integrate_normals``)."""
     from pstoolkit.surface import integrate_normals
 
     mask = np.asarray(evidence.mask, dtype=bool)
-    height = integrate_normals(np.asarray(evidence.normal, dtype=np.float64), mask).astype(np.float32)
+    return integrate_normals(np.asarray(evidence.normal, dtype=np.float64), mask).astype(np.float32)
+
+
+def surface_shadow_blocks(evidence: ShadowEvidence, height: np.ndarray, time_steps: int, margin_px: float) -> Iterator[np.ndarray]:
+    """Cast shadows of the surface of ``height`` (``surface_height``) at the bin centres of
+    ``intervals.grid_times`` from ``evidence.t0_us``, as blocks of up to SWEEP_CHUNK times in order:
+    (n, P) bool each, P the masked frame pixels in flat order. A block is a view of a buffer the
+    next one overwrites: use it (or copy it) before asking for the next. The whole (time_steps, P)
+    map never exists (0.75 GB at 1024² pixels and 720 steps)."""
+    # deferred: the sweep is compiled with numba, which `pstoolkit plugins` need not load
+    from pstoolkit.sim.shadow_sweep import ShadowCaster
+
+    mask = np.asarray(evidence.mask, dtype=bool)
     directions = evidence.light.evaluate(evidence.t0_us + grid_times(evidence.period_us, time_steps))[0]
     inside = np.flatnonzero(mask.ravel())
-    out = np.empty((time_steps, inside.size), dtype=bool)
-    # one caster (the height map in its four sweep orientations) and one margin buffer for all blocks
+    # one caster (the height map in its four sweep orientations) and one set of buffers for all blocks
     caster = ShadowCaster(height, mask)
     margin = np.empty((min(SWEEP_CHUNK, time_steps), *mask.shape), dtype=np.float32)
     above = np.empty((len(margin), mask.size), dtype=bool)
+    out = np.empty((len(margin), inside.size), dtype=bool)
     for start in range(0, time_steps, SWEEP_CHUNK):
         block = directions[start : start + SWEEP_CHUNK]
         n = len(block)
@@ -50,8 +60,8 @@ def surface_shadows(evidence: ShadowEvidence, time_steps: int, margin_px: float)
         # compared first, then the object's columns taken: a byte per cell moves instead of four, and
         # np.take by index is several times faster than a boolean mask or np.compress along axis 1
         np.greater(margin[:n].reshape(n, -1), margin_px, out=above[:n])
-        np.take(above[:n], inside, axis=1, out=out[start : start + n])
-    return out
+        np.take(above[:n], inside, axis=1, out=out[:n])
+        yield out[:n]
 
 
 class GeometryDetector(ShadowDetector):
@@ -63,6 +73,8 @@ class GeometryDetector(ShadowDetector):
     def detect(self, evidence: ShadowEvidence, options: dict[str, Any]) -> ShadowMask:
         if evidence.normal is None:
             return evidence.no_mask()
-        shadowed = surface_shadows(evidence, options["time_steps"], options["margin_px"])
         pixels = np.flatnonzero(np.asarray(evidence.mask).ravel())
-        return evidence.frame_mask(intervals_from_grid(shadowed, evidence.period_us, pixels))
+        runs = RunCollector(pixels.size)
+        for block in surface_shadow_blocks(evidence, surface_height(evidence), options["time_steps"], options["margin_px"]):
+            runs.feed(block)
+        return evidence.frame_mask(runs.intervals(evidence.period_us, pixels))

@@ -1,9 +1,11 @@
 """Compiled kernels of ``intervals``.
 
-- ``run_counts``/``run_bounds`` (``intervals_from_grid``): the runs of True along the time axis of a
-  (steps, P) map, in two passes over blocks of columns (one counting each column's runs, one writing
-  them where the counts' running sum puts them), each reading the map row by row. numpy's version
-  transposed the shadowed columns and took ``np.diff``: a second copy of the map and 3–4× the time.
+- ``run_closures``/``close_runs`` (``intervals.RunCollector``): the runs of True along the time axis
+  of a (steps, P) map fed a block of rows at a time, in two passes over blocks of columns (one
+  counting the runs each column closes, one writing them where the counts' running sum puts them),
+  each reading the block row by row, each column's open run carried to the next block. numpy's
+  version transposed the shadowed columns of the whole map and took ``np.diff``: a second copy of the
+  map and 3–4× the time; fed by blocks, the map itself need never exist.
 - ``contains_on_grid``/``overlap_on_grid`` (``ShadowTable.contains_grid``/``shadowed_grid``): T
   times or windows for each of P pixels, each pixel's few table rows scanned for all its T queries.
   A ``searchsorted`` per query into a table of millions of keys misses the cache at every step.
@@ -23,48 +25,46 @@ COLUMNS = 256
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def run_counts(shadowed: np.ndarray) -> np.ndarray:
-    """(P,) int64: the runs of True in each column of ``shadowed`` (steps, P) uint8 (0 or 1)."""
-    steps, p = shadowed.shape
+def run_closures(block: np.ndarray, previous: np.ndarray) -> np.ndarray:
+    """(P,) int64: the runs of True that end inside ``block`` (n, P) uint8 (0 or 1), a 1 followed by
+    a 0, ``previous`` (P,) the row before it."""
+    n, p = block.shape
     counts = np.zeros(p, dtype=np.int64)
-    for block in prange((p + COLUMNS - 1) // COLUMNS):
-        c0 = block * COLUMNS
+    for part in prange((p + COLUMNS - 1) // COLUMNS):
+        c0 = part * COLUMNS
         c1 = min(c0 + COLUMNS, p)
         for c in range(c0, c1):
-            counts[c] = shadowed[0, c]
-        # branch-free, so the column loop vectorises: a run starts where a 1 follows a 0
-        for k in range(1, steps):
+            counts[c] = previous[c] & (1 - block[0, c])
+        # branch-free, so the column loop vectorises
+        for k in range(1, n):
             for c in range(c0, c1):
-                counts[c] += shadowed[k, c] & (1 - shadowed[k - 1, c])
+                counts[c] += block[k - 1, c] & (1 - block[k, c])
     return counts
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def run_bounds(shadowed: np.ndarray, columns: np.ndarray, offsets: np.ndarray, first: np.ndarray,
-               after: np.ndarray) -> None:
-    """Each run of the columns ``columns`` (those with runs) of ``shadowed`` (steps, P) uint8 as
-    [``first``, ``after``) bins, the runs of ``columns[i]`` in time order from ``offsets[i]``."""
-    steps = shadowed.shape[0]
-    n = columns.size
-    for block in prange((n + COLUMNS - 1) // COLUMNS):
-        i0 = block * COLUMNS
-        i1 = min(i0 + COLUMNS, n)
-        slot = offsets[i0:i1].copy()
-        previous = np.zeros(i1 - i0, dtype=np.uint8)
-        for k in range(steps):
-            for i in range(i0, i1):
-                now = shadowed[k, columns[i]]
-                before = previous[i - i0]
-                if now != before:
+def close_runs(block: np.ndarray, row0: int, previous: np.ndarray, open_at: np.ndarray, offsets: np.ndarray,
+               column: np.ndarray, first: np.ndarray, after: np.ndarray) -> None:
+    """Walk ``block`` (n, P) uint8, rows ``row0``…: a run opening notes its row in ``open_at`` (P,), a
+    run ending writes (``column``, ``first``, ``after``) at its column's next slot from ``offsets``
+    (the running sum of ``run_closures``); ``previous`` (P,) carries each column's last value on."""
+    n, p = block.shape
+    for part in prange((p + COLUMNS - 1) // COLUMNS):
+        c0 = part * COLUMNS
+        c1 = min(c0 + COLUMNS, p)
+        slot = offsets[c0:c1].copy()
+        for k in range(n):
+            for c in range(c0, c1):
+                now = block[k, c]
+                if now != previous[c]:
                     if now:
-                        first[slot[i - i0]] = k
+                        open_at[c] = row0 + k
                     else:
-                        after[slot[i - i0]] = k
-                        slot[i - i0] += 1
-                    previous[i - i0] = now
-        for i in range(i0, i1):
-            if previous[i - i0]:
-                after[slot[i - i0]] = steps
+                        column[slot[c - c0]] = c
+                        first[slot[c - c0]] = open_at[c]
+                        after[slot[c - c0]] = row0 + k
+                        slot[c - c0] += 1
+                    previous[c] = now
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)

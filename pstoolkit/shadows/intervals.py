@@ -186,23 +186,52 @@ def grid_times(period_us: float, steps: int) -> np.ndarray:
     return (np.arange(steps) + 0.5) * (float(period_us) / steps)
 
 
+class RunCollector:
+    """The runs of True along the time axis of a (steps, P) bool map of the bins of ``grid_times``,
+    fed a block of rows at a time (``feed``), as intervals (``intervals``): a detector sweeping the
+    light direction block by block never holds the whole map. Memory: a few bytes per column and the
+    runs found."""
+
+    def __init__(self, columns: int) -> None:
+        self.previous = np.zeros(columns, dtype=np.uint8)
+        self.open_at = np.zeros(columns, dtype=np.int64)
+        self.rows = 0
+        self._runs: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def feed(self, block: np.ndarray) -> None:
+        """The next (n, P) rows, bool."""
+        from pstoolkit.shadows.interval_kernels import close_runs, run_closures
+
+        cells = np.ascontiguousarray(block, dtype=bool).view(np.uint8)
+        if cells.shape[0] == 0:
+            return
+        counts = run_closures(cells, self.previous)
+        total = int(counts.sum())
+        runs = (np.empty(total, dtype=np.int64), np.empty(total, dtype=np.int64), np.empty(total, dtype=np.int64))
+        close_runs(cells, self.rows, self.previous, self.open_at, np.cumsum(counts) - counts, *runs)
+        self._runs.append(runs)
+        self.rows += cells.shape[0]
+
+    def intervals(self, period_us: float, pixels: np.ndarray | None = None) -> ShadowIntervals:
+        """Every run of the rows fed so far as [k, j + 1]·period/steps for bins k..j, steps the rows
+        fed (runs still open end at the last row), column by column in time order; ``pixels`` (P,)
+        names the columns (default 0..P−1)."""
+        still = np.flatnonzero(self.previous)
+        parts = [*self._runs, (still, self.open_at[still], np.full(still.size, self.rows, dtype=np.int64))]
+        column, first, after = (np.concatenate([part[i] for part in parts]) for i in range(3))
+        order = np.lexsort((first, column))
+        names = np.arange(self.previous.size) if pixels is None else np.asarray(pixels, dtype=np.int64)
+        step_us = float(period_us) / max(self.rows, 1)
+        return ShadowIntervals(names[column[order]], first[order] * step_us, after[order] * step_us)
+
+
 def intervals_from_grid(shadowed: np.ndarray, period_us: float, pixels: np.ndarray | None = None) -> ShadowIntervals:
     """Intervals of a (steps, P) bool map of the bins of ``grid_times`` (True: in shadow): each run
     of bins k..j of a pixel becomes [k, j + 1]·period/steps. ``pixels`` (P,) names the columns (default
     0..P−1)."""
-    # deferred: compiled with numba, which `pstoolkit plugins` need not load
-    from pstoolkit.shadows.interval_kernels import run_bounds, run_counts
-
-    steps, count = shadowed.shape
-    step_us = float(period_us) / steps
-    names = np.arange(count) if pixels is None else np.asarray(pixels, dtype=np.int64)
-    cells = np.ascontiguousarray(shadowed, dtype=bool).view(np.uint8)
-    counts = run_counts(cells)
-    columns = np.flatnonzero(counts)
-    first = np.empty(int(counts.sum()), dtype=np.int64)
-    after = np.empty_like(first)
-    run_bounds(cells, columns, np.cumsum(counts[columns]) - counts[columns], first, after)
-    return ShadowIntervals(np.repeat(names, counts), first * step_us, after * step_us)
+    collector = RunCollector(shadowed.shape[1])
+    collector.feed(shadowed)
+    return collector.intervals(period_us, pixels)
 
 
 def rasterize(intervals: ShadowIntervals, n_pixels: int, period_us: float, steps: int) -> np.ndarray:

@@ -11,7 +11,7 @@ from helpers.event_rows import event_stream, shading
 import psfmt
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.shadows import ShadowDetector, ShadowEvidence, ShadowIntervals, ShadowMask, ShadowTable, interval_profile
-from pstoolkit.shadows.intervals import grid_times, intervals_from_grid, rasterize
+from pstoolkit.shadows.intervals import RunCollector, grid_times, intervals_from_grid, rasterize
 from pstoolkit.shadows.score import score, true_shadows
 from pstoolkit.shadows.silences import dark_spans
 from pstoolkit.shadows.spikes import find_shadows, spike_threshold
@@ -174,6 +174,13 @@ def test_a_grid_of_shadows_becomes_intervals_and_back() -> None:
     found = intervals_from_grid(wide, T)
     np.testing.assert_array_equal(rasterize(found, 1000, T, 40), wide)
     assert np.all(np.diff(found.pixel) >= 0)
+    # fed a few rows at a time, runs carried across the blocks: the same intervals in the same order
+    runs = RunCollector(1000)
+    for lo, hi in ((0, 7), (7, 8), (8, 8), (8, 30), (30, 40)):
+        runs.feed(wide[lo:hi])
+    blocked = runs.intervals(T)
+    for got, expected in zip((blocked.pixel, blocked.t0_us, blocked.t1_us), (found.pixel, found.t0_us, found.t1_us)):
+        np.testing.assert_array_equal(got, expected)
 
 
 def test_every_builtin_detector_is_registered_with_its_options() -> None:
