@@ -1,9 +1,10 @@
 """When and how ``dualres`` cuts a capture into tiles (``plan``), from a model of its peak memory.
 
-The solve's memory grows with the frame pixels it holds at once: a Dask worker process with torch
-and numba loaded holds ``WORKER_BASE_BYTES`` before the solve, which then adds ``BYTES_PER_PIXEL``
-per frame pixel of its crop (frames, per-pixel time samples, shadow grids of 720 steps, the field
-and Adam's moments); the driver of a tiled run holds its own process with torch, the local
+The solve's memory grows with the frame pixels it holds at once: a process solving the whole capture
+peaks at ``UNTILED_BASE_BYTES`` + ``BYTES_PER_PIXEL`` per frame pixel (frames, the shared time grid's
+lit shares, the field and Adam's moments, the event pairs, the re-detection's height solve and dark
+map); a Dask worker process with torch and numba loaded holds ``WORKER_BASE_BYTES`` before a tile,
+which then adds ``TILE_BYTES_PER_PIXEL`` per frame pixel of its crop; the driver of a tiled run holds its own process with torch, the local
 cluster's scheduler and nannies (``DRIVER_BYTES``) and ``STITCH_BYTES_PER_PIXEL`` per frame pixel of
 the whole frame for the blended maps. The constants are measured with
 ``benchmarks/dualres_scale.py`` (docs/dualres-tuning.md, "Tiles").
@@ -19,9 +20,13 @@ from pstoolkit.solve.cluster import available_cpus, available_memory_bytes
 from pstoolkit.solve.tiles import ALIGN_PX, Tile, plan_tiles
 
 WORKER_BASE_BYTES = 0.65e9
-# a plain process with torch loaded, solving the whole capture itself
-UNTILED_BASE_BYTES = 0.45e9
-BYTES_PER_PIXEL = 3.8e3
+# fitted to tiled runs before the compiled kernels and streamed shadow maps of issue 26 (the whole
+# solve's per-pixel cost fell from 3.8 to 1.7 kB since): conservative, not measured again
+TILE_BYTES_PER_PIXEL = 3.8e3
+# a plain process with torch loaded, solving the whole capture itself: a line above the peaks of
+# 256², 512² and 1024² (0.67, 1.16, 2.41 GB)
+UNTILED_BASE_BYTES = 0.72e9
+BYTES_PER_PIXEL = 1.72e3
 DRIVER_BYTES = 1.1e9
 STITCH_BYTES_PER_PIXEL = 80.0
 # The smallest core a memory budget may ask for: below it the overlaps cost more than the tiles.
@@ -44,7 +49,7 @@ def tile_px_for(budget: float, pixels: int, workers: int, overlap_px: int, *, lo
     the driver and ``workers`` workers when ``local``, else the budget of one worker. UserError when
     it is below ``MIN_TILE_PX``."""
     per_worker = (budget - DRIVER_BYTES - STITCH_BYTES_PER_PIXEL * pixels) / workers if local else budget
-    crop_pixels = (per_worker - WORKER_BASE_BYTES) / BYTES_PER_PIXEL
+    crop_pixels = (per_worker - WORKER_BASE_BYTES) / TILE_BYTES_PER_PIXEL
     side = math.isqrt(max(0, int(crop_pixels))) - 2 * overlap_px
     tile_px = side // ALIGN_PX * ALIGN_PX
     if tile_px < MIN_TILE_PX:

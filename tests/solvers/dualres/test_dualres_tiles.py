@@ -22,7 +22,7 @@ from pstoolkit.errors import UserError
 from pstoolkit.evaluation.metrics import angular_error_deg
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.solve.base import run_solver
-from pstoolkit_dualres.tiling import BYTES_PER_PIXEL, WORKER_BASE_BYTES, plan
+from pstoolkit_dualres.tiling import TILE_BYTES_PER_PIXEL, WORKER_BASE_BYTES, plan
 
 EPOCHS = "epochs=30"
 TILES = ("tile_px=24", "overlap_px=8")
@@ -112,7 +112,9 @@ def test_the_memory_budget_decides_when_and_how_to_tile() -> None:
     # 2048 × 2448 under 3 GB on two local workers: tiles whose predicted peak fits
     tiles = plan((2048, 2448), {**options, "memory_gb": 3.0}, scheduler=None, workers=2)
     largest = max(t.crop_pixels for t in tiles)
-    assert len(tiles) > 4 and 2 * (WORKER_BASE_BYTES + BYTES_PER_PIXEL * largest) < 3e9
+    assert len(tiles) > 4 and 2 * (WORKER_BASE_BYTES + TILE_BYTES_PER_PIXEL * largest) < 3e9
+    # 1024² whole fits 3 GB (measured 2.41 GB), so a budget of 3 GB solves it in one piece
+    assert plan((1024, 1024), {**options, "memory_gb": 3.0}, scheduler=None, workers=2) is None
     with pytest.raises(UserError, match=r"memory_gb = 0.50 leaves room for tiles of only \d+ px"):
         plan((4096, 4096), {**options, "memory_gb": 0.5}, scheduler=None, workers=2)
 
