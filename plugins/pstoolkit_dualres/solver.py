@@ -126,7 +126,7 @@ class DualRes(Solver):
         Option("tile_px", int, 0,
                "frame pixels per side of a tile's core; 0 = as memory_gb allows (one tile when the capture fits), "
                "-1 = never tile", minimum=-1),
-        Option("overlap_px", int, 32, "frame pixels each tile reaches into its neighbours; the seams are blended over this width",
+        Option("overlap_px", int, 64, "frame pixels each tile reaches into its neighbours; the seams are blended over this width",
                minimum=0),
     )
     needs = frozenset({"frames", "events", "lights"})
