@@ -75,11 +75,15 @@ class Irradiance:
 
     def piece(self, pixel: np.ndarray, phase_us: np.ndarray) -> np.ndarray:
         """Index of the piece of s holding each phase: k change points cut the cycle into k pieces,
-        piece m starting at the m-th one (the time before the first belongs to the last piece)."""
+        piece m starting at the m-th one (the time before the first belongs to the last piece).
+        ``pixel`` and ``phase_us`` broadcast against each other."""
         changes = self.change_us[np.asarray(pixel, dtype=np.int64)]
         phase = np.mod(np.asarray(phase_us, dtype=np.float64), self.period_us)
         k = np.sum(np.isfinite(changes), axis=-1)
-        passed = np.sum(changes <= phase[..., None], axis=-1)
+        # one comparison per change point (at most a few): numpy sums a short last axis slowly
+        passed = np.zeros(np.broadcast_shapes(k.shape, phase.shape), dtype=np.int64)
+        for m in range(changes.shape[-1]):
+            passed += changes[..., m] <= phase
         return np.where(k > 0, np.mod(passed - 1, np.maximum(k, 1)), 0)
 
     def value(self, pixel: np.ndarray, phase_us: np.ndarray) -> np.ndarray:
@@ -216,14 +220,9 @@ def _fit_scale(irradiance: Irradiance, frame_values: np.ndarray) -> np.ndarray:
         for start in range(0, n_pixels, SCALE_BLOCK):
             pix = np.arange(start, min(start + SCALE_BLOCK, n_pixels))
             unscaled = np.exp(irradiance.log_level(np.repeat(pix, SCALE_SAMPLES), np.tile(phase, len(pix)))) * dt_s
-            # ``Irradiance.piece`` on the window's phase grid, shared by all pixels: one (pixels, samples)
-            # comparison per change point instead of a (pixels·samples, pieces) gather
-            changes = irradiance.change_us[pix]
-            k = np.sum(np.isfinite(changes), axis=1)
-            passed = np.zeros((len(pix), SCALE_SAMPLES), dtype=np.int64)
-            for m in range(pieces):
-                passed += changes[:, m, None] <= phase[None, :]
-            piece = np.where(k[:, None] > 0, np.mod(passed - 1, np.maximum(k, 1)[:, None]), 0)
+            # pixels (B, 1) against the window's phase grid (1, S), shared by all of them: no (B·S, pieces)
+            # gather of each pixel's change points per sample
+            piece = irradiance.piece(pix[:, None], phase[None, :])
             slot = (np.arange(len(pix))[:, None] * pieces + piece).ravel()
             integrals[pix, j] = np.bincount(slot, weights=unscaled, minlength=len(pix) * pieces).reshape(-1, pieces)
     scale = np.einsum("pmj,pj->pm", np.linalg.pinv(integrals), frame_values)

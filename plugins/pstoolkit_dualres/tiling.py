@@ -4,9 +4,9 @@ The solve's memory grows with the frame pixels it holds at once: a process solvi
 peaks at ``UNTILED_BASE_BYTES`` + ``BYTES_PER_PIXEL`` per frame pixel (frames, the shared time grid's
 lit shares, the field and Adam's moments, the event pairs, the re-detection's height solve and dark
 map); a Dask worker process with torch and numba loaded holds ``WORKER_BASE_BYTES`` before a tile,
-which then adds ``TILE_BYTES_PER_PIXEL`` per frame pixel of its crop; the driver of a tiled run holds its own process with torch, the local
-cluster's scheduler and nannies (``DRIVER_BYTES``) and ``STITCH_BYTES_PER_PIXEL`` per frame pixel of
-the whole frame for the blended maps. The constants are measured with
+which then adds ``TILE_BYTES_PER_PIXEL`` per frame pixel of its crop; the driver of a tiled run holds
+its own process with torch, the local cluster's scheduler and nannies (``DRIVER_BYTES``) and
+``STITCH_BYTES_PER_PIXEL`` per frame pixel of the whole frame for the blended maps. The constants are measured with
 ``benchmarks/dualres_scale.py`` (docs/dualres-tuning.md, "Tiles").
 """
 

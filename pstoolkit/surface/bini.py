@@ -45,13 +45,12 @@ import time
 from typing import Any, ClassVar
 
 import numpy as np
-import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.special import expit
 
 from pstoolkit.plugin.options import Option
 from pstoolkit.surface.base import Camera, Integrator, Surface, checked_inputs
-from pstoolkit.surface.integrate import SCREEN, Pairs, difference_matrix, neighbour_pairs
+from pstoolkit.surface.integrate import SCREEN, Pairs, difference_matrix, factorise, neighbour_pairs, normal_matrix
 from pstoolkit.surface.perspective import depth_of, slopes
 
 # Conjugate-gradient iterations after which the preconditioner's factorisation is renewed: a recent
@@ -69,15 +68,14 @@ class WeightedSolver:
     warm-started at x₀."""
 
     def __init__(self, pairs: Pairs) -> None:
-        self.d = difference_matrix(pairs)
-        self.dt = self.d.T.tocsr()
-        self.screen = SCREEN * sp.identity(pairs.n, format="csr")
+        self.pairs = pairs
+        self.dt = difference_matrix(pairs).T.tocsr()
         self.factor: Any = None
         self.x = np.zeros(pairs.n)
         self.factorisations = 0
 
     def solve(self, a: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-        matrix = (self.dt @ sp.diags(a) @ self.d + self.screen).tocsc()
+        matrix = normal_matrix(self.pairs, a).tocsr()
         rhs = rhs + SCREEN * self.x
         if self.factor is not None:
             iterations = [0]
@@ -92,7 +90,7 @@ class WeightedSolver:
                 if iterations[0] >= REFACTOR_AFTER // 2:
                     self.factor = None  # converging slowly: the next solve refactorises
                 return x
-        self.factor = spla.splu(matrix)
+        self.factor = factorise(matrix)
         self.factorisations += 1
         self.x = self.factor.solve(rhs)
         return self.x

@@ -16,7 +16,7 @@ discontinuity-preserving one (``pstoolkit.surface.bini``: the same pairs, reweig
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -89,20 +89,32 @@ def solve_pairs(pairs: Pairs, weight: np.ndarray, target: np.ndarray, refine: in
     factorisation, about 1/30 of its cost): the offsets stay, the bend shrinks by SCREEN over the
     part's stiffness each time. Up to ``direct_max`` unknowns the solve is a sparse LU, above it
     smoothed-aggregation multigrid with conjugate gradients (``solve_multigrid``)."""
-    # Dᵀ·diag(w)·D + SCREEN·I and Dᵀ(w·t) assembled from the pairs: the sparse products built copies
-    # of D and of their result, half the solve's peak memory at a full 1024² frame
-    first, second = pairs.first, pairs.second
-    normal_matrix = sp.coo_matrix(
-        (np.concatenate([weight, weight, -weight, -weight, np.full(pairs.n, SCREEN)]),
-         (np.concatenate([first, second, first, second, np.arange(pairs.n)]),
-          np.concatenate([first, second, second, first, np.arange(pairs.n)]))),
-        shape=(pairs.n, pairs.n)).tocsc()
+    matrix = normal_matrix(pairs, weight)
+    # Dᵀ(w·t) from the pairs, like the matrix
     pulled = weight * target
-    rhs = np.bincount(second, weights=pulled, minlength=pairs.n) - np.bincount(first, weights=pulled, minlength=pairs.n)
+    rhs = np.bincount(pairs.second, weights=pulled, minlength=pairs.n) - np.bincount(pairs.first, weights=pulled, minlength=pairs.n)
     if pairs.n > direct_max:
-        return solve_multigrid(normal_matrix, rhs, refine)
+        return solve_multigrid(matrix, rhs, refine)
     # a sparse direct solve: about 0.2 s for a 256² map on this machine, faster than CG on the Laplacian
-    return solve_pairs_direct(normal_matrix, rhs, refine)
+    return solve_pairs_direct(matrix, rhs, refine)
+
+
+def normal_matrix(pairs: Pairs, weight: np.ndarray) -> sp.coo_matrix:
+    """(n, n) Dᵀ·diag(``weight``)·D + SCREEN·I of ``pairs`` (D: ``difference_matrix``, ``weight`` (M,)),
+    assembled from the pairs: the sparse products built copies of D and of their result, half the
+    solve's peak memory at a full 1024² frame. Unsummed COO: convert it to the format the solver wants."""
+    first, second, diagonal = pairs.first, pairs.second, np.arange(pairs.n)
+    return sp.coo_matrix(
+        (np.concatenate([weight, weight, -weight, -weight, np.full(pairs.n, SCREEN)]),
+         (np.concatenate([first, second, first, second, diagonal]), np.concatenate([first, second, second, first, diagonal]))),
+        shape=(pairs.n, pairs.n))
+
+
+def factorise(matrix: sp.spmatrix) -> Any:
+    """The sparse LU (``scipy.sparse.linalg.SuperLU``) of a symmetric ``normal_matrix``. A minimum-degree
+    ordering of A + Aᵀ with diagonal pivots fills in far less than the default column ordering
+    (measured in docs/dualres-tuning.md, "Speed")."""
+    return spla.splu(matrix.tocsc(), permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
 
 
 def solve_multigrid(matrix: sp.spmatrix, rhs: np.ndarray, refine: int = 0) -> np.ndarray:
@@ -113,10 +125,11 @@ def solve_multigrid(matrix: sp.spmatrix, rhs: np.ndarray, refine: int = 0) -> np
     the LU."""
     import pyamg
 
-    hierarchy = pyamg.smoothed_aggregation_solver(matrix.tocsr(), symmetry="symmetric")
+    matrix = matrix.tocsr()
+    hierarchy = pyamg.smoothed_aggregation_solver(matrix, symmetry="symmetric")
     values = None
-    for target in range(refine + 1):
-        b = rhs if target == 0 else rhs + SCREEN * values
+    for step in range(refine + 1):
+        b = rhs if step == 0 else rhs + SCREEN * values
         values = hierarchy.solve(b, x0=values, tol=MULTIGRID_TOL, accel="cg", maxiter=200)
         if np.linalg.norm(matrix @ values - b) > 100 * MULTIGRID_TOL * max(np.linalg.norm(b), 1e-300):
             return solve_pairs_direct(matrix, rhs, refine)
@@ -124,10 +137,9 @@ def solve_multigrid(matrix: sp.spmatrix, rhs: np.ndarray, refine: int = 0) -> np
 
 
 def solve_pairs_direct(matrix: sp.spmatrix, rhs: np.ndarray, refine: int = 0) -> np.ndarray:
-    """``solve_pairs``'s system by a sparse LU, with the ``refine`` proximal solves on its factors."""
-    # A minimum-degree ordering of A + Aᵀ with diagonal pivots (the matrix is symmetric) fills in far
-    # less than the default column ordering (measured in docs/dualres-tuning.md, "Speed").
-    factor = spla.splu(matrix.tocsc(), permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
+    """``solve_pairs``'s system by a sparse LU (``factorise``), with the ``refine`` proximal solves on
+    its factors."""
+    factor = factorise(matrix)
     values = factor.solve(rhs)
     for _ in range(refine):
         values = factor.solve(rhs + SCREEN * values)
