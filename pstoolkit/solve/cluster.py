@@ -68,6 +68,8 @@ def quiet_loop_errors() -> Iterator[None]:
     distributed's cancel callback log a NameError traceback — and a pair that fails is reported as
     its outcome anyway. After an exception (a Ctrl-C) they stay silenced: the loop's thread runs the
     cancel callbacks after the block has been left, while the process ends."""
+    import distributed  # noqa: F401  (its import applies dask's logging config, which resets this logger's level)
+
     logger = logging.getLogger("tornado.application")
     level = logger.level
     logger.setLevel(logging.CRITICAL)
