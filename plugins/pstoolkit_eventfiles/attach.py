@@ -2,12 +2,14 @@
 
 Frames come from a folder of images (exposure windows from the recording's trigger edges: a rising
 edge opens a frame's exposure, the next falling edge on the same channel closes it) or from another
-capture (its frames with their windows or light directions). A light model or calibration comes from
-a JSON file or another capture. Everything is read and checked before the output is written.
+capture (its frames with their windows or light directions and sensor attributes). A light model or
+calibration comes from a JSON file or another capture. Everything is read and checked before the
+output is written.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -80,8 +82,8 @@ def trigger_windows(triggers: psfmt.Triggers, channel: int, count: int, where: P
 
 def load_frames(spec: str) -> psfmt.Frames | None:
     """The frames named by ``--frames``, in memory: a capture's with their windows or light directions
-    (the sensor attributes are those of the data type, as for a folder's), or a folder's, which still
-    need ``time_frames``."""
+    and its sensor attributes (bit depth, saturation, black level, response), or a folder's, whose
+    attributes are those of the images' data type and which still need ``time_frames``."""
     if not spec:
         return None
     path = Path(spec)
@@ -90,10 +92,7 @@ def load_frames(spec: str) -> psfmt.Frames | None:
             frames = capture.frames
             if frames is None:
                 raise UserError(f"{path}: holds no frames")
-            return psfmt.Frames(
-                np.asarray(frames.data), frames.t_start_us, frames.t_end_us,
-                frames.light_direction, frames.light_intensity, frames.color_order,
-            )
+            return dataclasses.replace(frames, data=np.asarray(frames.data))
     if not path.is_dir():
         raise UserError(f"--frames {path}: neither a folder of images nor a capture .h5")
     data, order = image_stack(path)

@@ -80,6 +80,24 @@ def test_raw_with_frames_lights_and_calibration(tmp_path: Path, capsys: pytest.C
     assert not (tmp_path / "three.h5").exists()
 
 
+def test_frames_from_a_capture_keep_their_sensor_attributes(tmp_path: Path) -> None:
+    """A capture's frames attached to a recording keep what the sensor said of them, not what their
+    data type would imply (12 significant bits in uint16, a clipping level below full scale, a black
+    level), so the solvers' saturation masks stay right."""
+    rng = np.random.default_rng(2)
+    data = rng.integers(0, 4096, (2, 8, 10, 3), dtype=np.uint16)
+    frames = psfmt.Frames(data, [100, 1000], [300, 1500], bit_depth=12, saturation=4000.0, black_level=64.0)
+    psfmt.write(psfmt.Capture(frames=frames), tmp_path / "frames.h5")
+    out = tmp_path / "capture.h5"
+    src = raw_file(tmp_path / "rec.raw", WORDS)
+    assert main(["convert", "raw", str(src), "-o", str(out), "--frames", str(tmp_path / "frames.h5"), "-q"]) == 0
+    with psfmt.read(out) as capture:
+        got = capture.frames
+        assert np.array_equal(np.asarray(got.data), data) and got.t_start_us.tolist() == [100, 1000]
+        assert (got.bit_depth, got.saturation, got.black_level, got.response) == (12, 4000.0, 64.0, "linear")
+    assert psfmt.validate(out).valid
+
+
 def test_backward_steps_and_skipped_words_are_counted(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     src = raw_file(tmp_path / "back.raw", [0x8000, 0x6000 | 50, 0x0001, 0x2000 | 1, 0x6000 | 40, 0x2000 | 2, 0xE000, 0x1000, 0x2000 | 99])
     out = tmp_path / "back.h5"
