@@ -5,7 +5,9 @@ Conventions (spec/hybrid-capture.md, ``/calibration/event_to_frame``): a (2, 3) 
 pixel centres to frame pixel coordinates; without a calibration the two cameras see the same field
 of view, ``default_affine``. The simulator's event pixel i covers frame pixel edges [i/s, (i+1)/s)
 along each axis for ``s`` event pixels per frame pixel (``psfmt.scale_affine(s)``), and its
-irradiance is the area average of the frame pixels it covers (``area_weights``, ``footprints``).
+irradiance is the area average of the frame pixels it covers (``area_weights``, ``footprints``);
+a calibrated rig's affine (any scale and offset per axis, or a rotation) gives the solvers the same
+averages through ``affine_footprints``.
 """
 
 from __future__ import annotations
@@ -13,6 +15,13 @@ from __future__ import annotations
 import numpy as np
 
 import psfmt
+
+# overlaps this thin are the rounding of coinciding edges, not a share of a pixel
+SLIVER_PX = 1e-9
+# samples a frame pixel a side for a rotating affine's footprints: shares to ~1/16 of a pixel
+FOOTPRINT_SAMPLES_PER_PX = 4
+# samples held at once while counting them (32 MB of int64)
+FOOTPRINT_BLOCK_SAMPLES = 1 << 22
 
 
 def default_affine(event_width: int, frame_width: int) -> np.ndarray:
@@ -32,10 +41,19 @@ def area_weights(n_event: int, n_frame: int, event_scale: float) -> np.ndarray:
     ``psfmt.scale_affine(event_scale)``: event pixel i covers frame pixel edges [i/s, (i+1)/s).
     Rows sum to 1 (over the part of the event pixel inside the frame)."""
     s = float(event_scale)
-    lo = np.arange(n_event, dtype=np.float64)[:, None] / s
-    edges = np.arange(n_frame, dtype=np.float64)[None, :]
-    overlap = np.clip(np.minimum(lo + 1.0 / s, edges + 1.0) - np.maximum(lo, edges), 0.0, None)
+    overlap = axis_overlaps(np.arange(n_event, dtype=np.float64) / s, 1.0 / s, n_frame)
     return overlap / np.maximum(overlap.sum(axis=1, keepdims=True), 1e-12)
+
+
+def axis_overlaps(low: np.ndarray, extent: float, n_frame: int) -> np.ndarray:
+    """(n, n_frame) lengths, in frame pixels, of each event pixel's overlap with each frame pixel
+    along one axis, for event pixel i covering frame pixel edges [low[i], low[i] + extent) (frame
+    pixel j covers [j, j + 1)). Overlaps under ``SLIVER_PX`` (rounding where edges coincide) count
+    as none."""
+    lo = np.asarray(low, dtype=np.float64)[:, None]
+    edges = np.arange(n_frame, dtype=np.float64)[None, :]
+    overlap = np.minimum(lo + extent, edges + 1.0) - np.maximum(lo, edges)
+    return np.where(overlap > SLIVER_PX, overlap, 0.0)
 
 
 def nonzero_band(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -52,9 +70,72 @@ def footprints(event_shape: tuple[int, int], frame_shape: tuple[int, int], event
     """Frame pixels under each event pixel of the grid ``psfmt.scale_affine(event_scale)``: (He·We, K)
     flat frame indices v·W + u and (He·We, K) area weights (0 on padding slots)."""
     (he, we), (h, w) = event_shape, frame_shape
-    (r_idx, r_w), (c_idx, c_w) = nonzero_band(area_weights(he, h, event_scale)), nonzero_band(area_weights(we, w, event_scale))
-    frame = (r_idx[:, None, :, None] * w + c_idx[None, :, None, :]).reshape(he * we, -1)
+    return _separable(area_weights(he, h, event_scale), area_weights(we, w, event_scale), w)
+
+
+def affine_footprints(affine: np.ndarray, event_shape: tuple[int, int], frame_shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Frame pixels under each event pixel through a calibrated (2, 3) event→frame ``affine``, which
+    maps event pixel centres to frame pixel coordinates (both with centres at integers): (He·We, K)
+    flat frame indices v·W + u and (He·We, K) shares of the event pixel's area in each (0 on padding
+    slots). The shares of an event pixel sum to the part of it inside the frame: 1 wholly inside,
+    less at the frame's edge, 0 outside.
+
+    Exact for an axis-aligned affine (any scale and offset per axis, mirrored or not, as calibrated
+    rigs give): products of ``axis_overlaps``. An affine that rotates or shears maps a pixel to a
+    parallelogram, whose shares are counted on ``FOOTPRINT_SAMPLES_PER_PX`` samples a frame pixel a
+    side."""
+    a = np.asarray(affine, dtype=np.float64)
+    (he, we), (h, w) = event_shape, frame_shape
+    if a[0, 1] == 0.0 and a[1, 0] == 0.0 and a[0, 0] != 0.0 and a[1, 1] != 0.0:
+        rows, cols = (
+            axis_overlaps(a[i, i] * np.arange(n, dtype=np.float64) + a[i, 2] + 0.5 - abs(a[i, i]) / 2, abs(a[i, i]), size) / abs(a[i, i])
+            for i, n, size in ((1, he, h), (0, we, w))
+        )
+        return _separable(rows, cols, w)
+    return _sampled_footprints(a, event_shape, frame_shape)
+
+
+def _separable(rows: np.ndarray, cols: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Footprints (flat frame indices, weights) of the event grid whose rows and columns weigh the
+    frame's by the matrices ``rows`` (He, H) and ``cols`` (We, W), each row a contiguous band."""
+    (r_idx, r_w), (c_idx, c_w) = nonzero_band(rows), nonzero_band(cols)
+    he, we = len(r_idx), len(c_idx)
+    frame = (r_idx[:, None, :, None] * width + c_idx[None, :, None, :]).reshape(he * we, -1)
     weight = (r_w[:, None, :, None] * c_w[None, :, None, :]).reshape(he * we, -1)
+    return frame, weight
+
+
+def _sampled_footprints(affine: np.ndarray, event_shape: tuple[int, int], frame_shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """``affine_footprints`` of any affine: n×n samples per event pixel, n enough for
+    ``FOOTPRINT_SAMPLES_PER_PX`` a frame pixel, each counted in the frame pixel it falls in; event
+    pixels in blocks of bounded size (a sample table of ~``FOOTPRINT_BLOCK_SAMPLES``)."""
+    (he, we), (h, w) = event_shape, frame_shape
+    # (the extent of an event pixel along a frame axis, less a hair so that 2.0000001 px is 2)
+    n = max(2, int(np.ceil(FOOTPRINT_SAMPLES_PER_PX * np.abs(affine[:, :2]).sum(axis=0).max() - 1e-6)))
+    offsets = (np.arange(n) + 0.5) / n - 0.5
+    du, dv = (x.ravel() for x in np.meshgrid(offsets, offsets))
+    block = max(1, FOOTPRINT_BLOCK_SAMPLES // (n * n))
+    parts: list[tuple[np.ndarray, np.ndarray]] = []
+    for start in range(0, he * we, block):
+        ve, ue = np.divmod(np.arange(start, min(start + block, he * we)), we)
+        su, sv = ue[:, None] + du, ve[:, None] + dv
+        fu = np.floor(affine[0, 0] * su + affine[0, 1] * sv + affine[0, 2] + 0.5)
+        fv = np.floor(affine[1, 0] * su + affine[1, 1] * sv + affine[1, 2] + 0.5)
+        inside = (fu >= 0) & (fu < w) & (fv >= 0) & (fv < h)
+        flat = np.sort(np.where(inside, fv * w + fu, -1.0).astype(np.int64), axis=1)
+        valid = flat >= 0
+        first = valid & np.concatenate([np.ones((len(flat), 1), bool), flat[:, 1:] != flat[:, :-1]], axis=1)
+        slot = np.cumsum(first, axis=1) - 1
+        slots = max(1, int(first.sum(axis=1).max()))
+        row = np.broadcast_to(np.arange(len(flat))[:, None], flat.shape)
+        index = np.zeros((len(flat), slots), np.int64)
+        index[row[first], slot[first]] = flat[first]
+        count = np.zeros((len(flat), slots))
+        np.add.at(count, (row[valid], slot[valid]), 1.0)
+        parts.append((index, count / (n * n)))
+    slots = max(index.shape[1] for index, _ in parts)
+    frame = np.concatenate([np.pad(index, ((0, 0), (0, slots - index.shape[1]))) for index, _ in parts])
+    weight = np.concatenate([np.pad(share, ((0, 0), (0, slots - share.shape[1]))) for _, share in parts])
     return frame, weight
 
 

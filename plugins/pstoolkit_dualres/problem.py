@@ -28,7 +28,7 @@ import torch
 from torch import Tensor
 
 from pstoolkit import GREY_WEIGHTS, US_PER_S, ShadowMask
-from pstoolkit.grid import bilinear_taps, footprints, frame_to_event
+from pstoolkit.grid import affine_footprints, bilinear_taps, frame_to_event
 from pstoolkit.optics.equivalent import sample_times
 from pstoolkit_dualres.closed_form import ClosedFormStart
 from pstoolkit_dualres.preprocess import Preprocessed
@@ -36,6 +36,9 @@ from pstoolkit_dualres.preprocess import Preprocessed
 # Percentile of the initial grey albedo over the mask taken as the albedo scale: a bright albedo
 # that ignores the few outliers of the closed form near the terminator.
 SCALE_PERCENTILE = 95.0
+# A super pixel counts as inside the frame when this little of its area is outside (float sums of
+# the footprint's shares).
+INSIDE_TOLERANCE = 1e-6
 
 
 def _like(array: np.ndarray, reference: Tensor) -> Tensor:
@@ -288,13 +291,16 @@ def build_problem(pre: Preprocessed, view: np.ndarray, *, device: str, frame_sam
         measured=tensor(measured), saturated=tensor(saturated, torch.bool), source=frame_source,
     )
 
-    # Event pairs (eq. 25) with the frame pixels under their super pixel.
-    fp_frame, fp_weight = footprints((he, we), (h, w), float(we) / float(w))
+    # Event pairs (eq. 25) with the frame pixels under their super pixel; a super pixel that sees
+    # past the frame's edge (a calibrated rig's wider event view, a tile's crop) also saw light the
+    # frames do not show, so its pairs are left out.
+    fp_frame, fp_share = affine_footprints(pre.event_to_frame, (he, we), (h, w))
     pairs = pre.events
     frame_taps = fp_frame[pairs.pixel]
     taps = position[frame_taps]
-    area = np.where(taps >= 0, fp_weight[pairs.pixel], 0.0)
-    usable = (area.sum(axis=1) > 0) & (pairs.weight > 0)
+    area = np.where(taps >= 0, fp_share[pairs.pixel], 0.0)
+    inside = fp_share.sum(axis=1)[pairs.pixel] > 1.0 - INSIDE_TOLERANCE
+    usable = inside & (area.sum(axis=1) > 0) & (pairs.weight > 0)
     dir_ev, int_ev = light.evaluate(pairs.t_us)
     dir_ref, int_ref = light.evaluate(pairs.t_ref_us)
     grey_w = np.asarray(GREY_WEIGHTS)
