@@ -1,4 +1,4 @@
-"""``pstoolkit export CAPTURE --events evt3|evt2|dsec -o FILE``: a capture's events as an event file;
+"""``pstoolkit export CAPTURE --events evt3|evt2|dat|dsec -o FILE``: a capture's events as an event file;
 ``pstoolkit export CAPTURE --frames diligent -o DIR``: a classic capture as a DiLiGenT object folder.
 
 The events stream from the capture in blocks and the frames are written one at a time, so a capture
@@ -16,14 +16,14 @@ import psfmt
 from pstoolkit.cli.app import app, echo, progress_bar
 from pstoolkit.errors import UserError
 
-EVENT_FORMATS = ("evt3", "evt2", "dsec")
+EVENT_FORMATS = ("evt3", "evt2", "dat", "dsec")
 FRAME_FORMATS = ("diligent",)
 
 
 @app.command()
 def export(
     capture_file: Path = typer.Argument(..., metavar="CAPTURE", help="A hybrid-capture HDF5 file."),
-    events: str | None = typer.Option(None, "--events", help="Write the events: evt3 or evt2 (Prophesee RAW) or dsec (HDF5) file OUT."),
+    events: str | None = typer.Option(None, "--events", help="Write the events: evt3 or evt2 (Prophesee RAW), dat (Metavision DAT) or dsec (HDF5) file OUT."),
     frames: str | None = typer.Option(None, "--frames", help=(
         "Write the frames of a classic capture (instantaneous lights): diligent, a DiLiGenT object folder OUT (16-bit "
         "PNGs, filenames.txt, light_directions.txt, light_intensities.txt, mask.png, Normal_gt.mat with ground truth)."
@@ -34,8 +34,8 @@ def export(
     as_json: bool = typer.Option(False, "--json", help="Print what was written as JSON and no progress."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar and no summary line."),
 ) -> None:
-    """Write a capture's events as a Prophesee RAW file (EVT 3.0 or EVT 2.0) or a DSEC-style HDF5 file
-    (--events), or a classic capture's frames as a DiLiGenT object folder (--frames diligent) that
+    """Write a capture's events as a Prophesee RAW file (EVT 3.0 or EVT 2.0), a Metavision DAT file or a
+    DSEC-style HDF5 file (--events), or a classic capture's frames as a DiLiGenT object folder (--frames diligent) that
     `pstoolkit convert diligent` reads back. Give exactly one of --events and --frames."""
     if (events is None) == (frames is None):
         raise UserError("give exactly one of --events FORMAT and --frames FORMAT")
@@ -74,6 +74,7 @@ def _export_frames(capture_file: Path, fmt: str, out: Path, force: bool, quiet: 
 
 def _export_events(capture_file: Path, fmt: str, out: Path, compression: str, quiet: bool, as_json: bool) -> None:
     # the codecs load here, so that other commands start without numba's import
+    from psfmt.dat import write_dat
     from psfmt.dsec import write_dsec
     from psfmt.evt2 import write_raw as write_evt2
     from psfmt.evt3 import write_raw as write_evt3
@@ -91,6 +92,8 @@ def _export_events(capture_file: Path, fmt: str, out: Path, compression: str, qu
                 write_evt3(out, stream.chunks(), stream.width, stream.height)
             elif fmt == "evt2":
                 write_evt2(out, stream.chunks(), stream.width, stream.height)
+            elif fmt == "dat":
+                write_dat(out, stream.chunks(), stream.width, stream.height)
             else:
                 write_dsec(out, stream.chunks(), len(stream), stream.width, stream.height, compression=compression)
         except psfmt.FormatError:

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import psfmt
-from psfmt import evt3
+from psfmt import dat, evt3
 from psfmt.dsec import write_dsec
 from psfmt.rawheader import format_header
 from pstoolkit.cli import main
@@ -120,7 +120,7 @@ def event_capture(n: int = 3000, seed: int = 1) -> psfmt.Capture:
     return psfmt.Capture(events=psfmt.Events(40, 30, events), description="export test")
 
 
-@pytest.mark.parametrize("fmt,converter", [("evt3", "raw"), ("evt2", "raw"), ("dsec", "dsec")])
+@pytest.mark.parametrize("fmt,converter", [("evt3", "raw"), ("evt2", "raw"), ("dat", "dat"), ("dsec", "dsec")])
 def test_export_and_convert_back_is_exact(tmp_path: Path, capsys: pytest.CaptureFixture[str], fmt: str, converter: str) -> None:
     capture = event_capture()
     src = tmp_path / "capture.h5"
@@ -136,6 +136,8 @@ def test_export_and_convert_back_is_exact(tmp_path: Path, capsys: pytest.Capture
         assert (again.events.width, again.events.height) == (40, 30)
     if fmt == "evt3":
         assert exported.read_bytes() == format_header("EVT3", 40, 30) + evt3.encode(original)
+    if fmt == "dat":
+        assert exported.read_bytes() == dat.format_header(40, 30) + dat.encode(original)
 
 
 def test_export_errors_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -144,7 +146,15 @@ def test_export_errors_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert main(["export", str(tmp_path / "frames.h5"), "--events", "evt3", "-o", str(tmp_path / "x.raw")]) == 2
     assert capsys.readouterr().err == f"pstoolkit: error: {tmp_path / 'frames.h5'}: holds no events to export\n"
     assert main(["export", str(tmp_path / "frames.h5"), "--events", "aedat", "-o", str(tmp_path / "x")]) == 2
-    assert capsys.readouterr().err == "pstoolkit: error: --events 'aedat' is not one of evt3, evt2, dsec\n"
+    assert capsys.readouterr().err == "pstoolkit: error: --events 'aedat' is not one of evt3, evt2, dat, dsec\n"
+    late = psfmt.EventArray(np.array([1]), np.array([2]), np.array([1 << 33]), np.array([1]))
+    psfmt.write(psfmt.Capture(events=psfmt.Events(4, 4, late)), tmp_path / "late.h5")
+    assert main(["export", str(tmp_path / "late.h5"), "--events", "dat", "-o", str(tmp_path / "late.dat")]) == 2
+    assert capsys.readouterr().err == (
+        f"pstoolkit: error: {tmp_path / 'late.h5'}: cannot export as dat: DAT times are uint32 µs: every time must lie in "
+        "[0, 4294967295]\n"
+    )
+    assert not (tmp_path / "late.dat").exists()
     garbage = tmp_path / "garbage.raw"
     garbage.write_bytes(b"\x00\x01" * 50)
     assert main(["convert", "raw", str(garbage), "-o", str(tmp_path / "g.h5")]) == 2
