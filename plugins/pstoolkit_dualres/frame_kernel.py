@@ -171,6 +171,15 @@ def supports(model: FitModel, normal: Tensor) -> bool:
     return type(model.brdf) in (GGX, Lambertian) and normal.device.type == "cpu"
 
 
+def ggx_maps(model: FitModel, normal: Tensor, maps: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+    """The (P, 3) albedo, (P, 3) F0 and (P, 1) roughness the kernels shade with: the GGX maps, or for
+    the Lambertian GGX with F0 = 0 (finite D and V at r = 1, so the specular terms vanish exactly)."""
+    albedo = maps["albedo"]
+    if type(model.brdf) is GGX:
+        return albedo, maps["f0"], maps["roughness"]
+    return albedo, albedo.new_zeros((normal.shape[0], 3)), albedo.new_ones((normal.shape[0], 1))
+
+
 def _rows(x: Tensor) -> np.ndarray:
     """A C-contiguous float32 copy (or view) of ``x`` for the kernel."""
     return x.detach().to(torch.float32).contiguous().numpy()
@@ -234,11 +243,6 @@ def fused_frame_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], l
     Tensor
         The scalar mean of eq. 24's residual over the K·P·3 values, differentiable.
     """
-    albedo = maps["albedo"]
-    if type(model.brdf) is GGX:
-        f0, roughness = maps["f0"], maps["roughness"]
-    else:
-        # Lambertian: GGX with F0 = 0 (finite D and V at r = 1, so the specular terms vanish exactly)
-        f0, roughness = albedo.new_zeros((normal.shape[0], 3)), albedo.new_ones((normal.shape[0], 1))
+    albedo, f0, roughness = ggx_maps(model, normal, maps)
     lit = visible if visible is not None else normal.new_zeros((0, 0))
     return _FusedFrameLoss.apply(normal, albedo, f0, roughness, light, weight, lit, view, frames, measured, saturated)

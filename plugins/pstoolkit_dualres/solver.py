@@ -109,7 +109,7 @@ class DualRes(Solver):
         Option("tv_fraction", float, -1.0, "share of each stage's epochs over which the TV term fades to zero (−1 = the preset's)",
                minimum=-1.0, maximum=1.0),
         Option("smoothness", float, -1.0, "fast: weight of the penalty on the pyramid's finer levels (−1 = the preset's)", minimum=-1.0),
-        Option("event_batch", int, 16384, "event pairs drawn per full-batch step (0 = all)", minimum=0),
+        Option("event_batch", int, 131072, "event pairs drawn per full-batch step (0 = all)", minimum=0),
         Option("frame_samples", int, -1,
                "samples per frame on a time grid shared by all pixels; 0 = the per-pixel importance samples of "
                "preprocessing (−1 = the preset's: fast 8, paper 0)", minimum=-1),

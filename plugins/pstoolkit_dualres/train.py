@@ -18,10 +18,11 @@ from torch import Tensor, nn
 
 from pstoolkit import Progress
 from pstoolkit.events.rule import LOG_EPS
+from pstoolkit_dualres.event_kernel import fused_event_loss
 from pstoolkit_dualres.forward_model import frame_prediction, frame_prediction_grid, superpixel_grey
 from pstoolkit_dualres.frame_kernel import fused_frame_loss, supports
 from pstoolkit_dualres.losses import event_loss, frame_loss, tv_loss
-from pstoolkit_dualres.problem import Problem
+from pstoolkit_dualres.problem import EventTerms, Problem
 from pstoolkit_dualres.reflectance import FitModel
 
 # Final learning rate of a stage as a share of its first: an exponential decay over its epochs.
@@ -275,7 +276,7 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
     maps = model.maps(pixel_raw, smooth_raw)
     n = batch.frame_pixels
     own_normal, own_maps = (normal, maps) if n is None else (normal[:n], {k: v[:n] for k, v in maps.items()})
-    frames, events, view = problem.frames, problem.events, problem.geometry.view
+    frames, view = problem.frames, problem.geometry.view
     if frames.shared_light is not None:
         visible = frames.shared_visible
         if visible is not None and batch.pixels is not None:
@@ -299,11 +300,7 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
     parts = {"frame": float(lf.detach())}
     e = batch.events
     if e.numel() and config.event_weight > 0:
-        grey = superpixel_grey(model, normal, maps, batch.event_taps, events.tap_weight_now[e],
-                               events.light_now[e], events.grey_now[e], view)
-        grey_ref = superpixel_grey(model, normal, maps, batch.event_taps, events.tap_weight_ref[e],
-                                   events.light_ref[e], events.grey_ref[e], view)
-        le = event_loss(grey, grey_ref, events.target[e], events.weight[e], LOG_EPS)
+        le = pair_event_loss(model, normal, maps, batch.event_taps, problem.events, e, view)
         total = total + config.event_weight * le
         parts["event"] = float(le.detach())
     if tv_share > 0 and config.tv_weight > 0:
@@ -313,10 +310,28 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
     return total, parts
 
 
+def pair_event_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], taps: Tensor, events: EventTerms, pairs: Tensor,
+                    view: Tensor) -> Tensor:
+    """The event term of eq. 25 over the event ``pairs`` (indices into ``events``) whose super pixels
+    cover the frame pixels ``taps`` (E, F) of ``normal`` (P, 3) and ``maps``: one compiled pass
+    (``event_kernel``) for the built-in GGX and Lambertian on the CPU, else ``superpixel_grey`` now and
+    at the reference time through ``event_loss``. The scalar loss, differentiable."""
+    if supports(model, normal):
+        return fused_event_loss(model, normal, maps, taps, events, pairs, view, LOG_EPS)
+    grey = superpixel_grey(model, normal, maps, taps, events.tap_weight_now[pairs], events.light_now[pairs],
+                           events.grey_now[pairs], view)
+    grey_ref = superpixel_grey(model, normal, maps, taps, events.tap_weight_ref[pairs], events.light_ref[pairs],
+                               events.grey_ref[pairs], view)
+    return event_loss(grey, grey_ref, events.target[pairs], events.weight[pairs], LOG_EPS)
+
+
 def _event_sample(problem: Problem, config: StageConfig, generator: torch.Generator) -> Tensor:
+    """``event_batch`` of the usable pairs at random (all of them at 0), in the pairs' order: grouped by
+    super pixel, so that a step reads the pixels' maps in memory order."""
     usable = problem.events.usable
     if 0 < config.event_batch < usable.numel():
-        return usable[torch.randperm(usable.numel(), generator=generator)[: config.event_batch].to(usable.device)]
+        chosen = torch.randperm(usable.numel(), generator=generator)[: config.event_batch]
+        return usable[torch.sort(chosen).values.to(usable.device)]
     return usable
 
 

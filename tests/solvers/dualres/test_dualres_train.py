@@ -7,6 +7,7 @@ inside it), and a coordinate MLP trained so on a small sphere."""
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -14,20 +15,21 @@ import torch
 
 import psfmt
 from pstoolkit.evaluation.metrics import angular_error_deg
+from pstoolkit.events.rule import LOG_EPS
 from pstoolkit.optics.brdf import GGX, Lambertian, MetallicGGX
 from pstoolkit.shadows import ShadowIntervals, ShadowMask
 from pstoolkit.shadows.score import true_shadows
 from pstoolkit.sim.simulator import SimulationConfig, simulate
 from pstoolkit.solve.base import no_progress
 from pstoolkit_dualres.fields import NeuralField, PyramidField, collapse, decompose
-from pstoolkit_dualres.forward_model import frame_prediction_grid
+from pstoolkit_dualres.forward_model import frame_prediction_grid, superpixel_grey
 from pstoolkit_dualres.frame_kernel import supports
 from pstoolkit_dualres.gather import gather_sum
-from pstoolkit_dualres.losses import frame_loss
+from pstoolkit_dualres.losses import event_loss, frame_loss
 from pstoolkit_dualres.preprocess import Preprocessed, PreprocessOptions, preprocess
 from pstoolkit_dualres.problem import Problem, build_problem
 from pstoolkit_dualres.reflectance import FitModel
-from pstoolkit_dualres.train import StageConfig, Tiling, grid_frame_loss, mini_batches, train
+from pstoolkit_dualres.train import StageConfig, Tiling, grid_frame_loss, mini_batches, pair_event_loss, train
 
 STAGE = StageConfig(epochs=1, lr=1e-3, material_lr=1e-3, frame_weight=1.0, event_weight=0.05, tv_weight=0.02,
                     tv_fraction=0.3, event_batch=0, batch_pixels=256, tile=8, seed=0)
@@ -220,6 +222,17 @@ def _frame_term(case: tuple, term: object) -> tuple[torch.Tensor, list]:
     return loss.detach(), [leaf.grad for leaf in leaves]
 
 
+def _assert_same_term(got: tuple[torch.Tensor, list], expected: tuple[torch.Tensor, list], atol_share: float) -> None:
+    """A compiled term's value and gradients against torch's (``_frame_term`` results): the value to
+    float32 rounding, each gradient to 1e-3 relative and ``atol_share`` of its largest entry."""
+    assert float(got[0]) == pytest.approx(float(expected[0]), rel=1e-5)
+    for value, reference in zip(got[1], expected[1]):
+        if reference is None:
+            assert value is None or not value.any()
+            continue
+        torch.testing.assert_close(value, reference, rtol=1e-3, atol=atol_share * float(reference.abs().max()))
+
+
 @pytest.mark.parametrize("brdf", [GGX(), Lambertian()], ids=["ggx", "lambertian"])
 @pytest.mark.parametrize("lit", [True, False], ids=["mask", "no-mask"])
 def test_the_compiled_frame_term_is_the_rendered_one(brdf: object, lit: bool) -> None:
@@ -234,12 +247,46 @@ def test_the_compiled_frame_term_is_the_rendered_one(brdf: object, lit: bool) ->
         frame_prediction_grid(model, n, m, light, weight, visible, view, frames), measured, saturated))
     fused, fused_grads = _frame_term(case, lambda n, m: grid_frame_loss(
         model, n, m, light, weight, visible, view, frames, measured, saturated))
-    assert float(fused) == pytest.approx(float(rendered), rel=1e-5)
-    for got, expected in zip(fused_grads, rendered_grads):
-        if expected is None:
-            assert got is None or not got.any()
-            continue
-        torch.testing.assert_close(got, expected, rtol=1e-3, atol=1e-6 * float(expected.abs().max()))
+    _assert_same_term((fused, fused_grads), (rendered, rendered_grads), atol_share=1e-6)
+
+
+@pytest.mark.parametrize("brdf", [GGX(), Lambertian()], ids=["ggx", "lambertian"])
+def test_the_compiled_event_term_is_the_rendered_one(brdf: object) -> None:
+    """For the built-in GGX and Lambertian ``pair_event_loss`` runs one compiled pass with its own
+    derivatives (``event_kernel``); value and gradients are torch's autograd of ``superpixel_grey``
+    now and at the reference through ``event_loss`` — taps below the horizon, padded taps of weight
+    0, pixels shared by many pairs and a subset of the pairs included (float32 rounding)."""
+    generator = torch.Generator().manual_seed(1)
+    p, count, fan = 600, 3000, 4
+    model, raw, *_ = _frame_case(brdf, p, 1)
+    view = torch.tensor([0.0, 0.0, 1.0])
+
+    def directions() -> torch.Tensor:
+        return torch.nn.functional.normalize(torch.randn(count, 3, generator=generator) + torch.tensor([0.0, 0.0, 1.2]), dim=1)
+
+    taps = torch.randint(0, p, (count, fan), generator=generator)
+    area = torch.rand(count, fan, generator=generator)
+    area[:50, 3] = 0.0  # padding slots
+    events = SimpleNamespace(
+        tap_weight_now=area * (torch.rand(count, fan, generator=generator) > 0.2),
+        tap_weight_ref=area * (torch.rand(count, fan, generator=generator) > 0.2),
+        light_now=directions(), light_ref=directions(),
+        grey_now=torch.rand(count, 3, generator=generator), grey_ref=torch.rand(count, 3, generator=generator),
+        target=0.3 * torch.randn(count, generator=generator), weight=torch.rand(count, generator=generator),
+    )
+    pairs = torch.randperm(count, generator=generator)[:2500]
+    assert supports(model, torch.zeros(1, 3))
+
+    def rendered(n: torch.Tensor, m: dict) -> torch.Tensor:
+        e = pairs
+        grey = superpixel_grey(model, n, m, taps[e], events.tap_weight_now[e], events.light_now[e], events.grey_now[e], view)
+        grey_ref = superpixel_grey(model, n, m, taps[e], events.tap_weight_ref[e], events.light_ref[e], events.grey_ref[e], view)
+        return event_loss(grey, grey_ref, events.target[e], events.weight[e], LOG_EPS)
+
+    case = (model, raw)
+    expected, expected_grads = _frame_term(case, rendered)
+    got, got_grads = _frame_term(case, lambda n, m: pair_event_loss(model, n, m, taps[pairs], events, pairs, view))
+    _assert_same_term((got, got_grads), (expected, expected_grads), atol_share=1e-5)
 
 
 def test_gathered_sums_and_their_gradient_are_those_of_indexing() -> None:

@@ -1,0 +1,212 @@
+"""The event term of eq. 25 as one compiled pass, for the built-in ``ggx`` and ``lambertian`` BRDFs
+(``fused_event_loss``).
+
+Through torch, each pair renders its super pixel twice (now and at the reference time) through every
+operation of the BRDF on (E, F, 3) intermediates, and the backward scatters the taps' gradients with
+``index_put_``, which made the pairs a step can afford few. Here each pair is rendered in registers:
+per tap the GGX sample of ``frame_kernel`` (the same formulas of ``pstoolkit.optics.brdf.GGX.shade``
+and its hand-derived derivatives), the two grey sums, the log residual, and the taps' gradients,
+which are then added into the pixels in pair order (the result does not depend on the thread count).
+Tests compare value and gradients with torch's autograd of ``superpixel_grey`` and ``event_loss``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+import torch
+from numba import prange
+from torch import Tensor
+
+from pstoolkit.optics.brdf import HALF_EPS, MIN_ROUGHNESS
+from pstoolkit_dualres.frame_kernel import ggx_maps
+from pstoolkit_dualres.problem import EventTerms
+from pstoolkit_dualres.reflectance import FitModel
+
+INV_PI = 1.0 / math.pi
+# Pairs a thread takes at once (its scratch is allocated once per block).
+PAIR_BLOCK = 256
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _half(lx: float, ly: float, lz: float, view: np.ndarray) -> tuple:
+    """The half vector of the light and the view and the HALF_EPS share of |l + v|², as
+    ``GGX.shade`` forms them (in float64, then float32)."""
+    sx, sy, sz = np.float64(lx) + view[0], np.float64(ly) + view[1], np.float64(lz) + view[2]
+    ss = sx * sx + sy * sy + sz * sz + HALF_EPS
+    norm = math.sqrt(ss)
+    return np.float32(sx / norm), np.float32(sy / norm), np.float32(sz / norm), np.float32(HALF_EPS / ss)
+
+
+@numba.njit(cache=True, parallel=True, nogil=True, error_model="numpy", fastmath=True)
+def _event_pass(normal: np.ndarray, albedo: np.ndarray, f0: np.ndarray, roughness: np.ndarray, taps: np.ndarray,
+                pairs: np.ndarray, weight_now: np.ndarray, weight_ref: np.ndarray, light_now: np.ndarray,
+                light_ref: np.ndarray, grey_now: np.ndarray, grey_ref: np.ndarray, target: np.ndarray, weight: np.ndarray,
+                view: np.ndarray, eps: float, scale: float, gradient: bool, loss: np.ndarray,
+                contribution: np.ndarray) -> None:
+    """Per pair b (event pair ``pairs[b]``): ``loss[b]`` its weighted squared log residual times
+    ``scale``, and (``gradient``) ``contribution[b, f]`` the derivatives of that with respect to tap
+    f's normal (0–2), albedo (3–5), F0 (6–8) and roughness (9).
+
+    ``normal``, ``albedo``, ``f0`` (P, 3) float32, ``roughness`` (P,), ``taps`` (B, F) pixel indices;
+    of all the pairs: ``weight_now``/``weight_ref`` (E, F) area × lit share of each tap now and at the
+    reference time, ``light_now``/``light_ref`` (E, 3) unit light directions, ``grey_now``/``grey_ref``
+    (E, 3) intensity × grey weight per channel, ``target``/``weight`` (E,); ``view`` (3,) float64.
+
+    Each tap is shaded once: its grey value is summed and the derivatives of that value (normal, [n·l]₊,
+    the specular factor, roughness) kept in a scratch until the residual is known. Pairs go in blocks
+    of ``PAIR_BLOCK`` so that the scratch is allocated once per block (a layout with the innermost
+    loop over a block's pairs, for the compiler to vectorise, was half as fast: its taps are gathers)."""
+    count, fan = taps.shape
+    vx, vy, vz = np.float32(view[0]), np.float32(view[1]), np.float32(view[2])
+    zero, one = np.float32(0.0), np.float32(1.0)
+    for block in prange((count + PAIR_BLOCK - 1) // PAIR_BLOCK):
+        # per time and tap: the grey value's derivatives by n (0–2), ρ_c / g_c (3), F0_c / g_c (4), r (5)
+        parts = np.zeros((2, fan, 6), dtype=np.float32)
+        sums = np.zeros(2, dtype=np.float32)
+        for b in range(block * PAIR_BLOCK, min((block + 1) * PAIR_BLOCK, count)):
+            e = pairs[b]
+            for t in range(2):
+                tap_weight, light, grey = (weight_now, light_now, grey_now) if t == 0 else (weight_ref, light_ref, grey_ref)
+                lx, ly, lz = light[e, 0], light[e, 1], light[e, 2]
+                hx, hy, hz, he = _half(lx, ly, lz, view)
+                g0, g1, g2 = grey[e, 0], grey[e, 1], grey[e, 2]
+                total = zero
+                for f in range(fan):
+                    for x in range(6):
+                        parts[t, f, x] = zero
+                    w = tap_weight[e, f]
+                    i = taps[b, f]
+                    nx, ny, nz = normal[i, 0], normal[i, 1], normal[i, 2]
+                    nl = nx * lx + ny * ly + nz * lz
+                    # below the horizon a tap renders 0 with a zero gradient (torch's clamp passes it at 0)
+                    if w == zero or nl < zero:
+                        continue
+                    nv_raw = nx * vx + ny * vy + nz * vz
+                    nv = max(nv_raw, zero)
+                    r = max(roughness[i], np.float32(MIN_ROUGHNESS))
+                    k = (r + one) * (r + one) / np.float32(8.0)
+                    alpha2 = r * r * r * r
+                    nh = nx * hx + ny * hy + nz * hz
+                    cx, cy, cz = ny * hz - nz * hy, nz * hx - nx * hz, nx * hy - ny * hx
+                    inv_q = one / (cx * cx + cy * cy + cz * cz + he + nh * nh * alpha2)
+                    inv_a, inv_b = one / (nl * (one - k) + k), one / (nv * (one - k) + k)
+                    dv = alpha2 * np.float32(INV_PI / 4.0) * inv_q * inv_q * inv_a * inv_b
+                    spec = dv * nl
+                    rho = g0 * albedo[i, 0] + g1 * albedo[i, 1] + g2 * albedo[i, 2]
+                    fre = g0 * f0[i, 0] + g1 * f0[i, 1] + g2 * f0[i, 2]
+                    total += w * (rho * nl + fre * spec)
+                    if not gradient:
+                        continue
+                    # dE/dn = E·(−2/q·dq/dn − (1−k)/a·l − (1−k)/b·v) + D·V·l, dq/dn = 2 h × (n × h) + 2 n·h α² h
+                    tq = np.float32(-4.0) * spec * inv_q
+                    qx = (hy * cz - hz * cy) + nh * alpha2 * hx
+                    qy = (hz * cx - hx * cz) + nh * alpha2 * hy
+                    qz = (hx * cy - hy * cx) + nh * alpha2 * hz
+                    tl = dv - spec * (one - k) * inv_a
+                    tv = -spec * (one - k) * inv_b if nv_raw >= zero else zero
+                    parts[t, f, 0] = w * (rho * lx + fre * (tq * qx + tl * lx + tv * vx))
+                    parts[t, f, 1] = w * (rho * ly + fre * (tq * qy + tl * ly + tv * vy))
+                    parts[t, f, 2] = w * (rho * lz + fre * (tq * qz + tl * lz + tv * vz))
+                    parts[t, f, 3] = w * nl
+                    parts[t, f, 4] = w * spec
+                    if roughness[i] >= np.float32(MIN_ROUGHNESS):
+                        parts[t, f, 5] = w * fre * spec * (
+                            (one / alpha2 - np.float32(2.0) * nh * nh * inv_q) * np.float32(4.0) * r * r * r
+                            - ((one - nl) * inv_a + (one - nv) * inv_b) * (r + one) / np.float32(4.0))
+                sums[t] = total
+            residual = math.log(sums[0] + eps) - math.log(sums[1] + eps) - target[e]
+            loss[b] = scale * weight[e] * residual * residual
+            if not gradient:
+                continue
+            # d loss / d grey now and at the reference
+            d_now = np.float32(2.0) * scale * weight[e] * residual / (sums[0] + eps)
+            d_ref = -np.float32(2.0) * scale * weight[e] * residual / (sums[1] + eps)
+            for f in range(fan):
+                for x in range(3):
+                    contribution[b, f, x] = d_now * parts[0, f, x] + d_ref * parts[1, f, x]
+                for c in range(3):
+                    contribution[b, f, 3 + c] = d_now * grey_now[e, c] * parts[0, f, 3] + d_ref * grey_ref[e, c] * parts[1, f, 3]
+                    contribution[b, f, 6 + c] = d_now * grey_now[e, c] * parts[0, f, 4] + d_ref * grey_ref[e, c] * parts[1, f, 4]
+                contribution[b, f, 9] = d_now * parts[0, f, 5] + d_ref * parts[1, f, 5]
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_taps(contribution: np.ndarray, taps: np.ndarray, out: np.ndarray) -> None:
+    """``out[taps[e, f]] += contribution[e, f]`` in pair order."""
+    pairs, fan = taps.shape
+    for e in range(pairs):
+        for f in range(fan):
+            row = taps[e, f]
+            for x in range(10):
+                out[row, x] += contribution[e, f, x]
+
+
+def _rows(x: Tensor) -> np.ndarray:
+    """A C-contiguous float32 copy (or view) of ``x`` for the kernel."""
+    return x.detach().to(torch.float32).contiguous().numpy()
+
+
+class _FusedEventLoss(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, normal: Tensor, albedo: Tensor, f0: Tensor, roughness: Tensor, taps: Tensor, pairs: Tensor,
+                events: tuple[Tensor, ...], view: Tensor, eps: float) -> Tensor:
+        count, fan = taps.shape
+        gradient = any(ctx.needs_input_grad[:4])
+        taps_np = taps.contiguous().numpy()
+        loss = np.empty(count, dtype=np.float32)
+        contribution = np.empty((count, fan, 10) if gradient else (0, 0, 10), dtype=np.float32)
+        _event_pass(_rows(normal), _rows(albedo), _rows(f0), _rows(roughness.reshape(-1)), taps_np, pairs.contiguous().numpy(),
+                    *(_rows(x) for x in events), view.detach().double().numpy(), float(eps), 1.0 / max(count, 1), gradient,
+                    loss, contribution)
+        if gradient:
+            out = np.zeros((normal.shape[0], 10), dtype=np.float32)
+            _add_taps(contribution, taps_np, out)
+            ctx.grads = torch.from_numpy(out)
+        return normal.new_tensor(loss.sum(dtype=np.float64))
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        g = ctx.grads * grad
+        need = ctx.needs_input_grad
+        parts = (g[:, 0:3], g[:, 3:6], g[:, 6:9], g[:, 9:10])
+        return (*(part if wanted else None for part, wanted in zip(parts, need[:4])), *(None,) * 5)
+
+
+def fused_event_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], taps: Tensor, events: EventTerms, pairs: Tensor,
+                     view: Tensor, eps: float) -> Tensor:
+    """``event_loss`` of ``superpixel_grey`` now and at the reference time over the event ``pairs``, in
+    one compiled pass, with the gradient with respect to ``normal`` and the maps; only where
+    ``frame_kernel.supports(model, normal)``.
+
+    Parameters
+    ----------
+    model
+        A FitModel of the built-in GGX or Lambertian.
+    normal
+        (P, 3) unit normals.
+    maps
+        ``albedo`` (P, 3), and for GGX ``f0`` (P, 3) and ``roughness`` (P, 1).
+    taps
+        (B, F) int64 pixels under each pair's super pixel, indices into ``normal``.
+    events
+        All the pairs' terms (``problem.EventTerms``): tap weights, lights and grey intensities now
+        and at the reference time, targets and confidences; read in place.
+    pairs
+        (B,) int64 the pairs of the step, indices into ``events``.
+    view
+        (3,) unit direction to the camera.
+    eps
+        ε of the log, in irradiance units.
+
+    Returns
+    -------
+    Tensor
+        The scalar Σ w·(ln((Ĩ_k + ε)/(Ĩ_ref + ε)) − target)² / B, differentiable.
+    """
+    albedo, f0, roughness = ggx_maps(model, normal, maps)
+    terms = (events.tap_weight_now, events.tap_weight_ref, events.light_now, events.light_ref, events.grey_now, events.grey_ref,
+             events.target, events.weight)
+    return _FusedEventLoss.apply(normal, albedo, f0, roughness, taps, pairs, terms, view, eps)
