@@ -21,7 +21,7 @@ from numba import prange
 from torch import Tensor
 
 from pstoolkit.optics.brdf import HALF_EPS, MIN_ROUGHNESS
-from pstoolkit_dualres.frame_kernel import ggx_maps
+from pstoolkit_dualres.frame_kernel import float32_array, ggx_maps
 from pstoolkit_dualres.problem import EventTerms
 from pstoolkit_dualres.reflectance import FitModel
 
@@ -146,11 +146,6 @@ def _add_taps(contribution: np.ndarray, taps: np.ndarray, out: np.ndarray) -> No
                 out[row, x] += contribution[e, f, x]
 
 
-def _rows(x: Tensor) -> np.ndarray:
-    """A C-contiguous float32 copy (or view) of ``x`` for the kernel."""
-    return x.detach().to(torch.float32).contiguous().numpy()
-
-
 class _FusedEventLoss(torch.autograd.Function):
     @staticmethod
     def forward(ctx, normal: Tensor, albedo: Tensor, f0: Tensor, roughness: Tensor, taps: Tensor, pairs: Tensor,
@@ -160,9 +155,9 @@ class _FusedEventLoss(torch.autograd.Function):
         taps_np = taps.contiguous().numpy()
         loss = np.empty(count, dtype=np.float32)
         contribution = np.empty((count, fan, 10) if gradient else (0, 0, 10), dtype=np.float32)
-        _event_pass(_rows(normal), _rows(albedo), _rows(f0), _rows(roughness.reshape(-1)), taps_np, pairs.contiguous().numpy(),
-                    *(_rows(x) for x in events), view.detach().double().numpy(), float(eps), 1.0 / max(count, 1), gradient,
-                    loss, contribution)
+        shading = (float32_array(x) for x in (normal, albedo, f0, roughness.reshape(-1)))
+        _event_pass(*shading, taps_np, pairs.contiguous().numpy(), *(float32_array(x) for x in events),
+                    view.detach().double().numpy(), float(eps), 1.0 / max(count, 1), gradient, loss, contribution)
         if gradient:
             out = np.zeros((normal.shape[0], 10), dtype=np.float32)
             _add_taps(contribution, taps_np, out)

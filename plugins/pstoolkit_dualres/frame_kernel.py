@@ -182,7 +182,7 @@ def ggx_maps(model: FitModel, normal: Tensor, maps: dict[str, Tensor]) -> tuple[
     return albedo, albedo.new_zeros((normal.shape[0], 3)), albedo.new_ones((normal.shape[0], 1))
 
 
-def _rows(x: Tensor) -> np.ndarray:
+def float32_array(x: Tensor) -> np.ndarray:
     """A C-contiguous float32 copy (or view) of ``x`` for the kernel."""
     return x.detach().to(torch.float32).contiguous().numpy()
 
@@ -198,9 +198,9 @@ class _FusedFrameLoss(torch.autograd.Function):
         ss = torch.sum(s * s, dim=1, keepdim=True)
         loss = np.empty(p, dtype=np.float32)
         grads = np.empty((10, p if gradient else 0), dtype=np.float32)
-        _frame_pass(_rows(normal.T), _rows(albedo.T), _rows(f0.T), _rows(roughness.reshape(-1)), _rows(light),
-                    _rows(s / torch.sqrt(ss + HALF_EPS)), _rows((HALF_EPS / (ss + HALF_EPS)).reshape(-1)), _rows(weight),
-                    _rows(visible), _rows(view64), frames, _rows(measured).reshape(frames, p, 3),
+        _frame_pass(float32_array(normal.T), float32_array(albedo.T), float32_array(f0.T), float32_array(roughness.reshape(-1)), float32_array(light),
+                    float32_array(s / torch.sqrt(ss + HALF_EPS)), float32_array((HALF_EPS / (ss + HALF_EPS)).reshape(-1)), float32_array(weight),
+                    float32_array(visible), float32_array(view64), frames, float32_array(measured).reshape(frames, p, 3),
                     saturated.reshape(frames, p).contiguous().numpy(), gradient, loss, grads)
         count = frames * p * 3
         if gradient:

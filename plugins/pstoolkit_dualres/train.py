@@ -33,6 +33,12 @@ PROGRESS_EVERY = 10
 # glibc's largest mmap threshold (32 MiB), so the allocator reuses them from chunk to chunk instead
 # of mapping and faulting in fresh pages for every tensor of every step.
 FRAME_CHUNK = 16384
+# On a GPU, chunks as large as half its free memory holds for the chunk's graph (bytes per pixel and
+# sample: the whole term's graph was some 10 kB per pixel at K·S = 24), up to CUDA_FRAME_CHUNK pixels:
+# fewer, larger kernels (a 1024² solve's training 3× faster on an H200 than in chunks of FRAME_CHUNK,
+# docs/dualres-tuning.md).
+GRAPH_BYTES_PER_SAMPLE = 512
+CUDA_FRAME_CHUNK = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -176,9 +182,20 @@ def mini_batches(problem: Problem, tiling: Tiling, config: StageConfig, generato
     return out
 
 
+def frame_chunk(normal: Tensor, samples: int) -> int:
+    """Pixels per chunk of ``grid_frame_loss`` on ``normal``'s device for ``samples`` (K·S) light
+    samples: FRAME_CHUNK on the CPU; on a GPU what half its free memory holds at
+    GRAPH_BYTES_PER_SAMPLE per pixel and sample, between FRAME_CHUNK and CUDA_FRAME_CHUNK."""
+    if normal.device.type != "cuda":
+        return FRAME_CHUNK
+    free_bytes, _ = torch.cuda.mem_get_info(normal.device)
+    fits = free_bytes // 2 // (max(samples, 1) * GRAPH_BYTES_PER_SAMPLE)
+    return int(min(CUDA_FRAME_CHUNK, max(FRAME_CHUNK, fits)))
+
+
 def grid_frame_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], light: Tensor, weight: Tensor,
                     visible: Tensor | None, view: Tensor, frames: int, measured: Tensor, saturated: Tensor,
-                    chunk: int = FRAME_CHUNK) -> Tensor:
+                    chunk: int | None = None) -> Tensor:
     """``frame_loss`` of ``frame_prediction_grid`` over all P pixels: for the built-in GGX and
     Lambertian on the CPU in one compiled pass with its own derivatives (``frame_kernel``), for any
     other BRDF through torch with its graph held one chunk of ``chunk`` pixels at a time.
@@ -205,7 +222,7 @@ def grid_frame_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], li
     measured, saturated
         (K·P, 3) frame values and (K·P,) clipped flags, rows frame·P + pixel.
     chunk
-        Pixels per chunk.
+        Pixels per chunk (default ``frame_chunk``).
 
     Returns
     -------
@@ -215,6 +232,7 @@ def grid_frame_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], li
     if supports(model, normal):
         return fused_frame_loss(model, normal, maps, light, weight, visible, view, frames, measured, saturated)
     p = normal.shape[0]
+    chunk = frame_chunk(normal, light.shape[0]) if chunk is None else chunk
     if p <= chunk:
         predicted = frame_prediction_grid(model, normal, maps, light, weight, visible, view, frames)
         return frame_loss(predicted, measured, saturated)

@@ -29,7 +29,17 @@ from pstoolkit_dualres.losses import event_loss, frame_loss
 from pstoolkit_dualres.preprocess import Preprocessed, PreprocessOptions, preprocess
 from pstoolkit_dualres.problem import Problem, build_problem
 from pstoolkit_dualres.reflectance import FitModel
-from pstoolkit_dualres.train import StageConfig, Tiling, grid_frame_loss, mini_batches, pair_event_loss, train
+from pstoolkit_dualres.train import (
+    CUDA_FRAME_CHUNK,
+    FRAME_CHUNK,
+    StageConfig,
+    Tiling,
+    frame_chunk,
+    grid_frame_loss,
+    mini_batches,
+    pair_event_loss,
+    train,
+)
 
 STAGE = StageConfig(epochs=1, lr=1e-3, material_lr=1e-3, frame_weight=1.0, event_weight=0.05, tv_weight=0.02,
                     tv_fraction=0.3, event_batch=0, batch_pixels=256, tile=8, seed=0)
@@ -287,6 +297,24 @@ def test_the_compiled_event_term_is_the_rendered_one(brdf: object) -> None:
     expected, expected_grads = _frame_term(case, rendered)
     got, got_grads = _frame_term(case, lambda n, m: pair_event_loss(model, n, m, taps[pairs], events, pairs, view))
     _assert_same_term((got, got_grads), (expected, expected_grads), atol_share=1e-5)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_on_a_gpu_the_frame_term_takes_large_chunks_with_the_same_value_and_gradients() -> None:
+    """On CUDA no compiled pass: torch renders the frame term in chunks sized by the GPU's free memory
+    (``frame_chunk``), which give the value and gradients of the CPU's compiled pass."""
+    case = _frame_case(GGX(), 3000, 2)
+    model, raw, light, weight, visible, view, frames, measured, saturated = case
+    assert frame_chunk(torch.zeros(1, 3), 24) == FRAME_CHUNK
+    chunk = frame_chunk(torch.zeros(1, 3, device="cuda"), light.shape[0])
+    assert FRAME_CHUNK <= chunk <= CUDA_FRAME_CHUNK
+    on_cpu = _frame_term(case, lambda n, m: grid_frame_loss(model, n, m, light, weight, visible, view, frames, measured, saturated))
+    moved = tuple(x.cuda() for x in (light, weight, visible, view, measured, saturated))
+    gpu_case = (model, tuple(x.cuda() for x in raw))
+    for size in (None, 1000):
+        on_gpu = _frame_term(gpu_case, lambda n, m, size=size: grid_frame_loss(model, n, m, *moved[:3], moved[3], frames, *moved[4:],
+                                                                             chunk=size))
+        _assert_same_term((on_gpu[0].cpu(), [g.cpu() for g in on_gpu[1]]), on_cpu, atol_share=1e-5)
 
 
 def test_gathered_sums_and_their_gradient_are_those_of_indexing() -> None:
