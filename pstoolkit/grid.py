@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 import psfmt
+from pstoolkit.errors import UserError
 
 # overlaps this thin are the rounding of coinciding edges, not a share of a pixel
 SLIVER_PX = 1e-9
@@ -22,6 +23,9 @@ SLIVER_PX = 1e-9
 FOOTPRINT_SAMPLES_PER_PX = 4
 # samples held at once while counting them (32 MB of int64)
 FOOTPRINT_BLOCK_SAMPLES = 1 << 22
+# the widest event pixel, in frame pixels along a frame axis, that footprints are made for: rigs
+# sample at 1/2 to 1/4 of the frame's resolution, and a crafted affine's pixel could span the frame
+MAX_FOOTPRINT_EXTENT_PX = 8.0
 
 
 def default_affine(event_width: int, frame_width: int) -> np.ndarray:
@@ -83,9 +87,16 @@ def affine_footprints(affine: np.ndarray, event_shape: tuple[int, int], frame_sh
     Exact for an axis-aligned affine (any scale and offset per axis, mirrored or not, as calibrated
     rigs give): products of ``axis_overlaps``. An affine that rotates or shears maps a pixel to a
     parallelogram, whose shares are counted on ``FOOTPRINT_SAMPLES_PER_PX`` samples a frame pixel a
-    side."""
+    side.
+
+    Raises
+    ------
+    UserError
+        An event pixel wider than ``MAX_FOOTPRINT_EXTENT_PX`` frame pixels along a frame axis.
+    """
     a = np.asarray(affine, dtype=np.float64)
     (he, we), (h, w) = event_shape, frame_shape
+    check_footprint_extent(a, "event→frame affine")
     if a[0, 1] == 0.0 and a[1, 0] == 0.0 and a[0, 0] != 0.0 and a[1, 1] != 0.0:
         rows, cols = (
             axis_overlaps(a[i, i] * np.arange(n, dtype=np.float64) + a[i, 2] + 0.5 - abs(a[i, i]) / 2, abs(a[i, i]), size) / abs(a[i, i])
@@ -93,6 +104,14 @@ def affine_footprints(affine: np.ndarray, event_shape: tuple[int, int], frame_sh
         )
         return _separable(rows, cols, w)
     return _sampled_footprints(a, event_shape, frame_shape)
+
+
+def check_footprint_extent(affine: np.ndarray, where: str) -> None:
+    """UserError ``{where}: …`` when the (2, 3) event→frame ``affine`` makes an event pixel wider than
+    ``MAX_FOOTPRINT_EXTENT_PX`` frame pixels along a frame axis (or is not finite)."""
+    extent = float(np.abs(np.asarray(affine, dtype=np.float64)[:, :2]).sum(axis=1).max())
+    if not extent <= MAX_FOOTPRINT_EXTENT_PX:
+        raise UserError(f"{where}: an event pixel spans {extent:.3g} frame pixels along an axis (at most {MAX_FOOTPRINT_EXTENT_PX:g})")
 
 
 def _separable(rows: np.ndarray, cols: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray]:
@@ -108,9 +127,9 @@ def _separable(rows: np.ndarray, cols: np.ndarray, width: int) -> tuple[np.ndarr
 def _sampled_footprints(affine: np.ndarray, event_shape: tuple[int, int], frame_shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """``affine_footprints`` of any affine: n×n samples per event pixel, n enough for
     ``FOOTPRINT_SAMPLES_PER_PX`` a frame pixel, each counted in the frame pixel it falls in; event
-    pixels in blocks of bounded size (a sample table of ~``FOOTPRINT_BLOCK_SAMPLES``)."""
+    pixels in blocks of bounded size (a sample table of about ``FOOTPRINT_BLOCK_SAMPLES``)."""
     (he, we), (h, w) = event_shape, frame_shape
-    # (the extent of an event pixel along a frame axis, less a hair so that 2.0000001 px is 2)
+    # (the frame pixels an event pixel's side crosses, less a hair so that 2.0000001 is 2)
     n = max(2, int(np.ceil(FOOTPRINT_SAMPLES_PER_PX * np.abs(affine[:, :2]).sum(axis=0).max() - 1e-6)))
     offsets = (np.arange(n) + 0.5) / n - 0.5
     du, dv = (x.ravel() for x in np.meshgrid(offsets, offsets))

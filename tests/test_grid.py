@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import psfmt
+from pstoolkit.errors import UserError
 from pstoolkit.grid import affine_footprints, default_affine, event_shape, footprints, frame_to_event, nearest_super_pixel, to_frames
 
 
@@ -98,3 +99,8 @@ def test_a_rotating_affine_is_sampled_and_agrees_with_the_exact_shares() -> None
     c, s = np.cos(np.pi / 6), np.sin(np.pi / 6)
     index, share = affine_footprints(np.array([[2 * c, -2 * s, 6.0], [2 * s, 2 * c, 0.0]]), events, frame)
     assert share.min() >= 0 and share.sum(axis=1).max() <= 1.0 + 1e-12 and (share.sum(axis=1) == 1.0).any()
+    # a crafted affine whose pixels would span the frame: one line, nothing allocated
+    for scale in (1e6, np.inf):
+        with pytest.raises(UserError, match=r"^event→frame affine: an event pixel spans .* frame pixels along an axis \(at most 8\)$"):
+            affine_footprints(np.array([[scale * c, -scale * s, 6.0], [scale * s, scale * c, 0.0]]), (3, 3), frame)
+

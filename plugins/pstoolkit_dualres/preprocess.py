@@ -31,7 +31,7 @@ import numpy as np
 
 import psfmt
 from pstoolkit import GREY_WEIGHTS, LightModel, Progress, UserError, build_light_model, no_progress
-from pstoolkit.grid import default_affine, nearest_super_pixel, to_frames
+from pstoolkit.grid import check_footprint_extent, default_affine, nearest_super_pixel, to_frames
 from pstoolkit.shadows import ShadowEvidence, ShadowMask, interval_profile
 from pstoolkit.shadows.spikes import spike_threshold
 from pstoolkit_dualres.closed_form import ClosedFormStart, closed_form
@@ -279,6 +279,7 @@ def preprocess(capture: psfmt.Capture, options: PreprocessOptions, progress: Pro
     n_events_px = event_height * event_width
     affine = capture.calibration.event_to_frame
     affine = np.asarray(default_affine(event_width, width) if affine is None else affine, dtype=np.float64)
+    check_footprint_extent(affine, f"dualres: {where}: /calibration/event_to_frame")
     t0, windows, frame_window = _windows(frames_in, period, where)
     frames = frames_in.as_float().astype(np.float32)
     saturated = np.any(frames >= 1.0, axis=-1)

@@ -7,7 +7,7 @@ preset as resolved, and rejects input it cannot use with one line."""
 from __future__ import annotations
 
 import json
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -87,6 +87,11 @@ def test_a_calibrated_offset_between_the_grids_is_followed(blobs: Path) -> None:
     assert np.isclose(crop.calibration.event_to_frame[0, 2], 0.5)  # aligned: the scale affine's offset
     # measured: 0.62° half a pixel off, 0.57° aligned (3.79° off before)
     assert errors[1] < errors[2] + 0.2 and errors[1] < 1.0
+    # a crafted affine whose event pixels would span the frame is refused before anything is allocated
+    crop.calibration = replace(crop.calibration, event_to_frame=np.array([[100.0, 0.0, 0.5], [0.0, 100.0, 0.5]]))
+    with pytest.raises(UserError, match=r"^dualres: the capture: /calibration/event_to_frame: an event pixel spans 100 frame "
+                                        r"pixels along an axis \(at most 8\)$"):
+        _solve(crop, "dualres", "epochs=1", "tile_px=-1")
 
 
 def test_same_seed_same_bytes_and_the_seed_matters_for_the_network(blobs: Path) -> None:
