@@ -20,24 +20,12 @@ import torch
 from numba import prange
 from torch import Tensor
 
-from pstoolkit.optics.brdf import HALF_EPS, MIN_ROUGHNESS
-from pstoolkit_dualres.frame_kernel import float32_array, ggx_maps
+from pstoolkit_dualres.frame_kernel import float32_array, ggx_half, ggx_maps, ggx_pixel, ggx_specular
 from pstoolkit_dualres.problem import EventTerms
 from pstoolkit_dualres.reflectance import FitModel
 
-INV_PI = 1.0 / math.pi
 # Pairs a thread takes at once (its scratch is allocated once per block).
 PAIR_BLOCK = 256
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _half(lx: float, ly: float, lz: float, view: np.ndarray) -> tuple:
-    """The half vector of the light and the view and the HALF_EPS share of |l + v|², as
-    ``GGX.shade`` forms them (in float64, then float32)."""
-    sx, sy, sz = np.float64(lx) + view[0], np.float64(ly) + view[1], np.float64(lz) + view[2]
-    ss = sx * sx + sy * sy + sz * sz + HALF_EPS
-    norm = math.sqrt(ss)
-    return np.float32(sx / norm), np.float32(sy / norm), np.float32(sz / norm), np.float32(HALF_EPS / ss)
 
 
 # Fused multiply-adds only: with every fast-math flag the same solve gave different last bits from
@@ -63,7 +51,7 @@ def _event_pass(normal: np.ndarray, albedo: np.ndarray, f0: np.ndarray, roughnes
     loop over a block's pairs, for the compiler to vectorise, was half as fast: its taps are gathers)."""
     count, fan = taps.shape
     vx, vy, vz = np.float32(view[0]), np.float32(view[1]), np.float32(view[2])
-    zero, one = np.float32(0.0), np.float32(1.0)
+    zero = np.float32(0.0)
     for block in prange((count + PAIR_BLOCK - 1) // PAIR_BLOCK):
         # per time and tap: the grey value's derivatives by n (0–2), ρ_c / g_c (3), F0_c / g_c (4), r (5)
         parts = np.zeros((2, fan, 6), dtype=np.float32)
@@ -73,7 +61,7 @@ def _event_pass(normal: np.ndarray, albedo: np.ndarray, f0: np.ndarray, roughnes
             for t in range(2):
                 tap_weight, light, grey = (weight_now, light_now, grey_now) if t == 0 else (weight_ref, light_ref, grey_ref)
                 lx, ly, lz = light[e, 0], light[e, 1], light[e, 2]
-                hx, hy, hz, he = _half(lx, ly, lz, view)
+                hx, hy, hz, he = ggx_half(lx, ly, lz, view)
                 g0, g1, g2 = grey[e, 0], grey[e, 1], grey[e, 2]
                 total = zero
                 for f in range(fan):
@@ -86,38 +74,20 @@ def _event_pass(normal: np.ndarray, albedo: np.ndarray, f0: np.ndarray, roughnes
                     # below the horizon a tap renders 0 with a zero gradient (torch's clamp passes it at 0)
                     if w == zero or nl < zero:
                         continue
-                    nv_raw = nx * vx + ny * vy + nz * vz
-                    nv = max(nv_raw, zero)
-                    r = max(roughness[i], np.float32(MIN_ROUGHNESS))
-                    k = (r + one) * (r + one) / np.float32(8.0)
-                    alpha2 = r * r * r * r
-                    nh = nx * hx + ny * hy + nz * hz
-                    cx, cy, cz = ny * hz - nz * hy, nz * hx - nx * hz, nx * hy - ny * hx
-                    inv_q = one / (cx * cx + cy * cy + cz * cz + he + nh * nh * alpha2)
-                    inv_a, inv_b = one / (nl * (one - k) + k), one / (nv * (one - k) + k)
-                    dv = alpha2 * np.float32(INV_PI / 4.0) * inv_q * inv_q * inv_a * inv_b
-                    spec = dv * nl
+                    alpha2, k, view_term, nv, r, nv_passes, r_passes = ggx_pixel(nx, ny, nz, roughness[i], vx, vy, vz)
+                    spec, ex, ey, ez, er = ggx_specular(nx, ny, nz, nl, lx, ly, lz, hx, hy, hz, he, vx, vy, vz, alpha2, k,
+                                                        view_term, nv, r, nv_passes, r_passes)
                     rho = g0 * albedo[i, 0] + g1 * albedo[i, 1] + g2 * albedo[i, 2]
                     fre = g0 * f0[i, 0] + g1 * f0[i, 1] + g2 * f0[i, 2]
                     total += w * (rho * nl + fre * spec)
                     if not gradient:
                         continue
-                    # dE/dn = E·(−2/q·dq/dn − (1−k)/a·l − (1−k)/b·v) + D·V·l, dq/dn = 2 h × (n × h) + 2 n·h α² h
-                    tq = np.float32(-4.0) * spec * inv_q
-                    qx = (hy * cz - hz * cy) + nh * alpha2 * hx
-                    qy = (hz * cx - hx * cz) + nh * alpha2 * hy
-                    qz = (hx * cy - hy * cx) + nh * alpha2 * hz
-                    tl = dv - spec * (one - k) * inv_a
-                    tv = -spec * (one - k) * inv_b if nv_raw >= zero else zero
-                    parts[t, f, 0] = w * (rho * lx + fre * (tq * qx + tl * lx + tv * vx))
-                    parts[t, f, 1] = w * (rho * ly + fre * (tq * qy + tl * ly + tv * vy))
-                    parts[t, f, 2] = w * (rho * lz + fre * (tq * qz + tl * lz + tv * vz))
+                    parts[t, f, 0] = w * (rho * lx + fre * ex)
+                    parts[t, f, 1] = w * (rho * ly + fre * ey)
+                    parts[t, f, 2] = w * (rho * lz + fre * ez)
                     parts[t, f, 3] = w * nl
                     parts[t, f, 4] = w * spec
-                    if roughness[i] >= np.float32(MIN_ROUGHNESS):
-                        parts[t, f, 5] = w * fre * spec * (
-                            (one / alpha2 - np.float32(2.0) * nh * nh * inv_q) * np.float32(4.0) * r * r * r
-                            - ((one - nl) * inv_a + (one - nv) * inv_b) * (r + one) / np.float32(4.0))
+                    parts[t, f, 5] = w * fre * er
                 sums[t] = total
             residual = math.log(sums[0] + eps) - math.log(sums[1] + eps) - target[e]
             loss[b] = scale * weight[e] * residual * residual

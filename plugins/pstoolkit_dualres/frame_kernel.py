@@ -33,54 +33,97 @@ INV_PI = 1.0 / math.pi
 BLOCK = 128
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def ggx_half(lx: float, ly: float, lz: float, view: np.ndarray) -> tuple:
+    """The half vector of a light direction and the (3,) float64 ``view`` and the HALF_EPS share of
+    |l + v|², as ``GGX.shade`` forms them: in float64, returned as float32."""
+    sx, sy, sz = np.float64(lx) + view[0], np.float64(ly) + view[1], np.float64(lz) + view[2]
+    ss = sx * sx + sy * sy + sz * sz + HALF_EPS
+    norm = math.sqrt(ss)
+    return np.float32(sx / norm), np.float32(sy / norm), np.float32(sz / norm), np.float32(HALF_EPS / ss)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def ggx_pixel(nx: float, ny: float, nz: float, roughness: float, vx: float, vy: float, vz: float) -> tuple:
+    """A pixel's own terms of ``GGX.shade``: α², k, the view term b = n·v (1 − k) + k of V, the clamped
+    n·v and roughness r, and 1 or 0 for whether n·v and the roughness pass their clamps' gradient
+    (torch's clamp passes it where the input reaches the bound)."""
+    zero, one = np.float32(0.0), np.float32(1.0)
+    nv_raw = nx * vx + ny * vy + nz * vz
+    nv = max(nv_raw, zero)
+    r = max(roughness, np.float32(MIN_ROUGHNESS))
+    k = (r + one) * (r + one) / np.float32(8.0)
+    return (r * r * r * r, k, nv * (one - k) + k, nv, r, one if nv_raw >= zero else zero,
+            one if roughness >= np.float32(MIN_ROUGHNESS) else zero)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def ggx_specular(nx: float, ny: float, nz: float, nl: float, lx: float, ly: float, lz: float, hx: float, hy: float,
+                 hz: float, he: float, vx: float, vy: float, vz: float, alpha2: float, k: float, b: float, nv: float,
+                 r: float, nv_passes: float, r_passes: float) -> tuple:
+    """``GGX.shade``'s specular factor E = D·V·[n·l]₊ of one light sample at a normal n with the
+    clamped n·l = ``nl``, light l, half vector h with ``he`` (``ggx_half``) and the pixel's terms of
+    ``ggx_pixel``, and its hand-derived derivatives: (E, dE/dn x, y, z, dE/dr). The |n × h|² form of
+    1 − (n·h)² is the BRDF's."""
+    one = np.float32(1.0)
+    nh = nx * hx + ny * hy + nz * hz
+    cx = ny * hz - nz * hy
+    cy = nz * hx - nx * hz
+    cz = nx * hy - ny * hx
+    q = cx * cx + cy * cy + cz * cz + he + nh * nh * alpha2
+    d = alpha2 * np.float32(INV_PI) / (q * q)
+    a = nl * (one - k) + k
+    vis = one / (np.float32(4.0) * a * b)
+    e = d * vis * nl
+    # dE/dn = E·(−2/q·dq/dn − (1−k)/a·l − (1−k)/b·v) + D·V·l, dq/dn = 2 h × (n × h) + 2 n·h α² h
+    tq = np.float32(-4.0) * e / q
+    qx = (hy * cz - hz * cy) + nh * alpha2 * hx
+    qy = (hz * cx - hx * cz) + nh * alpha2 * hy
+    qz = (hx * cy - hy * cx) + nh * alpha2 * hz
+    tl = d * vis - e * (one - k) / a
+    tv = -e * (one - k) / b * nv_passes
+    dr = e * ((one / alpha2 - np.float32(2.0) * nh * nh / q) * np.float32(4.0) * r * r * r
+              - ((one - nl) / a + (one - nv) / b) * (r + one) / np.float32(4.0)) * r_passes
+    return e, tq * qx + tl * lx + tv * vx, tq * qy + tl * ly + tv * vy, tq * qz + tl * lz + tv * vz, dr
+
+
 # Fused multiply-adds only: with every fast-math flag the same solve gave different last bits from
 # run to run on one machine (the determinism test failed about one process in three).
 @numba.njit(cache=True, parallel=True, nogil=True, error_model="numpy", fastmath={"contract"})
 def _frame_pass(normal: np.ndarray, albedo: np.ndarray, f0: np.ndarray, roughness: np.ndarray, light: np.ndarray,
-                half: np.ndarray, half_eps: np.ndarray, weight: np.ndarray, visible: np.ndarray, view: np.ndarray,
+                weight: np.ndarray, visible: np.ndarray, view: np.ndarray,
                 frames: int, measured: np.ndarray, saturated: np.ndarray, gradient: bool, loss: np.ndarray,
                 grads: np.ndarray) -> None:
     """Per pixel i: ``loss[i]`` the summed residual of its K·3 frame values, and (``gradient``)
     ``grads[:, i]`` the derivatives of that sum with respect to its normal (rows 0–2), albedo (3–5),
     F0 (6–8) and roughness (9).
 
-    ``normal``, ``albedo``, ``f0`` (3, P) float32, ``roughness`` (P,), ``light``/``half`` (K·S, 3) unit
-    light directions and half vectors with ``half_eps`` (K·S,) the HALF_EPS share of |l + v|²,
-    ``weight`` (K·S, 3), ``visible`` (K·S, P) or (0, 0) when all is lit, ``view`` (3,), ``measured``
-    (K, P, 3), ``saturated`` (K, P). Pixels go in blocks of BLOCK, the innermost loop over a block's
-    pixels, so the compiler vectorises it; the sums live in a (27, BLOCK) scratch."""
+    ``normal``, ``albedo``, ``f0`` (3, P) float32, ``roughness`` (P,), ``light`` (K·S, 3) unit light
+    directions, ``weight`` (K·S, 3), ``visible`` (K·S, P) or (0, 0) when all is lit, ``view`` (3,)
+    float64, ``measured`` (K, P, 3), ``saturated`` (K, P). Pixels go in blocks of BLOCK, the innermost
+    loop over a block's pixels, so the compiler vectorises it; the sums live in a (27, BLOCK) scratch."""
     p = normal.shape[1]
     per = light.shape[0] // frames
     shadows = visible.shape[0] > 0
-    vx, vy, vz = view[0], view[1], view[2]
+    vx, vy, vz = np.float32(view[0]), np.float32(view[1]), np.float32(view[2])
     zero, one = np.float32(0.0), np.float32(1.0)
     for block in prange((p + BLOCK - 1) // BLOCK):
         i0 = block * BLOCK
         n = min(BLOCK, p - i0)
-        # per pixel: α², k, the view term b of V, n·v, whether n·v and r are inside their clamps, r
+        # per pixel: ``ggx_pixel``'s α², k, b, n·v, r and its two clamp flags
         own = np.empty((7, BLOCK), dtype=np.float32)
         sums = np.empty((27, BLOCK), dtype=np.float32)
         out = np.zeros((11, BLOCK), dtype=np.float32)
         for j in range(n):
             i = i0 + j
-            nv_raw = normal[0, i] * vx + normal[1, i] * vy + normal[2, i] * vz
-            nv = max(nv_raw, zero)
-            r = max(roughness[i], np.float32(MIN_ROUGHNESS))
-            k = (r + one) * (r + one) / np.float32(8.0)
-            own[0, j] = r * r * r * r
-            own[1, j] = k
-            own[2, j] = nv * (one - k) + k
-            own[3, j] = nv
-            # torch's clamp passes the gradient where the input reaches the bound
-            own[4, j] = one if nv_raw >= zero else zero
-            own[5, j] = one if roughness[i] >= np.float32(MIN_ROUGHNESS) else zero
-            own[6, j] = r
+            terms = ggx_pixel(normal[0, i], normal[1, i], normal[2, i], roughness[i], vx, vy, vz)
+            for x in range(7):
+                own[x, j] = terms[x]
         for fk in range(frames):
             sums[:, :n] = zero
             for s in range(fk * per, (fk + 1) * per):
                 lx, ly, lz = light[s, 0], light[s, 1], light[s, 2]
-                hx, hy, hz = half[s, 0], half[s, 1], half[s, 2]
-                he = half_eps[s]
+                hx, hy, hz, he = ggx_half(lx, ly, lz, view)
                 w0, w1, w2 = weight[s, 0], weight[s, 1], weight[s, 2]
                 for j in range(n):
                     i = i0 + j
@@ -89,16 +132,8 @@ def _frame_pass(normal: np.ndarray, albedo: np.ndarray, f0: np.ndarray, roughnes
                     # below the horizon a sample renders 0 with a zero gradient
                     lit = (visible[s, i] if shadows else one) if nl_raw >= zero else zero
                     nl = max(nl_raw, zero)
-                    alpha2, k, b, r = own[0, j], own[1, j], own[2, j], own[6, j]
-                    nh = nx * hx + ny * hy + nz * hz
-                    cx = ny * hz - nz * hy
-                    cy = nz * hx - nx * hz
-                    cz = nx * hy - ny * hx
-                    q = cx * cx + cy * cy + cz * cz + he + nh * nh * alpha2
-                    d = alpha2 * np.float32(INV_PI) / (q * q)
-                    a = nl * (one - k) + k
-                    vis = one / (np.float32(4.0) * a * b)
-                    e = d * vis * nl
+                    e, dx, dy, dz, dr = ggx_specular(nx, ny, nz, nl, lx, ly, lz, hx, hy, hz, he, vx, vy, vz, own[0, j],
+                                                     own[1, j], own[2, j], own[3, j], own[4, j], own[5, j], own[6, j])
                     u0, u1, u2 = w0 * lit, w1 * lit, w2 * lit
                     sums[0, j] += u0 * nl
                     sums[1, j] += u1 * nl
@@ -107,18 +142,6 @@ def _frame_pass(normal: np.ndarray, albedo: np.ndarray, f0: np.ndarray, roughnes
                     sums[4, j] += u1 * e
                     sums[5, j] += u2 * e
                     if gradient:
-                        # dE/dn = E·(−2/q·dq/dn − (1−k)/a·l − (1−k)/b·v) + D·V·l, dq/dn = 2 h × (n × h) + 2 n·h α² h
-                        tq = np.float32(-4.0) * e / q
-                        qx = (hy * cz - hz * cy) + nh * alpha2 * hx
-                        qy = (hz * cx - hx * cz) + nh * alpha2 * hy
-                        qz = (hx * cy - hy * cx) + nh * alpha2 * hz
-                        tl = d * vis - e * (one - k) / a
-                        tv = -e * (one - k) / b * own[4, j]
-                        dx = tq * qx + tl * lx + tv * vx
-                        dy = tq * qy + tl * ly + tv * vy
-                        dz = tq * qz + tl * lz + tv * vz
-                        dr = e * ((one / alpha2 - np.float32(2.0) * nh * nh / q) * np.float32(4.0) * r * r * r
-                                  - ((one - nl) / a + (one - own[3, j]) / b) * (r + one) / np.float32(4.0)) * own[5, j]
                         sums[6, j] += u0 * lx
                         sums[7, j] += u0 * ly
                         sums[8, j] += u0 * lz
@@ -193,14 +216,10 @@ class _FusedFrameLoss(torch.autograd.Function):
                 visible: Tensor, view: Tensor, frames: int, measured: Tensor, saturated: Tensor) -> Tensor:
         p = normal.shape[0]
         gradient = any(ctx.needs_input_grad[:4])
-        view64 = view.detach().double()
-        s = light.detach().double() + view64
-        ss = torch.sum(s * s, dim=1, keepdim=True)
         loss = np.empty(p, dtype=np.float32)
         grads = np.empty((10, p if gradient else 0), dtype=np.float32)
-        _frame_pass(float32_array(normal.T), float32_array(albedo.T), float32_array(f0.T), float32_array(roughness.reshape(-1)), float32_array(light),
-                    float32_array(s / torch.sqrt(ss + HALF_EPS)), float32_array((HALF_EPS / (ss + HALF_EPS)).reshape(-1)), float32_array(weight),
-                    float32_array(visible), float32_array(view64), frames, float32_array(measured).reshape(frames, p, 3),
+        shading = (float32_array(x) for x in (normal.T, albedo.T, f0.T, roughness.reshape(-1), light, weight, visible))
+        _frame_pass(*shading, view.detach().double().numpy(), frames, float32_array(measured).reshape(frames, p, 3),
                     saturated.reshape(frames, p).contiguous().numpy(), gradient, loss, grads)
         count = frames * p * 3
         if gradient:
