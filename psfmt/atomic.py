@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import os
 import secrets
-from collections.abc import Iterator
+import stat
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -38,12 +39,48 @@ def commit(tmp: Path, target: str | os.PathLike[str]) -> None:
         raise FormatError(target, "is a folder, not a file") from None
 
 
-def check_target(target: str | os.PathLike[str]) -> Path:
-    """``target`` as a Path, or a FormatError when a write could never replace it (it is a folder)."""
+def check_target(
+    target: str | os.PathLike[str], inputs: Iterable[str | os.PathLike[str]] = (), *, folder: bool = False
+) -> Path:
+    """``target`` as a Path, or a FormatError naming it when a write must not replace it — the one
+    output-path rule of every command that writes:
+
+    - it is a symbolic link (a rename would replace the link, a write through it the file it points
+      to: neither is what was asked);
+    - it exists and is not a regular file (``folder``: not a folder) — a device such as ``/dev/null``,
+      a FIFO or a socket is never replaced by a file;
+    - it is one of ``inputs`` (the same file through another name or a hard link: same device and
+      inode), or with ``folder`` holds one of them, so an output never replaces what it is made from.
+    """
     target = Path(target)
-    if target.is_dir():
+    try:
+        info = os.lstat(target)
+    except (FileNotFoundError, NotADirectoryError):
+        return target
+    if stat.S_ISLNK(info.st_mode):
+        raise FormatError(target, "is a symbolic link; write to the file itself or to a new path")
+    if folder and not stat.S_ISDIR(info.st_mode):
+        raise FormatError(target, "exists and is not a folder")
+    if not folder and stat.S_ISDIR(info.st_mode):
         raise FormatError(target, "is a folder, not a file")
+    if not folder and not stat.S_ISREG(info.st_mode):
+        raise FormatError(target, "exists and is not a regular file (a device, FIFO or socket); it is not replaced")
+    for source in inputs:
+        try:
+            found = os.stat(source)
+        except OSError:
+            continue
+        if (found.st_dev, found.st_ino) == (info.st_dev, info.st_ino) or (folder and _inside(source, target)):
+            raise FormatError(target, f"is the input {source} (or holds it); write the output elsewhere")
     return target
+
+
+def _inside(path: str | os.PathLike[str], folder: Path) -> bool:
+    """Whether ``path`` lies inside ``folder`` once both are resolved."""
+    try:
+        return Path(path).resolve().is_relative_to(folder.resolve())
+    except (OSError, RuntimeError):
+        return False
 
 
 @contextmanager

@@ -24,7 +24,7 @@ import numpy as np
 import psfmt
 from pstoolkit import Option, Progress, Solver, SolverResult, UserError, build_light_model
 from pstoolkit.events import eventps
-from pstoolkit.solve.cluster import available_cpus
+from pstoolkit.solve.cluster import available_cpus, max_parallel
 from pstoolkit_eventps.resample import Resampler, event_to_frame_affine
 
 MAX_SEQUENCE_BYTES = 4 << 30
@@ -72,7 +72,7 @@ class EventPS(Solver):
             "also solve one normal map per window of this many µs (maps['normal_sequence']); 0 = off",
             minimum=0.0,
         ),
-        Option("threads", int, 0, "maps fitted at once with window_us (0 = the cores this process may use)", minimum=0),
+        Option("threads", int, 0, "maps fitted at once with window_us (0 = the cores this process may use)", minimum=0, maximum=max_parallel()),
     )
     needs = frozenset({"events", "lights"})
     requires = {"threads": ("window_us", "window_us > 0 (threads fit windows at once)"),

@@ -3,7 +3,9 @@ errors into one line and exit code 2."""
 
 from __future__ import annotations
 
+import signal
 import sys
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -164,21 +166,43 @@ def _usage_error(exc: BaseException) -> bool:
     return hasattr(exc, "format_message") and isinstance(getattr(exc, "exit_code", None), int)
 
 
+_terminated = threading.Event()
+
+
+def _terminate(signum: int, frame: object) -> None:
+    """SIGTERM: raised in the main thread as a Ctrl-C is, so that the same clean-up runs (a temporary
+    file removed, a partial folder deleted); the command then exits with 143."""
+    _terminated.set()
+    raise KeyboardInterrupt
+
+
+def _interrupted() -> int:
+    """Print why the command stopped; the exit code: 143 for SIGTERM, 130 for Ctrl-C."""
+    if _terminated.is_set():
+        fail("terminated")
+        return 143
+    fail("interrupted")
+    return 130
+
+
 def main(argv: list[str] | None = None) -> int:
     """Console entry point. Exit codes: 0 success, 1 a negative finding (validate), 2 a user error
-    (a usage error, a bad file, a bad option), 130 interrupted. Every error is one line on stderr.
-    Captures are checked in a child process before they are read (``psfmt.isolate``), so a file that
-    would hang or crash HDF5 is one more bad file."""
+    (a usage error, a bad file, a bad option), 130 interrupted, 143 terminated (SIGTERM, which cleans
+    up as Ctrl-C does). Every error is one line on stderr. Captures are checked in a child process
+    before they are read (``psfmt.isolate``), so a file that would hang or crash HDF5 is one more bad
+    file."""
     keep_freed_memory()
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminate) if main_thread else None
+    _terminated.clear()
     try:
         with isolated():
             result = app(args=argv, prog_name="pstoolkit", standalone_mode=False)
         code = result if isinstance(result, int) else 0
         if code == 130:  # typer turns Ctrl-C inside a command into Exit(130) without a word
-            fail("interrupted")
+            code = _interrupted()
     except KeyboardInterrupt:
-        fail("interrupted")
-        code = 130
+        code = _interrupted()
     except Interrupted as exc:
         fail(f"interrupted: {exc}")
         code = 130
@@ -194,8 +218,7 @@ def main(argv: list[str] | None = None) -> int:
         code = 2
     except Exception as exc:
         if type(exc).__name__ == "Abort":  # click turns Ctrl-C inside a command into Abort
-            fail("interrupted")
-            code = 130
+            code = _interrupted()
         elif _usage_error(exc):
             fail(exc.format_message())  # type: ignore[attr-defined]
             code = exc.exit_code  # type: ignore[attr-defined]
@@ -203,6 +226,8 @@ def main(argv: list[str] | None = None) -> int:
             raise
     finally:
         close_progress()
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
     if argv is None:
         sys.exit(code)
     return code

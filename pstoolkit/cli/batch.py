@@ -50,12 +50,12 @@ def batch(
         write_log,
     )
     from pstoolkit.solve.cluster import connect, quiet_loop_errors
+    from pstoolkit.solve.results import check_error_max
 
     captures = list(captures or file_value(ctx, "captures") or [])
     if not captures:
         raise UserError("give the CAPTURE files or folders to run on (or captures in --config FILE)")
-    if not error_max > 0:
-        raise UserError(f"--error-max {error_max:g}: must be a positive number of degrees")
+    check_error_max(error_max, "--error-max")
     if device not in DEVICES:
         raise UserError(f"--device {device!r}: expected one of {', '.join(DEVICES)}")
     if out.exists() and not out.is_dir():

@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 import psfmt
+from psfmt.atomic import check_target
 from pstoolkit.cli.app import app, echo
 from pstoolkit.errors import UserError
 from pstoolkit.evaluation.scoring import CSV_COLUMNS, collect, csv_text, json_text, markdown
@@ -37,6 +38,7 @@ def eval_command(
         return
     if not out.parent.is_dir():
         raise UserError(f"{out}: folder {out.parent} does not exist")
+    check_target(out, paths)
     with psfmt.atomic_path(out) as tmp:
         tmp.write_text(text, encoding="utf-8")
     if not quiet and not as_json:  # with --json, stdout holds JSON or nothing: the JSON went to the file

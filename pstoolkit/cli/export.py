@@ -13,6 +13,7 @@ from pathlib import Path
 import typer
 
 import psfmt
+from psfmt.atomic import check_target
 from pstoolkit.cli.app import app, echo, progress_bar
 from pstoolkit.errors import UserError
 
@@ -83,6 +84,7 @@ def _export_events(capture_file: Path, fmt: str, out: Path, compression: str, qu
         raise UserError(f"--events {fmt!r} is not one of {', '.join(EVENT_FORMATS)}")
     if not out.parent.is_dir():
         raise UserError(f"{out}: folder {out.parent} does not exist")
+    check_target(out, [capture_file])
     with psfmt.read(capture_file) as capture:
         stream = capture.events
         if stream is None:

@@ -66,7 +66,7 @@ def run(
     The output folder is replaced as a unit: no file of an earlier result stays. With --config FILE,
     the settings come from a TOML file or an earlier run's result.json (docs/config.md)."""
     # deferred: writing maps loads OpenCV and integrating loads scipy, which `pstoolkit --help` never needs
-    from pstoolkit.solve.results import check_result_folder, result_folder, result_summary, solve_capture, summary_json, write_result_folder
+    from pstoolkit.solve.results import check_error_max, check_result_folder, result_folder, result_summary, solve_capture, summary_json, write_result_folder
     from pstoolkit.surface.outputs import SurfaceInputs, add_surface, capture_truth, surface_line
 
     entry = get_registries().solvers.get(solver)
@@ -79,8 +79,7 @@ def run(
         raise UserError("--integrator-set needs --integrate NAME")
     check_tiling(entry, scheduler, workers)
     device = resolve_device(device)
-    if not error_max > 0:
-        raise UserError(f"--error-max {error_max:g}: must be a positive number of degrees")
+    check_error_max(error_max, "--error-max")
     result_name = entry.name if name is None else name
     if not _RESULT_NAME.fullmatch(result_name):
         raise UserError(f"--name {result_name!r}: use letters, digits, '.', '_' and '-', starting with a letter or digit")
@@ -90,7 +89,7 @@ def run(
     check_capture(ctx, capture)
     obj = "demo" if demo else capture.stem
     outdir = out if out is not None else Path("out") / f"{obj}-{result_name}"
-    check_result_folder(outdir)  # before solving, so that a long run does not end in this error
+    check_result_folder(outdir, [] if capture is None else [capture])  # before solving, so that a long run does not end in this error
     if capture is None:
         capture = _demo_capture(progress_bar("simulate demo", quiet), notes)
     solved = solve_capture(entry, capture, options, device=device, scheduler=scheduler, workers=workers,

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import typer
 
+from psfmt.atomic import check_target
 from pstoolkit.cli.app import app, echo, progress_bar
 from pstoolkit.errors import UserError
 from pstoolkit.plugin.manager import get_registries
@@ -99,6 +100,8 @@ def simulate_command(
         device=resolve_device(device),
     )
     from pstoolkit.sim.simulator import simulate  # deferred: the simulator loads torch and numba
+
+    check_target(out, [Path(lights)] if lights not in ("ring", "grid") else [])  # before a long render
 
     progress = progress_bar(f"simulate {scene}", quiet or as_json)
     summary = simulate(config, out, progress)

@@ -31,7 +31,6 @@ when all are made do they replace the old ones, so a failed report leaves the ol
 from __future__ import annotations
 
 import html
-import json
 import math
 import re
 from collections.abc import Sequence
@@ -52,10 +51,12 @@ import psfmt
 from psfmt.atomic import check_target, commit, temporary_sibling
 from psfmt.describe import cut
 from psfmt.text import printable
+from pstoolkit._shared.vectors import solved_pixels
 from pstoolkit.errors import UserError
 from pstoolkit.evaluation.markup import md
 from pstoolkit.evaluation.scoring import GROUND_TRUTH_METRICS, METRICS, RESULT_FILE, TITLES, Record, collect, markdown_table
 from pstoolkit.io.normalmap import normal_to_rgb, read_normal_npy, read_npy
+from pstoolkit.io.textdata import read_json_object
 from pstoolkit.solve.batch import read_failures
 from pstoolkit.solve.results import error_to_rgb
 
@@ -176,8 +177,7 @@ def plot_mae_vs_rate(records: list[Record], path: Path) -> None:
 
 def _summary(folder: Path) -> dict[str, Any]:
     """A result folder's ``result.json`` (checked to be an object when the records were collected)."""
-    data = json.loads((folder / RESULT_FILE).read_text(encoding="utf-8"))
-    return data if isinstance(data, dict) else {}
+    return read_json_object(folder / RESULT_FILE)
 
 
 def _float_map(path: Path, what: str) -> np.ndarray | None:
@@ -285,7 +285,7 @@ def maps_figure(records: list[Record], truth: Truth | None = None) -> Figure:
             if error is None:
                 axes[1, column].text(0.5, 0.5, "no ground truth", ha="center", va="center", transform=axes[1, column].transAxes)
             else:
-                solved = np.any(normal != 0, axis=-1)
+                solved = solved_pixels(normal)
                 _draw_error(fig, axes[1, column], error[0], error[1], solved)
                 grey = ", grey: unsolved" if np.any(np.isfinite(error[0]) & ~solved) else ""
                 axes[1, column].set_title(f"error 0–{error[1]:g}°{grey}", fontsize="small")

@@ -12,6 +12,7 @@ import csv
 import io
 import json
 import math
+import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -19,14 +20,14 @@ from typing import Any
 import numpy as np
 
 import psfmt
-from psfmt.text import printable
+from pstoolkit._shared.vectors import solved_pixels
 from pstoolkit.errors import UserError
 from pstoolkit.evaluation.markup import md
 from pstoolkit.evaluation.metrics import SHARE_KEYS, THRESHOLDS_DEG, angular_error_deg, error_stats
+from pstoolkit.io.textdata import read_json_object
 
 MISSING = "–"
 RESULT_FILE = "result.json"
-MAX_JSON_BYTES = 16 << 20
 """Largest ``result.json`` read (a solver's diagnostics make it kilobytes, not megabytes)."""
 METRICS = ("mae_deg", "mae_solved_deg", "median_deg", "coverage", *SHARE_KEYS, "data_rate", "seconds", "depth_error")
 TITLES = {
@@ -83,12 +84,12 @@ class Record:
 def score(normal: np.ndarray, gt: psfmt.GroundTruth | None) -> Score | None:
     """Error of ``normal`` over the ground-truth mask (non-zero ground-truth normals when the capture
     stores no mask); None without ground-truth normals. A pixel the solver left out (zero normal)
-    counts as 90° off and as not solved."""
+    (``solved_pixels``: a zero, tiny or non-finite normal) counts as 90° off and as not solved."""
     if gt is None or gt.normal is None:
         return None
     mask = gt.mask if gt.mask is not None else np.linalg.norm(gt.normal, axis=-1) > 0
     errors = angular_error_deg(normal, gt.normal, mask)
-    solved = np.any(np.asarray(normal) != 0, axis=-1)
+    solved = solved_pixels(normal)
     return Score(errors.astype(np.float32), solved, error_stats(errors, solved))
 
 
@@ -111,31 +112,17 @@ def _depth_error(data: dict[str, Any], where: Path) -> float | None:
 
 
 def read_result_json(path: Path) -> dict[str, Any]:
-    """``result.json`` as a dict ({} when absent). Raises UserError when it is too large or not a
-    JSON object (a crafted file may be either)."""
-    if not path.is_file():
+    """``result.json`` as a dict ({} when absent). Raises UserError when it is not a JSON object
+    within ``pstoolkit.io.textdata``'s bounds (a crafted file may be anything)."""
+    if not os.path.lexists(path):
         return {}
-    size = path.stat().st_size
-    if size > MAX_JSON_BYTES:
-        raise UserError(f"{path}: {size} bytes, over the {MAX_JSON_BYTES} a result.json may have")
-    try:
-        value = json.loads(path.read_bytes())
-    except (ValueError, RecursionError) as exc:
-        raise UserError(f"{path}: not valid JSON ({printable(exc)})") from None
-    if not isinstance(value, dict):
-        raise UserError(f"{path}: expected a JSON object")
-    return value
+    return read_json_object(path)
 
 
 def read_result_folder(folder: Path) -> Record:
     """The record of a folder written by ``pstoolkit run``."""
     path = folder / RESULT_FILE
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise UserError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
-    if not isinstance(data, dict):
-        raise UserError(f"{path}: expected a JSON object")
+    data = read_json_object(path)
     for key in ("object", "name"):
         if not isinstance(data.get(key), str):
             raise UserError(f"{path}: {key!r} is missing or not a string (not a `pstoolkit run` result?)")

@@ -21,6 +21,7 @@ from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Any, ClassVar
 
+from psfmt.atomic import check_target
 from pstoolkit.errors import UserError
 from pstoolkit.plugin.options import Option
 from pstoolkit.plugin.registry import Entry, PluginError
@@ -52,6 +53,9 @@ def run_converter(
         raise PluginError(f"{blame} is not a pstoolkit.io.converter.Converter subclass")
     if not src.exists():
         raise UserError(f"{src}: does not exist")
+    # a folder OUT receives new files (each written through the same rule), a file OUT is replaced
+    into = out.is_dir() and not out.is_symlink()
+    check_target(out, [] if into else [src], folder=into)
     written = entry.obj().convert(src, out, options, progress)
     if not isinstance(written, list) or not all(isinstance(p, Path) for p in written):
         raise PluginError(f"{blame} returned {type(written).__name__}, expected a list of paths")

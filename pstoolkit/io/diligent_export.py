@@ -32,6 +32,7 @@ import numpy as np
 import scipy.io
 
 import psfmt
+from psfmt.atomic import check_target
 from pstoolkit.errors import UserError
 from pstoolkit.io.diligent_layout import DIRECTIONS, FILENAMES, INTENSITIES, MASK, NORMAL, NORMAL_VARIABLE
 from pstoolkit.io.folders import atomic_folder
@@ -104,9 +105,10 @@ def _truth(capture: psfmt.Capture, shape: tuple[int, int], source: Path) -> tupl
     return mask, normal
 
 
-def _check_target(folder: Path, force: bool) -> None:
+def _check_target(folder: Path, source: Path, force: bool) -> None:
     if not folder.parent.is_dir():
         raise UserError(f"{folder}: folder {folder.parent} does not exist")
+    check_target(folder, [source], folder=folder.is_dir() or folder.is_symlink())
     if folder.exists() and not folder.is_dir():
         raise UserError(f"{folder}: is a file, not a folder")
     if folder.is_dir() and any(folder.iterdir()) and not force:
@@ -122,7 +124,7 @@ def export_diligent(source: Path, folder: Path, *, force: bool = False, progress
     docstring). UserError, with nothing written, for a capture that is not a classic one, a
     non-empty ``folder`` without ``force``, or a capture without ground truth whose frames are all
     dark (no mask)."""
-    _check_target(folder, force)
+    _check_target(folder, source, force)
     with psfmt.read(source) as capture:
         frames = check_exportable(capture, source)
         count, shape = frames.count, (frames.height, frames.width)

@@ -10,11 +10,13 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from psfmt.atomic import temporary_sibling
+from psfmt.atomic import check_target, temporary_sibling
 
 
 def replace_folder(new: Path, folder: Path) -> None:
-    """Rename ``new`` to ``folder``; an existing ``folder`` is moved aside first and then removed."""
+    """Rename ``new`` to ``folder``; an existing ``folder`` is moved aside first and then removed.
+    A ``folder`` that is a link or not a folder is a FormatError (``psfmt.atomic.check_target``)."""
+    check_target(folder, folder=True)
     old = temporary_sibling(folder) if folder.exists() else None
     if old is not None:
         os.replace(folder, old)
@@ -28,7 +30,7 @@ def atomic_folder(target: Path) -> Iterator[Path]:
     """Yield a new empty folder beside ``target`` to fill; on success it replaces ``target`` (an
     existing one is removed), on any exception (Ctrl-C included) it is removed and ``target`` is
     left as it was."""
-    partial = temporary_sibling(target)
+    partial = temporary_sibling(check_target(target, folder=True))
     partial.mkdir()
     try:
         yield partial

@@ -130,14 +130,13 @@ class Solution(SolverResult):
         degrees. Add a surface with ``pstoolkit integrate FOLDER``.
 
         UserError for a capture made in memory (``result.json`` names the capture file: write it with
-        ``psfmt.write`` and solve that), a non-positive ``error_max_deg``, or a ``folder`` that is a
+        ``psfmt.write`` and solve that), an ``error_max_deg`` outside (0, 180], or a ``folder`` that is a
         file or holds other files; PluginError for a malformed solver map, as ``pstoolkit run`` gives."""
-        from pstoolkit.solve.results import SolvedCapture, prepare_maps, result_folder, result_summary, write_result_folder  # deferred: OpenCV
+        from pstoolkit.solve.results import SolvedCapture, check_error_max, prepare_maps, result_folder, result_summary, write_result_folder  # deferred: OpenCV
 
         if self.capture_path is None:
             raise UserError("the capture was made in memory: a result folder names its capture file (write it with psfmt.write and solve that)")
-        if not error_max_deg > 0:
-            raise UserError(f"error_max_deg={error_max_deg!r}: must be a positive number of degrees")
+        check_error_max(error_max_deg, "error_max_deg")
         out = Path(folder)
         maps = prepare_maps(self.maps, self.mask, f"plugin {self.entry.plugin!r}: solver {self.solver!r}")
         solved = SolvedCapture(self.normal, self.mask, maps, self.score, self.seconds, self.data_rate, self.capture_kind, self.diagnostics)
@@ -201,12 +200,15 @@ def solve(
     Raises
     ------
     UserError
-        An unknown solver or option, a bad option value, ``device`` not available, a capture that
+        An unknown solver or option, a bad option value (an int outside 64 bits too), a
+        ``progress`` that is not callable, ``device`` not available, a capture that
         lacks what the solver needs; ``psfmt.FormatError`` for a capture file that does not read.
     """
     entry = get_registries().solvers.get(solver)
     parsed = entry.parse_options(assignments(entry, options))
     device = resolve_device(device)
+    if progress is not None and not callable(progress):
+        raise UserError(f"progress must be a function progress(fraction, message) or None, not {type(progress).__name__}")
     report = no_progress if progress is None else progress
     if isinstance(capture, psfmt.Capture):
         return _solve_open(entry, capture, parsed, device, report)

@@ -27,6 +27,7 @@ from psfmt.isolate import isolated
 from pstoolkit.errors import UserError
 from pstoolkit.evaluation.scoring import RESULT_FILE
 from pstoolkit.io.folders import replace_folder
+from pstoolkit.io.textdata import read_json
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.solve.base import Progress, no_progress, resolve_device, resolve_options
 from pstoolkit.solve.results import result_summary, solve_capture, summary_json, write_result_folder
@@ -168,8 +169,8 @@ def is_complete(pair: Pair) -> bool:
     """True when the pair's folder holds a result.json of the same solver, capture and options."""
     path = Path(pair.folder) / RESULT_FILE
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        data = read_json(path)
+    except UserError:
         return False
     return (
         isinstance(data, dict)
@@ -291,8 +292,8 @@ def read_failures(outdir: Path) -> list[Outcome]:
     path = outdir / LOG_FILE
     if not path.is_file():
         return []
+    data = read_json(path)
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
         return [Outcome(**entry) for entry in data["pairs"] if entry["status"] == "failed"]
     except (ValueError, KeyError, TypeError) as exc:
         raise UserError(f"{path}: not a batch log written by `pstoolkit batch` ({exc})") from None

@@ -28,14 +28,30 @@ def available_memory_bytes() -> int:
     return min(total, int(limit)) if limit.isdigit() else total
 
 
+PER_CORE = 4
+"""Workers or threads per core at most (``max_parallel``)."""
+
+
+def max_parallel() -> int:
+    """The most worker processes or threads one job is given on this machine: ``PER_CORE`` per core
+    this process may use. More would only queue for the cores, each one costing memory (a worker
+    process about 100 MB before it loads a capture)."""
+    return PER_CORE * available_cpus()
+
+
 def check_workers(scheduler: str | None, workers: int | None) -> None:
-    """UserError for ``workers`` below 1, or given with a ``scheduler`` (which has its own workers)."""
+    """UserError for ``workers`` below 1 or above ``max_parallel``, or given with a ``scheduler``
+    (which has its own workers)."""
     if workers is None:
         return
     if scheduler is not None:
         raise UserError("--workers: only for the local cluster; an existing scheduler (--scheduler) has its own workers")
     if workers < 1:
         raise UserError(f"--workers {workers}: need at least one worker")
+    if workers > max_parallel():
+        raise UserError(
+            f"--workers {workers}: more than this machine can run ({max_parallel()}: {PER_CORE} per core for its {available_cpus()} cores)"
+        )
 
 
 def connect(scheduler: str | None, workers: int | None) -> tuple[Any, Any]:

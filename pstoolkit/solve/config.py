@@ -16,22 +16,16 @@ where the later assignment of a key wins.
 
 from __future__ import annotations
 
-import json
 import os
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from pstoolkit.errors import UserError
 from pstoolkit.io.checksum import file_sha256
+from pstoolkit.io.textdata import read_json, read_toml
 from pstoolkit.plugin.options import table_assignments, value_kind
 from pstoolkit.plugin.registry import Entry
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover - Python 3.10 has no tomllib; tomli is the same parser (a dependency there)
-    import tomli as tomllib
 
 RESULT_SUFFIX = ".json"
 """A FILE with this suffix is read as an earlier run's result.json, any other as TOML."""
@@ -191,10 +185,7 @@ def read_config(path: Path, command: str) -> CommandConfig:
         if command != "run":
             raise UserError(f"{path}: a result.json describes one run; repeat it with `pstoolkit run --config {path}`")
         return _read_result(path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise UserError(f"{path}: not a valid TOML file ({exc})") from None
+    data = read_toml(path)
     config = CommandConfig(path, command)
     flags = RUN_FLAGS if command == "run" else BATCH_FLAGS
     option_keys = OPTION_KEYS[command]
@@ -269,10 +260,7 @@ def _check_names(config: CommandConfig) -> None:
 def _read_result(path: Path) -> CommandConfig:
     """``run``'s settings from an earlier run's result.json: solver, options, capture (and its
     checksum), name and error-map scale; its other keys (scores, seconds …) are not settings."""
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise UserError(f"{path}: not a valid JSON file ({exc})") from None
+    data = read_json(path)
     if not isinstance(data, dict) or not isinstance(data.get("solver"), str) or "capture" not in data:
         raise UserError(f"{path}: not a result.json written by `pstoolkit run` (no solver and capture)")
     config = CommandConfig(path, "run", from_result=True)

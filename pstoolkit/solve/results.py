@@ -23,7 +23,7 @@ from __future__ import annotations
 import json
 import os
 import re
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 
 import psfmt
+from psfmt.atomic import check_target
 from pstoolkit import __version__
 from pstoolkit.errors import UserError
 from pstoolkit.evaluation.metrics import SHARE_KEYS
@@ -138,6 +139,19 @@ def write_maps(folder: Path, outputs: list[MapOutput]) -> None:
         write_npy(folder / f"{output.name}.npy", output.array)
         if output.image is not None:
             write_png(folder / f"{output.name}.png", output.image)
+
+
+MAX_ERROR_DEG = 180.0
+"""The largest angle between two directions: the top of an error scale is at most this."""
+
+
+def check_error_max(value: float, where: str) -> float:
+    """``value`` (degrees, the top of ``error.png``'s scale) when it lies in (0, 180]; else a
+    UserError naming ``where`` (``--error-max``, ``error_max_deg``). Infinity would put every error
+    at the bottom of the scale and write ``Infinity`` into result.json, which is not JSON."""
+    if not 0.0 < value <= MAX_ERROR_DEG:  # NaN fails too
+        raise UserError(f"{where} {value!r}: expected a number of degrees above 0 and at most {MAX_ERROR_DEG:g}")
+    return float(value)
 
 
 def write_error_map(folder: Path, scored: Score, error_max_deg: float) -> None:
@@ -262,11 +276,14 @@ def summary_json(summary: dict[str, Any]) -> str:
     return json.dumps(summary, indent=2, default=_jsonable)
 
 
-def check_result_folder(folder: Path) -> None:
+def check_result_folder(folder: Path, inputs: Sequence[Path] = ()) -> None:
     """UserError unless ``folder`` may be replaced by a result folder (``result_folder``): it does
     not exist, or it is an empty folder or one holding ``result.json`` (an earlier result). Anything
-    else — a file, a folder of other files — is refused rather than deleted. Check before solving, so
-    a long run does not end in this error."""
+    else — a file, a folder of other files, a link, a folder holding one of ``inputs`` (the capture)
+    — is refused rather than deleted (``psfmt.atomic.check_target``). Check before solving, so a long
+    run does not end in this error."""
+    if folder.is_symlink() or folder.exists() and folder.is_dir():
+        check_target(folder, inputs, folder=True)
     if not folder.exists():
         return
     if not folder.is_dir():

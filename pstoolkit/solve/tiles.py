@@ -82,18 +82,25 @@ def _up(x: int) -> int:
     return -(-x // ALIGN_PX) * ALIGN_PX
 
 
+MAX_TILES = 4096
+"""Most tiles one frame is cut into (a 65 536² frame in 1024² tiles): each tile is a task with its own
+copy of the capture's lights and a crop's overhead, so a tiny ``tile_px`` would fill memory with tasks."""
+
+
 def plan_tiles(height: int, width: int, *, tile_px: int, overlap_px: int) -> list[Tile]:
     """Tiles over an H×W frame whose cores are at most about ``tile_px`` on a side (the fewest that
     are), each crop reaching at least ``overlap_px`` beyond its core where there is a neighbour (its
     bounds rounded out to multiples of ``ALIGN_PX``, so that a crop of an event sensor at 1/2, 1/4 or
     1/8 of the frame's resolution starts and ends on event pixel boundaries). One tile
     (core and crop the whole frame) when the frame fits. UserError for a non-positive ``tile_px``,
-    a negative ``overlap_px``, or an overlap wider than a core (the blending bands would meet)."""
+    a negative ``overlap_px``, or an overlap wider than a core (the blending bands would meet), or more than ``MAX_TILES`` tiles."""
     if tile_px <= 0:
         raise UserError(f"tile_px = {tile_px}: a tile needs a positive size in frame pixels")
     if overlap_px < 0:
         raise UserError(f"overlap_px = {overlap_px}: must not be negative")
     rows, cols = max(1, math.ceil(height / tile_px)), max(1, math.ceil(width / tile_px))
+    if rows * cols > MAX_TILES:
+        raise UserError(f"tile_px = {tile_px}: cuts the {width}×{height} frame into {rows * cols} tiles, over {MAX_TILES}; use larger tiles")
     row_cuts, col_cuts = _cuts(height, rows), _cuts(width, cols)
     # each core boundary blends over a band of overlap_px centred on it: a core must hold both halves
     cores = [int(d) for cuts, n in ((row_cuts, rows), (col_cuts, cols)) if n > 1 for d in np.diff(cuts)]

@@ -34,6 +34,7 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 
+from pstoolkit._shared.vectors import solved_pixels
 from pstoolkit.plugin.options import Option
 
 Projection = Literal["orthographic", "perspective"]
@@ -112,8 +113,8 @@ class Integrator(ABC):
 
 def checked_inputs(normal: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(normal (H, W, 3) float64 renormalised to unit length, mask (H, W) bool), or ValueError when
-    the shapes disagree or a pixel of the mask has a zero or non-finite normal (leave those out of
-    the mask: an unsolved pixel has no slope to integrate)."""
+    the shapes disagree or a pixel of the mask is not solved (``solved_pixels``: a zero, tiny or
+    non-finite normal; leave those out of the mask: an unsolved pixel has no slope to integrate)."""
     normal = np.asarray(normal, dtype=np.float64)
     mask = np.asarray(mask)
     if mask.ndim != 2:
@@ -121,10 +122,10 @@ def checked_inputs(normal: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np
     if normal.shape != (*mask.shape, 3):
         raise ValueError(f"normal map of shape {normal.shape} does not fit mask of shape {mask.shape} (expected {(*mask.shape, 3)})")
     mask = mask.astype(bool)
-    length = np.linalg.norm(normal, axis=-1)
-    bad = mask & ~(np.isfinite(length) & (length > 1e-12))
+    bad = mask & ~solved_pixels(normal)
     if bad.any():
         raise ValueError(f"{int(bad.sum())} pixels of the mask have a zero or non-finite normal; leave them out of the mask")
+    length = np.linalg.norm(normal, axis=-1)
     unit = np.zeros_like(normal)
     unit[mask] = normal[mask] / length[mask][:, None]
     return unit, mask

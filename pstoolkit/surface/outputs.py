@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 import psfmt
+from pstoolkit._shared.vectors import solved_pixels
 from pstoolkit.errors import UserError
 from pstoolkit.evaluation.metrics import depth_error
 from pstoolkit.evaluation.scoring import RESULT_FILE, read_result_json
@@ -190,11 +191,11 @@ def read_summary(folder: Path) -> dict[str, Any]:
 
 
 def folder_inputs(folder: Path, capture: Path | None) -> SurfaceInputs:
-    """The normal map (``normal.npy``), its mask (its non-zero pixels) and albedo (``albedo.npy`` when
+    """The normal map (``normal.npy``), its mask (its solved pixels, ``solved_pixels``) and albedo (``albedo.npy`` when
     the solver wrote one) of a result ``folder``; the ground-truth depth and camera of ``capture``
     when given (a result's own ``capture`` entry is not followed: a folder is read, not where it points)."""
     normal = read_normal_npy(folder / "normal.npy")
-    mask = np.any(normal != 0, axis=-1) & np.isfinite(normal).all(axis=-1)
+    mask = solved_pixels(normal)
     albedo = None
     if (folder / "albedo.npy").is_file():
         candidate = read_npy(folder / "albedo.npy")

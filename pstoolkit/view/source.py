@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from psfmt.text import printable
+from pstoolkit._shared.vectors import solved_pixels
 from pstoolkit.errors import UserError
 from pstoolkit.evaluation.scoring import read_result_json
 
@@ -137,11 +138,10 @@ def _finite(array: np.ndarray) -> np.ndarray:
 
 
 def _normal_and_mask(normal: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The normal map zeroed where it is not finite, zero or outside ``mask``; and the mask of the rest."""
+    """The normal map zeroed where it is not solved (``solved_pixels``) or outside ``mask``; and the mask of the rest."""
     if normal.ndim != 3 or normal.shape[2] != 3:
         raise UserError(f"normal map has shape {normal.shape}, expected (H, W, 3)")
-    finite = np.all(np.isfinite(normal), axis=-1)
-    keep = finite & np.any(normal != 0, axis=-1)
+    keep = solved_pixels(normal)
     if mask is not None:
         keep &= mask
     return np.where(keep[..., None], normal, np.float32(0.0)).astype(np.float32), keep
