@@ -158,12 +158,41 @@ def write_npy(path: str | os.PathLike[str], array: np.ndarray) -> None:
             np.save(fh, array, allow_pickle=False)
 
 
+def npy_header(path: Path) -> tuple[tuple[int, ...], np.dtype]:
+    """The (shape, dtype) a .npy file declares, once it is known to be an array of numbers whose
+    declared size the file holds: a crafted header (a negative or 2⁶²-long axis, more data than
+    stored) is a UserError naming the file before anything is allocated or memory-mapped."""
+    try:
+        with open(path, "rb") as fh:
+            version = np.lib.format.read_magic(fh)
+            if version not in ((1, 0), (2, 0)):
+                raise ValueError(f".npy format version {version[0]}.{version[1]} is not read")
+            reader = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, _, dtype = reader(fh)
+            offset = fh.tell()
+            size = os.fstat(fh.fileno()).st_size
+    except (ValueError, OSError, EOFError, SyntaxError, OverflowError) as exc:
+        raise UserError(f"{path}: not a readable .npy array ({printable(str(exc))})") from None
+    if dtype.hasobject or dtype.kind not in "biuf":
+        raise UserError(f"{path}: expected an array of numbers, got {printable(str(dtype))}")
+    if any(n < 0 for n in shape):
+        raise UserError(f"{path}: the .npy header declares a negative shape {shape}")
+    count = 1
+    for n in shape:
+        count *= n
+    if count * dtype.itemsize > size - offset:
+        raise UserError(f"{path}: the .npy header declares {count * dtype.itemsize} bytes of data, the file holds {size - offset}")
+    return tuple(shape), dtype
+
+
 def read_npy(path: str | os.PathLike[str]) -> np.ndarray:
-    """Read a numeric .npy array; a missing file, a damaged one or one that holds Python objects
-    (which would need unpickling, never done) is a UserError."""
+    """Read a numeric .npy array; a missing file, a damaged one, one whose header claims more than
+    it holds (``npy_header``) or one that holds Python objects (which would need unpickling, never
+    done) is a UserError."""
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: file does not exist")
+    npy_header(path)
     try:
         array = np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:

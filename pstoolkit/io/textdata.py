@@ -3,7 +3,7 @@
 Such a file may be crafted: it is read only when it is a regular file of at most ``MAX_TEXT_BYTES``
 (checked before reading, so a sparse file of gigabytes costs nothing), decoded as UTF-8, parsed, and
 accepted only when it nests at most ``MAX_DEPTH`` arrays and tables deep and holds no integer outside
-``INT_RANGE`` (a 400-digit integer would overflow the first ``float()`` that meets it). Every refusal is
+``INT_RANGE`` (a 400-digit integer would overflow the first ``float()`` that meets it, a seed of 2⁶⁴ torch). Every refusal is
 a UserError naming the file. Every reader of result.json and of settings files goes through here.
 """
 
@@ -28,9 +28,9 @@ MAX_TEXT_BYTES = 16 << 20
 """Largest JSON or TOML file read (16 MiB): a result.json of a 4096² run is a few kilobytes."""
 MAX_DEPTH = 64
 """Deepest nesting of arrays and tables accepted (the toolkit writes at most 4)."""
-INT_RANGE = (-(1 << 63), (1 << 64) - 1)
-"""Integers accepted: int64 and uint64 (a seed)."""
-_MAX_INT_DIGITS = 20
+INT_RANGE = (-(1 << 63), (1 << 63) - 1)
+"""Integers accepted: int64's (what torch, numpy and numba take; a solver's seed too)."""
+_MAX_INT_DIGITS = 19
 
 
 def read_text(path: Path) -> str:

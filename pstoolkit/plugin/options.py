@@ -18,7 +18,7 @@ _FALSE = {"0", "false", "no", "off"}
 @dataclass(frozen=True)
 class Option:
     """One option of a solver, scene, backend …: ``type`` is int, float, bool or str; ``choices``
-    restricts a str option; ``minimum``/``maximum`` bound a number; an int lies in int64 or uint64 (a seed). A float option is finite: NaN
+    restricts a str option; ``minimum``/``maximum`` bound a number; an int lies in int64 (``textdata.INT_RANGE``). A float option is finite: NaN
     passes no range check and is not JSON, infinity is no setting. A ``multiple`` option may be
     given repeatedly: its value is the tuple of the given values in order (``default`` when none).
     A ``nested`` option (a multiple str) collects the options of another registry entry the owner
@@ -51,7 +51,8 @@ class Option:
 
     def check(self, value: Any) -> Any:
         if self.type is int and not INT_RANGE[0] <= value <= INT_RANGE[1]:  # beyond what torch or numba takes
-            raise UserError(f"option {self.name}: {value} is outside the 64-bit integers")
+            shown = value if len(str(value)) <= 24 else f"an integer of {len(str(abs(value)))} digits"
+            raise UserError(f"option {self.name}: {shown} is outside the 64-bit integers")
         if self.type is float and not math.isfinite(value):
             raise UserError(f"option {self.name}: {value!r} is not a finite number")
         if self.choices is not None and value not in self.choices:

@@ -7,7 +7,9 @@ Routes (GET only):
 - ``/data/index.json`` what there is (``page_index``); ``/data/<map>.f32`` a map's values as
   little-endian float32, row-major, in the shape the index gives;
 - ``/files/<path>`` a file of the result folder — only a regular file inside it once every link is
-  resolved; anything else, ``..`` included, is 404;
+  resolved; anything else, ``..`` included, is 404. Served inert (``FILE_TYPES``: PNG as an image,
+  text as ``text/plain``, anything else as an ``application/octet-stream`` attachment, never HTML)
+  with ``nosniff`` and a sandboxing CSP, so a crafted file cannot run in the viewer's origin;
 - ``/capture/at?t=US`` (or ``?frame=K``) the frame covering t and the light there (JSON);
   ``/capture/frame/<k>.rgb`` a frame and ``/capture/events.rgb?t0=US&t1=US`` an event image as RGB
   bytes (``Timeline``);
@@ -16,8 +18,10 @@ Routes (GET only):
 
 The server binds 127.0.0.1 by default and refuses any address that is not a loopback one unless
 ``allow_remote`` is given (``check_bind``). While bound to loopback it also refuses requests whose
-Host header names another host, so a web page elsewhere cannot reach it by pointing a DNS name at
-127.0.0.1. Every page response forbids scripts and styles from anywhere but the server.
+Host header names another host than ``localhost`` or a loopback address at its port, so a web page
+elsewhere cannot reach it by pointing a DNS name at 127.0.0.1. Every page response forbids scripts
+and styles from anywhere but the server. At most ``MAX_CONNECTIONS`` connections are served at once,
+each closed after ``IDLE_TIMEOUT_S`` of silence; the beacons kept are bounded.
 """
 
 from __future__ import annotations
@@ -25,11 +29,13 @@ from __future__ import annotations
 import ipaddress
 import json
 import math
+import os
 import re
 import shutil
 import socket
 import threading
 import time
+from collections import deque
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from pathlib import Path
@@ -51,7 +57,19 @@ CONTENT_TYPES = {
 }
 CSP = ("default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' blob: data:; connect-src 'self'; "
        "base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
+FILE_TYPES = {".png": "image/png", ".json": "text/plain; charset=utf-8", ".md": "text/plain; charset=utf-8",
+              ".txt": "text/plain; charset=utf-8"}
+"""The types ``/files/`` serves a result folder's files as: images as images, text as plain text,
+anything else as ``application/octet-stream``; never a type a browser runs (HTML, SVG, JavaScript)."""
+FILE_CSP = "default-src 'none'; sandbox; frame-ancestors 'none'"
+"""``/files/``'s policy: even a browser that rendered a file would give it no script, no origin."""
 MAX_PAGE_ERRORS = 50
+MAX_BEACONS = 1000
+"""``/ready`` beacons and page requests kept (the latest): a page left open must not grow the server."""
+MAX_CONNECTIONS = 64
+"""Connections served at once; one more is closed unanswered until one ends."""
+IDLE_TIMEOUT_S = 30.0
+"""A connection that sends nothing for this long is closed (its thread ends)."""
 _INT = re.compile(r"-?\d{1,17}")
 _FRAME = re.compile(r"/capture/frame/(\d{1,9})\.rgb")
 
@@ -158,8 +176,9 @@ class ViewServer(ThreadingHTTPServer):
         except BaseException:
             self.server_close()
             raise
-        self.requested: list[float] = []
-        self.ready: list[tuple[float, float, float]] = []
+        self.requested: deque[float] = deque(maxlen=MAX_BEACONS)
+        self.ready: deque[tuple[float, float, float]] = deque(maxlen=MAX_BEACONS)
+        self.slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
         self.ready_event = threading.Event()
         self.page_errors: list[str] = []
         self._thread: threading.Thread | None = None
@@ -174,10 +193,34 @@ class ViewServer(ThreadingHTTPServer):
         return f"http://{'[' + host + ']' if ':' in host else host}:{self.port}/"
 
     def host_allowed(self, header: str) -> bool:
-        """Whether a request's Host header may reach this server (any, unless bound to loopback)."""
+        """Whether a request's Host header may reach this server: any, unless bound to loopback; then
+        ``localhost`` or a loopback address (the one bound among them) at the bound port, which a
+        browser leaves out for port 80. A DNS name other than localhost is refused (DNS rebinding)."""
         if not self.loopback:
             return True
-        return header.lower() in {f"{name}:{self.port}" for name in ("127.0.0.1", "localhost", "[::1]")}
+        match = re.fullmatch(r"(\[[0-9a-fA-F:.]+\]|[^:\[\]]+)(?::(\d{1,5}))?", header)
+        if match is None:
+            return False
+        return is_loopback(match[1]) and int(match[2] or 80) == self.port
+
+    def process_request(self, request: Any, client_address: Any) -> None:
+        """Serve the connection on a thread of its own while fewer than ``MAX_CONNECTIONS`` are;
+        else close it unanswered (the browser retries), so idle or hostile connections cannot grow
+        the threads without bound."""
+        if not self.slots.acquire(blocking=False):
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            self.slots.release()
+            raise
+
+    def process_request_thread(self, request: Any, client_address: Any) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self.slots.release()
 
     def start(self) -> ViewServer:
         """Serve on a background thread (for tests and benchmarks); ``close`` stops it."""
@@ -199,6 +242,7 @@ class _Handler(BaseHTTPRequestHandler):
     server: ViewServer
     protocol_version = "HTTP/1.1"  # keep-alive: the page fetches a dozen files at once
     server_version = "pstoolkit-view"
+    timeout = IDLE_TIMEOUT_S  # the socket's: an idle keep-alive connection ends, and its thread
 
     def log_message(self, format: str, *args: Any) -> None:
         """Quiet: a request log would bury the one line the command prints."""
@@ -223,11 +267,11 @@ class _Handler(BaseHTTPRequestHandler):
         self.end_headers()
         self.wfile.write(body)
 
-    def _common_headers(self) -> None:
+    def _common_headers(self, csp: str = CSP) -> None:
         self.send_header("Cache-Control", "no-store")
         self.send_header("X-Content-Type-Options", "nosniff")
         self.send_header("Referrer-Policy", "no-referrer")
-        self.send_header("Content-Security-Policy", CSP)
+        self.send_header("Content-Security-Policy", csp)
 
     def _not_found(self) -> None:
         self._send(404, b"not found\n", "text/plain; charset=utf-8")
@@ -284,12 +328,15 @@ class _Handler(BaseHTTPRequestHandler):
             self._not_found()
             return
         with open(target, "rb") as fh:
-            size = target.stat().st_size
+            size = os.fstat(fh.fileno()).st_size
+            kind = FILE_TYPES.get(target.suffix.lower(), "application/octet-stream")
             self.send_response(200)
-            # never text/html: a crafted file in the folder must not run as part of the page
-            self.send_header("Content-Type", CONTENT_TYPES.get(target.suffix.lower(), "application/octet-stream"))
+            # never a type a browser runs: a crafted file in the folder must not act in the page's origin
+            self.send_header("Content-Type", kind)
             self.send_header("Content-Length", str(size))
-            self._common_headers()
+            if not kind.startswith("image/"):
+                self.send_header("Content-Disposition", "attachment")
+            self._common_headers(FILE_CSP)
             self.end_headers()
             shutil.copyfileobj(fh, self.wfile)
 

@@ -7,15 +7,17 @@ Either gives a ``ViewData``: float32 maps at the normal map's (H, W), the pixels
 to show (all from files, so untrusted: the page sets them as text, never as markup) and the capture,
 if any, whose frames and events the page scrubs.
 
-Sizes are checked before anything is allocated: a ``.npy`` file is memory-mapped, so its header is
-parsed and checked against the file's length without reading the data, and its shape is checked
-against ``MAX_PIXELS`` and the normal map's size before it is copied. Errors are ``UserError``s
+Sizes are checked before anything is allocated: a ``.npy`` file's header is parsed and checked
+against the file's length without reading the data, and its shape against ``MAX_PIXELS`` and the
+normal map's size, before it is memory-mapped and copied. Only regular files inside the folder are
+read (``in_folder``): a map or result.json that is a link leading out of it is refused. Errors are ``UserError``s
 naming the file; a further map that does not fit is left out with a note instead.
 """
 
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,6 +28,7 @@ from psfmt.text import printable
 from pstoolkit._shared.vectors import solved_pixels
 from pstoolkit.errors import UserError
 from pstoolkit.evaluation.scoring import read_result_json
+from pstoolkit.io.normalmap import npy_header
 
 MAP_NAMES = ("normal", "albedo", "f0", "roughness", "error", "depth")
 """The maps the viewer shows, in this order, whichever exist (``normal`` always does)."""
@@ -111,25 +114,37 @@ def read_map(path: Path, shape_hw: tuple[int, int] | None) -> np.ndarray:
     """A numeric .npy map as float32 (H, W) or (H, W, C), C in (1, 3), non-finite values as NaN.
 
     ``shape_hw``: the (H, W) it must have (None: any, up to ``MAX_PIXELS``). The file is
-    memory-mapped first, so a header that claims more data than the file holds, or a shape too large,
-    is refused before anything is allocated. Raises UserError naming the file."""
-    try:
-        mapped = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
-        raise UserError(f"{path}: not a readable .npy map ({printable(exc)})") from None
-    if not isinstance(mapped, np.ndarray):
-        getattr(mapped, "close", lambda: None)()  # an .npz archive under a .npy name
-        raise UserError(f"{path}: expected an .npy array, got {type(mapped).__name__}")
-    if mapped.dtype.kind not in "biuf":
-        raise UserError(f"{path}: expected an array of numbers, got {printable(getattr(mapped, 'dtype', type(mapped).__name__))}")
-    shape = mapped.shape
-    if mapped.ndim not in (2, 3) or (mapped.ndim == 3 and shape[2] not in (1, 3)) or 0 in shape:
+    header is read and checked (``npy_header``: a shape the file holds) and the shape held against
+    the viewer's limits before the file is memory-mapped and copied. Raises UserError naming the file."""
+    shape, _ = npy_header(path)
+    if len(shape) not in (2, 3) or (len(shape) == 3 and shape[2] not in (1, 3)) or 0 in shape:
         raise UserError(f"{path}: expected an (H, W), (H, W, 1) or (H, W, 3) map, got shape {shape}")
     if shape[0] * shape[1] > MAX_PIXELS:
         raise UserError(f"{path}: {shape[1]}×{shape[0]} map is over the viewer's {MAX_PIXELS} pixels")
     if shape_hw is not None and tuple(shape[:2]) != tuple(shape_hw):
         raise UserError(f"{path}: map is {shape[1]}×{shape[0]}, the normal map {shape_hw[1]}×{shape_hw[0]}")
+    try:
+        mapped = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise UserError(f"{path}: not a readable .npy map ({printable(exc)})") from None
     return _finite(np.array(mapped, dtype=np.float32))
+
+
+def in_folder(folder: Path, name: str) -> Path | None:
+    """``folder / name`` when it is a regular file inside ``folder`` once every link is resolved;
+    None when it does not exist; UserError when it leads out of the folder or is not a file — the
+    viewer reads and serves nothing from outside the folder it was given."""
+    path = folder / name
+    if not os.path.lexists(path):
+        return None
+    try:
+        target = path.resolve(strict=True)
+        inside = target.is_relative_to(folder.resolve(strict=True)) and target.is_file()
+    except (OSError, RuntimeError):  # a dangling link, a loop
+        inside = False
+    if not inside:
+        raise UserError(f"{path}: leads out of the result folder or is not a regular file; the viewer reads only files inside it")
+    return path
 
 
 def _finite(array: np.ndarray) -> np.ndarray:
@@ -180,19 +195,19 @@ def load_result_folder(folder: Path, capture: Path | None = None) -> ViewData:
     result.json; a further map that cannot be read or has another size is left out with a note."""
     if not folder.is_dir():
         raise UserError(f"{folder}: not a folder")
-    normal_path = folder / "normal.npy"
-    if not normal_path.is_file():
+    normal_path = in_folder(folder, "normal.npy")
+    if normal_path is None:
         raise UserError(f"{folder}: no normal.npy (a result folder holds the files `pstoolkit run` writes)")
-    summary = read_result_json(folder / "result.json")
+    summary_path = in_folder(folder, "result.json")
+    summary = {} if summary_path is None else read_result_json(summary_path)
     normal, mask = _normal_and_mask(read_map(normal_path, None))
     maps: dict[str, np.ndarray] = {"normal": normal}
     notes: list[str] = []
     for name in MAP_NAMES[1:]:
-        path = folder / f"{name}.npy"
-        if not path.is_file():
-            continue
         try:
-            maps[name] = read_map(path, mask.shape)
+            path = in_folder(folder, f"{name}.npy")
+            if path is not None:
+                maps[name] = read_map(path, mask.shape)
         except UserError as exc:
             notes.append(f"left out {name}: {exc}")
     info, options = _summary_fields(summary)

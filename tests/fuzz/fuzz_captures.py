@@ -14,9 +14,10 @@ outcomes:
   in C. Each such file is then checked as the ``pstoolkit`` command checks it (in a child process,
   ``psfmt.isolate``), and the run counts whether that gave one line in bounded time.
 
-Prints a table and writes ``benchmarks/results/fuzz_captures.json``.
+Prints a table, and with ``--out FILE`` writes the summary as JSON there; the checkout is left as it
+was (the captures go to a temporary folder, no bytecode is cached).
 
-    python tests/fuzz/fuzz_captures.py [--files 1000] [--seed 0] [--timeout 60]
+    python tests/fuzz/fuzz_captures.py [--files 1000] [--seed 0] [--timeout 60] [--out FILE.json]
 """
 
 from __future__ import annotations
@@ -35,17 +36,19 @@ from pathlib import Path
 import numpy as np
 
 TESTS = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(TESTS))
+# the checkout before tests/: its folder tests/psfmt must not stand in for the package psfmt
+sys.path[:0] = [str(TESTS.parent), str(TESTS)]
+sys.dont_write_bytecode = True
 
 from helpers.mutations import BASES, MUTATIONS, base_capture, category, mutate  # noqa: E402
 
 import psfmt  # noqa: E402
 from psfmt import isolate  # noqa: E402
 
-RESULTS = TESTS.parent / "benchmarks" / "results" / "fuzz_captures.json"
 CHILD = f"""
 import json, sys
-sys.path.insert(0, {str(TESTS)!r})
+sys.dont_write_bytecode = True
+sys.path[:0] = [{str(TESTS.parent)!r}, {str(TESTS)!r}]
 from helpers.mutations import probe
 print(json.dumps(probe(__import__("pathlib").Path(sys.argv[1]), isolated=False)))
 """
@@ -76,6 +79,7 @@ def main() -> None:
     parser.add_argument("--files", type=int, default=1000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--timeout", type=float, default=60.0, help="seconds a child may take before it counts as a hang")
+    parser.add_argument("--out", type=Path, default=None, help="write the summary as JSON to this file")
     args = parser.parse_args()
     rng = np.random.default_rng(args.seed)
     names = sorted(MUTATIONS)
@@ -129,9 +133,9 @@ def main() -> None:
         print(f"{outcome:<14}{counts.get(outcome, 0):>8}")
     print(f"slowest file {slowest:.2f} s, peak child memory {peak_mb:.0f} MB; "
           f"in-process hangs/crashes answered in one line by the isolated check: {isolated_ok}")
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(summary, indent=2) + "\n")
-    print(f"wrote {RESULTS}")
+    if args.out is not None:
+        args.out.write_text(json.dumps(summary, indent=2) + "\n")
+        print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

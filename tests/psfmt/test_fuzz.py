@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+import sys
 import time
 import tracemalloc
 from pathlib import Path
@@ -95,3 +96,22 @@ def test_hostile_variants_give_a_clean_answer(
     assert peak < CALLER_MB << 20, (kind, kinds, seed, peak)
     peaks_kb = [int(line) for line in peak_file.read_text().split()] if peak_file.exists() else []
     assert all(kb < CHILD_MB << 10 for kb in peaks_kb), (kind, kinds, seed, peaks_kb)
+
+
+def test_the_long_run_runs_as_documented_and_writes_nothing_into_the_checkout() -> None:
+    """Issue 33, item 16: ``python tests/fuzz/fuzz_captures.py --files N`` from the checkout, as
+    docs/security.md gives it (``tests/psfmt`` must not shadow the package), leaves the tree as it was."""
+    root = Path(__file__).resolve().parents[2]
+
+    def tree() -> set[str]:
+        return {str(p.relative_to(root)) for folder in ("tests", "benchmarks") for p in (root / folder).rglob("*")}
+
+    before = tree()
+    done = subprocess.run(
+        [sys.executable, "tests/fuzz/fuzz_captures.py", "--files", "2", "--seed", "3"],
+        cwd=root, capture_output=True, text=True, timeout=300, env={**os.environ, "PYTHONDONTWRITEBYTECODE": ""},
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    rows = dict(line.split() for line in done.stdout.splitlines()[1:7])
+    assert sum(map(int, rows.values())) == 2 and rows["traceback"] == rows["hang"] == rows["crash"] == "0"
+    assert tree() == before

@@ -198,7 +198,7 @@ def test_read_map_checks_sizes_before_allocating(tmp_path: Path) -> None:
     with open(path, "wb") as fh:
         np.lib.format.write_array_header_1_0(fh, {"descr": "<f4", "fortran_order": False, "shape": (8, 8)})
         fh.write(b"\0" * 16)  # 16 of the 256 bytes the header claims
-    with pytest.raises(UserError, match="not a readable .npy map"):
+    with pytest.raises(UserError, match="claims.npy: the .npy header declares 256 bytes of data, the file holds 16"):
         read_map(path, None)
     side = int(np.sqrt(MAX_PIXELS)) + 1
     big = np.lib.format.open_memmap(tmp_path / "big.npy", mode="w+", dtype=np.uint8, shape=(side, side))
