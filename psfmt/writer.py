@@ -39,6 +39,8 @@ from psfmt.version import FORMAT_NAME, FORMAT_VERSION_STR
 
 # The event columns grow by at least this many chunks at a time (see ``_flush_events``).
 GROW_CHUNKS = 16
+SMALL_FRAMES_CHUNK_BYTES = 1 << 16
+"""Frames smaller than this share chunks of about this size (a 1×1 frame is not a 3-byte chunk)."""
 # compression_options, row_chunks and put_result are also importable from here, their former home
 __all__ = ["GROW_CHUNKS", "CaptureWriter", "compression_options", "put_result", "row_chunks", "write"]
 
@@ -85,6 +87,7 @@ class CaptureWriter:
         attrs["created"] = created or utc_now()
         attrs["description"] = description
         self._frames: h5py.Dataset | None = None
+        self._frame_buffer: np.ndarray = np.empty(0)
         self._frame_meta: dict[str, list[np.ndarray]] = {}
         self._events: h5py.Group | None = None
         # the column datasets, looked up once: a group lookup costs about a millisecond in a busy file
@@ -119,12 +122,14 @@ class CaptureWriter:
         if COLOR_ORDERS.get(order) != channels:
             raise FormatError(self.path, f"colour order {order!r} does not fit {channels} channels")
         meta = Frames(np.empty((0, height, width, channels), dtype), bit_depth=bit_depth, saturation=saturation)
+        # small frames share a chunk: one chunk each would cost HDF5 more bookkeeping than data to read
+        frame_bytes = max(1, height * width * channels * dtype.itemsize)
         self._frames = self._file.create_dataset(
             f"{layout.FRAMES}/data",
             shape=(0, height, width, channels),
             maxshape=(None, height, width, channels),
             dtype=dtype,
-            chunks=row_chunks((height, width, channels), dtype.itemsize, lead=(1,)),
+            chunks=row_chunks((height, width, channels), dtype.itemsize, lead=(max(1, SMALL_FRAMES_CHUNK_BYTES // frame_bytes),)),
             **self._compress,
         )
         attrs = self._frames.parent.attrs
@@ -175,7 +180,14 @@ class CaptureWriter:
             self._frame_meta.setdefault(key, []).append(arr.reshape(shape))
         n0 = self._frames.shape[0]
         self._frames.resize(n0 + k, axis=0)
-        self._chunks.write(self._frames, data, n0)
+        # whole chunks go to the compressor now; the frames of a chunk begun stay until it is full
+        pending = np.concatenate([self._frame_buffer, data]) if len(self._frame_buffer) else data
+        start = n0 - len(self._frame_buffer)
+        lead = self._frames.chunks[0]
+        whole = len(pending) // lead * lead
+        if whole:
+            self._chunks.write(self._frames, pending[:whole], start)
+        self._frame_buffer = np.array(pending[whole:])
 
     # events ----------------------------------------------------------------------------------------
     def begin_events(self, width: int, height: int) -> None:
@@ -295,6 +307,8 @@ class CaptureWriter:
             return self.path
         try:
             if self._frames is not None:
+                if len(self._frame_buffer):  # the last chunk, in part
+                    self._chunks.write(self._frames, self._frame_buffer, self._frames.shape[0] - len(self._frame_buffer))
                 for key, parts in self._frame_meta.items():
                     self._frames.parent.create_dataset(key, data=np.concatenate(parts))
             if self._events is not None:

@@ -18,6 +18,11 @@ from psfmt.limits import DEFLATE_MAX_RATIO, FILL_ALLOWANCE, Limits
 from psfmt.version import FORMAT_VERSION_STR
 
 ALLOWED_FILTERS = {1: "deflate", 2: "shuffle", 3: "fletcher32"}
+SMALL_CHUNK_BYTES = 4096
+MAX_SMALL_CHUNKS = 16384
+"""A dataset cut into more than ``MAX_SMALL_CHUNKS`` chunks under ``SMALL_CHUNK_BYTES`` is refused: HDF5
+keeps about 6.5 KB of bookkeeping for each chunk a read touches, so 10⁶ chunks of a 1×1 frame (3 bytes
+each) cost 6.5 GB to read for 3 MB of data. The writer never makes such chunks (``storing.row_chunks``)."""
 KNOWN_GROUPS = (
     layout.FRAMES,
     layout.EVENTS,
@@ -55,6 +60,12 @@ def check_dataset(where: str, ds: h5py.Dataset, file_bytes: int, limits: Limits,
         out.error(where, f"has chunks of {element_count(ds.chunks) * itemsize:,} bytes, more than the limit of {limits.max_chunk_bytes:,} "
                   "(PSFMT_MAX_CHUNK_BYTES)")
         return
+    if ds.chunks is not None and element_count(ds.chunks) * itemsize < SMALL_CHUNK_BYTES:
+        count = element_count(tuple(-(-n // c) for n, c in zip(ds.shape, ds.chunks)))
+        if count > MAX_SMALL_CHUNKS:
+            out.error(where, f"is cut into {count:,} chunks of {element_count(ds.chunks) * itemsize:,} bytes; at most {MAX_SMALL_CHUNKS:,} "
+                      f"chunks under {SMALL_CHUNK_BYTES:,} bytes are read (HDF5 spends kilobytes of memory on each chunk it reads)")
+            return
     stored = int(ds.id.get_storage_size())
     if stored > file_bytes:
         out.error(where, f"claims {stored:,} bytes of storage in a file of {file_bytes:,} bytes (a damaged file)")
