@@ -22,6 +22,11 @@ MAX_SENSOR_SIDE = 1 << 16
 """Event coordinates are uint16, so an event sensor is at most 65 536 pixels wide and high."""
 MAX_ABS_TIME_US = 1 << 53
 """Times lie within ±2⁵³ µs (±285 years): every one of them converts to float64 exactly."""
+SMALL_CHUNK_BYTES = 4096
+MAX_SMALL_CHUNKS = 16384
+"""A dataset cut into more than ``MAX_SMALL_CHUNKS`` chunks under ``SMALL_CHUNK_BYTES`` is refused: HDF5
+keeps about 6.5 KB of bookkeeping for each chunk a read touches, so 10⁶ chunks of a 1×1 frame (3 bytes
+each) cost 6.5 GB to read for 3 MB of data. The writer never makes such chunks."""
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ from psfmt.camera import camera_problem
 from psfmt.deflate import ChunkCompressor
 from psfmt.errors import FormatError
 from psfmt.events import DEFAULT_CHUNK_EVENTS, EVENT_DTYPES, EventArray, MsIndexBuilder
-from psfmt.limits import MAX_SENSOR_SIDE
+from psfmt.limits import MAX_SENSOR_SIDE, SMALL_CHUNK_BYTES
 from psfmt.model import (
     COLOR_ORDERS,
     FRAME_DTYPES,
@@ -40,7 +40,7 @@ from psfmt.version import FORMAT_NAME, FORMAT_VERSION_STR
 # The event columns grow by at least this many chunks at a time (see ``_flush_events``).
 GROW_CHUNKS = 16
 SMALL_FRAMES_CHUNK_BYTES = 1 << 16
-"""Frames smaller than this share chunks of about this size (a 1×1 frame is not a 3-byte chunk)."""
+"""Frames under ``SMALL_CHUNK_BYTES`` share chunks of about this size (a 1×1 frame is no 3-byte chunk)."""
 # compression_options, row_chunks and put_result are also importable from here, their former home
 __all__ = ["GROW_CHUNKS", "CaptureWriter", "compression_options", "put_result", "row_chunks", "write"]
 
@@ -122,14 +122,16 @@ class CaptureWriter:
         if COLOR_ORDERS.get(order) != channels:
             raise FormatError(self.path, f"colour order {order!r} does not fit {channels} channels")
         meta = Frames(np.empty((0, height, width, channels), dtype), bit_depth=bit_depth, saturation=saturation)
-        # small frames share a chunk: one chunk each would cost HDF5 more bookkeeping than data to read
+        # a frame is read without touching the others, but tiny frames share a chunk: one chunk each
+        # would cost HDF5 more bookkeeping than data to read (and be refused, MAX_SMALL_CHUNKS)
         frame_bytes = max(1, height * width * channels * dtype.itemsize)
+        lead = SMALL_FRAMES_CHUNK_BYTES // frame_bytes if frame_bytes < SMALL_CHUNK_BYTES else 1
         self._frames = self._file.create_dataset(
             f"{layout.FRAMES}/data",
             shape=(0, height, width, channels),
             maxshape=(None, height, width, channels),
             dtype=dtype,
-            chunks=row_chunks((height, width, channels), dtype.itemsize, lead=(max(1, SMALL_FRAMES_CHUNK_BYTES // frame_bytes),)),
+            chunks=row_chunks((height, width, channels), dtype.itemsize, lead=(lead,)),
             **self._compress,
         )
         attrs = self._frames.parent.attrs

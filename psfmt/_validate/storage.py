@@ -14,15 +14,10 @@ from psfmt import layout
 from psfmt._validate.findings import Findings
 from psfmt._validate.values import element_count
 from psfmt.events import EVENT_DTYPES
-from psfmt.limits import DEFLATE_MAX_RATIO, FILL_ALLOWANCE, Limits
+from psfmt.limits import DEFLATE_MAX_RATIO, FILL_ALLOWANCE, MAX_SMALL_CHUNKS, SMALL_CHUNK_BYTES, Limits
 from psfmt.version import FORMAT_VERSION_STR
 
 ALLOWED_FILTERS = {1: "deflate", 2: "shuffle", 3: "fletcher32"}
-SMALL_CHUNK_BYTES = 4096
-MAX_SMALL_CHUNKS = 16384
-"""A dataset cut into more than ``MAX_SMALL_CHUNKS`` chunks under ``SMALL_CHUNK_BYTES`` is refused: HDF5
-keeps about 6.5 KB of bookkeeping for each chunk a read touches, so 10⁶ chunks of a 1×1 frame (3 bytes
-each) cost 6.5 GB to read for 3 MB of data. The writer never makes such chunks (``storing.row_chunks``)."""
 KNOWN_GROUPS = (
     layout.FRAMES,
     layout.EVENTS,

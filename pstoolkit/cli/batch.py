@@ -23,9 +23,9 @@ def batch(
         "An option of every solver that has it, or with SOLVER. of that solver only; repeat for more."
     )),
     scheduler: str | None = typer.Option(None, "--scheduler", help="Address of a running Dask scheduler (tcp://host:8786); default: a local cluster."),
-    workers: int | None = typer.Option(None, "--workers", help="Worker processes of the local cluster (default: one per CPU core)."),
+    workers: int | None = typer.Option(None, "--workers", help="Worker processes of the local cluster (default: one per CPU core; at most four per core)."),
     device: str = typer.Option("auto", "--device", help="auto (CUDA when a worker has it), cpu or cuda."),
-    error_max: float = typer.Option(30.0, "--error-max", help="Angular error (degrees) at the top of error.png's colour scale."),
+    error_max: float = typer.Option(30.0, "--error-max", help="Angular error (degrees, above 0 and at most 180) at the top of error.png's colour scale."),
     as_json: bool = typer.Option(False, "--json", help=(
         "Print the outcome as JSON (pairs done, skipped and failed, each failure, the log file) and no progress."
     )),

@@ -39,14 +39,16 @@ def run(
         "A tiled solver (dualres): send its tiles to the Dask scheduler at this address (tcp://host:8786); "
         "default: a local cluster when the capture is cut into tiles."
     )),
-    workers: int | None = typer.Option(None, "--workers", help="A tiled solver: worker processes of the local cluster (default: one per CPU core)."),
+    workers: int | None = typer.Option(None, "--workers", help=(
+        "A tiled solver: worker processes of the local cluster (default: one per CPU core; at most four per core)."
+    )),
     as_json: bool = typer.Option(False, "--json", help="Print result.json and no progress."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar and no notes on stderr (the summary line is still printed)."),
     store: bool = typer.Option(False, "--store/--no-store", help="Also store the maps in the capture under /results/<name>."),
     name: str | None = typer.Option(None, "--name", help=(
         "Name of the result: its column in `pstoolkit eval` and /results/<name> with --store (default: the solver)."
     )),
-    error_max: float = typer.Option(30.0, "--error-max", help="Angular error (degrees) at the top of error.png's colour scale."),
+    error_max: float = typer.Option(30.0, "--error-max", help="Angular error (degrees, above 0 and at most 180) at the top of error.png's colour scale."),
     integrate: str | None = typer.Option(None, "--integrate", help=(
         "Also integrate the normals into a surface with this registered integrator (see `pstoolkit plugins`): "
         "depth.npy, depth.png, mesh.ply, mesh.obj and a surface entry in result.json."

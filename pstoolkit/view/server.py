@@ -8,7 +8,7 @@ Routes (GET only):
   little-endian float32, row-major, in the shape the index gives;
 - ``/files/<path>`` a file of the result folder — only a regular file inside it once every link is
   resolved; anything else, ``..`` included, is 404. Served inert (``FILE_TYPES``: PNG as an image,
-  text as ``text/plain``, anything else as an ``application/octet-stream`` attachment, never HTML)
+  text, HTML and scripts as ``text/plain``, anything else as an ``application/octet-stream`` attachment)
   with ``nosniff`` and a sandboxing CSP, so a crafted file cannot run in the viewer's origin;
 - ``/capture/at?t=US`` (or ``?frame=K``) the frame covering t and the light there (JSON);
   ``/capture/frame/<k>.rgb`` a frame and ``/capture/events.rgb?t0=US&t1=US`` an event image as RGB
@@ -57,10 +57,11 @@ CONTENT_TYPES = {
 }
 CSP = ("default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' blob: data:; connect-src 'self'; "
        "base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
-FILE_TYPES = {".png": "image/png", ".json": "text/plain; charset=utf-8", ".md": "text/plain; charset=utf-8",
-              ".txt": "text/plain; charset=utf-8"}
-"""The types ``/files/`` serves a result folder's files as: images as images, text as plain text,
-anything else as ``application/octet-stream``; never a type a browser runs (HTML, SVG, JavaScript)."""
+_TEXT_SUFFIXES = (".json", ".md", ".txt", ".csv", ".html", ".htm", ".js", ".css", ".svg", ".xml")
+FILE_TYPES = {".png": "image/png", **dict.fromkeys(_TEXT_SUFFIXES, "text/plain; charset=utf-8")}
+"""The types ``/files/`` serves a result folder's files as: PNG as an image, text (HTML, SVG and
+scripts included) as plain text a browser shows as its source, anything else as an
+``application/octet-stream`` attachment; never a type a browser runs."""
 FILE_CSP = "default-src 'none'; sandbox; frame-ancestors 'none'"
 """``/files/``'s policy: even a browser that rendered a file would give it no script, no origin."""
 MAX_PAGE_ERRORS = 50
@@ -334,7 +335,7 @@ class _Handler(BaseHTTPRequestHandler):
             # never a type a browser runs: a crafted file in the folder must not act in the page's origin
             self.send_header("Content-Type", kind)
             self.send_header("Content-Length", str(size))
-            if not kind.startswith("image/"):
+            if kind == "application/octet-stream":
                 self.send_header("Content-Disposition", "attachment")
             self._common_headers(FILE_CSP)
             self.end_headers()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -66,9 +67,16 @@ def test_simulate_refuses_a_fifo_before_rendering(tmp_path: Path, capsys: pytest
 
 
 def test_character_device_is_refused(tmp_path: Path, hybrid: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    # /dev/null is a character device on every POSIX system: it is refused before anything is written
-    code, err = run_cli(capsys, "eval", str(hybrid), "-o", "/dev/null")
-    assert code == 2 and "/dev/null: exists and is not a regular file" in err
+    # a device node of its own (never the system's /dev/null, which a failing run would replace)
+    device = tmp_path / "null"
+    try:
+        os.mknod(device, stat.S_IFCHR | 0o666, os.makedev(1, 3))
+    except PermissionError:
+        pytest.skip("making a device node needs root")
+    for argv in (["eval", str(hybrid), "-o", str(device)], ["export", str(hybrid), "--events", "evt3", "-o", str(device)]):
+        code, err = run_cli(capsys, *argv)
+        assert code == 2 and f"{device}: exists and is not a regular file" in err
+        assert stat.S_ISCHR(os.lstat(device).st_mode)
 
 
 @pytest.mark.parametrize("fmt", ["dat", "evt3"])

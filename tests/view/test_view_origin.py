@@ -53,11 +53,13 @@ def evil_folder(tmp_path: Path, lambertian_folder: Path) -> Path:
 def test_files_are_served_inert(evil_folder: Path) -> None:
     server = serve(evil_folder)
     try:
-        for name in ("evil.html", "evil.js", "evil.svg"):
+        (evil_folder / "evil.bin").write_bytes(b"\x00<script>")
+        for name, kind in (("evil.html", "text/plain; charset=utf-8"), ("evil.js", "text/plain; charset=utf-8"),
+                           ("evil.svg", "text/plain; charset=utf-8"), ("evil.bin", "application/octet-stream"),
+                           ("normal.npy", "application/octet-stream")):
             status, head = headers(server, f"/files/{name}")
-            assert status == 200
-            assert head["content-type"] == "application/octet-stream", name
-            assert head["content-disposition"] == "attachment"
+            assert (status, head["content-type"]) == (200, kind), name
+            assert head.get("content-disposition") == ("attachment" if kind == "application/octet-stream" else None)
             assert head["x-content-type-options"] == "nosniff"
             assert "sandbox" in head["content-security-policy"] and "script-src" not in head["content-security-policy"]
         status, head = headers(server, "/files/normal.png")
@@ -79,7 +81,8 @@ def test_a_script_in_the_folder_never_runs_in_the_browser(evil_folder: Path) -> 
         assert server.ready
     finally:
         server.close()
-    assert "owned" not in dom
+    assert "&lt;script src=\"/files/evil.js\"&gt;" in dom  # shown as its source text
+    assert "<title>owned</title>" not in dom
     assert server.page_errors == []
 
 
