@@ -28,7 +28,6 @@ from pstoolkit.io.textdata import read_json_object
 
 MISSING = "–"
 RESULT_FILE = "result.json"
-"""Largest ``result.json`` read (a solver's diagnostics make it kilobytes, not megabytes)."""
 METRICS = ("mae_deg", "mae_solved_deg", "median_deg", "coverage", *SHARE_KEYS, "data_rate", "seconds", "depth_error")
 TITLES = {
     "mae_deg": "Mean angular error (degrees)",

@@ -92,7 +92,9 @@ def read_json(path: Path) -> Any:
         value = json.loads(text, parse_int=_bounded_int)
     except RecursionError:
         raise UserError(f"{path}: not valid JSON (nested more than {MAX_DEPTH} levels deep)") from None
-    except ValueError as exc:
+    except json.JSONDecodeError as exc:
+        raise UserError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    except ValueError as exc:  # _bounded_int's
         raise UserError(f"{path}: not valid JSON ({printable(exc)})") from None
     return check_value(value, path)
 

@@ -150,7 +150,7 @@ def check_error_max(value: float, where: str) -> float:
     UserError naming ``where`` (``--error-max``, ``error_max_deg``). Infinity would put every error
     at the bottom of the scale and write ``Infinity`` into result.json, which is not JSON."""
     if not 0.0 < value <= MAX_ERROR_DEG:  # NaN fails too
-        raise UserError(f"{where} {value!r}: expected a number of degrees above 0 and at most {MAX_ERROR_DEG:g}")
+        raise UserError(f"{where} {value:g}: expected a number of degrees above 0 and at most {MAX_ERROR_DEG:g}")
     return float(value)
 
 

@@ -10,8 +10,8 @@ if any, whose frames and events the page scrubs.
 Sizes are checked before anything is allocated: a ``.npy`` file's header is parsed and checked
 against the file's length without reading the data, and its shape against ``MAX_PIXELS`` and the
 normal map's size, before it is memory-mapped and copied. Only regular files inside the folder are
-read (``in_folder``): a map or result.json that is a link leading out of it is refused. Errors are ``UserError``s
-naming the file; a further map that does not fit is left out with a note instead.
+read (``in_folder``): a map or result.json that is a link leading out of it is refused. Errors are
+``UserError``s naming the file; a further map that does not fit is left out with a note instead.
 """
 
 from __future__ import annotations

@@ -134,7 +134,7 @@ def test_writing_needs_a_capture_file_and_a_positive_error_scale(sphere: Path, t
     with pytest.raises(UserError, match="made in memory"):
         solution.write(tmp_path / "r")
     solved = pstoolkit.solve(sphere, "frameps", device="cpu")
-    with pytest.raises(UserError, match=r"error_max_deg=0: must be a positive number of degrees"):
+    with pytest.raises(UserError, match=r"error_max_deg 0: expected a number of degrees above 0 and at most 180"):
         solved.write(tmp_path / "r", error_max_deg=0)
     out = solved.write(tmp_path / "r", name="mine", obj="ball", error_max_deg=10.0)
     summary = json.loads((out / "result.json").read_text())

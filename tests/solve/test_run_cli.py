@@ -241,7 +241,7 @@ def events_only(path: Path) -> None:
         (["--solver", "lsqq"], "unknown solver 'lsqq' (known: badmap, evlsq, lsq)"),
         (["--solver", "lsq", "--set", "level=1"], "solver 'lsq' has no option 'level' (options: threshold)"),
         (["--solver", "lsq", "--set", "threshold=-1"], "option threshold: -1.0 is below the minimum 0"),
-        (["--solver", "lsq", "--error-max", "0"], "--error-max 0: must be a positive number of degrees"),
+        (["--solver", "lsq", "--error-max", "0"], "--error-max 0: expected a number of degrees above 0 and at most 180"),
         (["--solver", "lsq", "--name", "a/b"], "--name 'a/b': use letters, digits, '.', '_' and '-', starting with a letter or digit"),
         (["--solver", "evlsq"], "solver 'evlsq' needs events, but {capture} has none (frames capture)"),
         (["--solver", "badmap"], "plugin 'lsq': solver 'badmap' returned a map named 'error': names are letters, digits, '_' and '-', not error, mask, normal"),
