@@ -217,7 +217,10 @@ class FrameSink:
 
 class Aedat4(_EventFile):
     name = "aedat4"
-    summary = "iniVation AEDAT4 recordings (DAVIS): events, frames with their exposures, triggers; light model and calibration"
+    summary = (
+        "iniVation AEDAT4 recordings (DAVIS; extra aedat4): events, frames with their exposure windows, trigger edges, "
+        "the identity event→frame affine; light model and calibration"
+    )
     options: ClassVar[tuple[Option, ...]] = (*(o for o in ATTACH_OPTIONS if o.name in ("lights", "calibration")), ALLOW_EMPTY)
 
     def prepare(self, src: Path, options: dict[str, Any]) -> list[str]:
