@@ -154,6 +154,8 @@ class Streams:
 
 
 def choose_streams(src: Path, id_to_stream: dict[int, dict[str, Any]]) -> Streams:
+    """The streams to convert from the decoder's ``id_to_stream``; UserError for a file with none or
+    two event streams, two frame streams, or frames of another size than the events."""
     kinds: dict[str, list[int]] = {}
     for sid, info in sorted(id_to_stream.items()):
         kinds.setdefault(str(info.get("type")), []).append(sid)
@@ -197,6 +199,8 @@ class FrameSink:
             raise UserError(f"{src}: frame {k} has pixel format {printable(fmt)[:40]!r} (known: {', '.join(FRAME_FORMATS)})")
         order, channels = FRAME_FORMATS[fmt]
         pixels = np.asarray(frame["pixels"])
+        if pixels.shape[:2] != (self.height, self.width):
+            raise UserError(f"{src}: frame {k} holds {pixels.shape[:2]} pixels for a {self.width}×{self.height} frame")
         pixels = pixels.reshape(self.height, self.width, -1)[..., :channels]
         window = [int(frame[key]) % (1 << 64) for key in ("exposure_begin_t", "exposure_end_t")]
         start, end = (int(v) for v in _times(src, window, f"frame {k}"))

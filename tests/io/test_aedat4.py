@@ -49,6 +49,12 @@ def sample(seed: int = 0, n: int = 3000) -> dict[str, np.ndarray]:
     }
 
 
+def _dv_frame(start: int, end: int, image: np.ndarray) -> object:
+    """A dv-processing frame exposed over [start, end) µs; dv-processing keeps OpenCV's BGR order."""
+    pixels = np.ascontiguousarray(image[..., ::-1] if image.ndim == 3 else image)
+    return dv.Frame(int(start), int(end - start), 0, 0, pixels, dv.FrameSource.SENSOR)
+
+
 def write_aedat4(path: Path, data: dict[str, np.ndarray], *, frame_size: tuple[int, int] = (WIDTH, HEIGHT),
                  compression: str = "LZ4", packets: int = 3) -> Path:
     """``data`` as a DAVIS recording: event packets and frames interleaved in time, then the triggers."""
@@ -61,14 +67,13 @@ def write_aedat4(path: Path, data: dict[str, np.ndarray], *, frame_size: tuple[i
     for part in np.array_split(np.arange(len(data["t"])), packets):
         while frames and frames[0][0][0] <= data["t"][part[0]]:
             (start, end), rgb = frames.pop(0)
-            # dv-processing keeps OpenCV's BGR order; AEDAT4 readers give RGB
-            writer.writeFrame(dv.Frame(int(start), int(end - start), 0, 0, np.ascontiguousarray(rgb[..., ::-1]), dv.FrameSource.SENSOR))
+            writer.writeFrame(_dv_frame(start, end, rgb))
         store = dv.EventStore()
         for i in part:
             store.push_back(int(data["t"][i]), int(data["x"][i]), int(data["y"][i]), bool(data["on"][i]))
         writer.writeEvents(store)
     for (start, end), rgb in frames:
-        writer.writeFrame(dv.Frame(int(start), int(end - start), 0, 0, np.ascontiguousarray(rgb[..., ::-1]), dv.FrameSource.SENSOR))
+        writer.writeFrame(_dv_frame(start, end, rgb))
     for t, kind in data["triggers"]:
         writer.writeTrigger(dv.Trigger(int(t), dv.TriggerType(int(kind))))
     del writer  # closing writes the file's table
@@ -141,6 +146,19 @@ def test_zstd_and_uncompressed_files_read_alike(tmp_path: Path) -> None:
     assert np.array_equal(captures[0][1], data["frames"]) and np.array_equal(captures[1][1], data["frames"])
 
 
+def test_grey_frames_keep_their_bit_depth(tmp_path: Path) -> None:
+    data = sample(seed=3, n=200)
+    for dtype, maximum in ((np.uint8, 255), (np.uint16, 1023)):
+        grey = np.random.default_rng(4).integers(0, maximum + 1, (3, HEIGHT, WIDTH)).astype(dtype)
+        src = write_aedat4(tmp_path / f"{dtype.__name__}.aedat4", data | {"frames": grey}, packets=1)
+        out = tmp_path / f"{dtype.__name__}.h5"
+        assert main(["convert", "aedat4", str(src), "-o", str(out), "-q"]) == 0
+        with psfmt.read(out) as capture:
+            frames = capture.frames
+            assert frames.color_order == "L" and frames.data.dtype == dtype
+            assert np.array_equal(np.asarray(frames.data)[..., 0], grey)
+
+
 def _first_packet(blob: bytes) -> int:
     (length,) = struct.unpack_from("<I", blob, 14)
     return 18 + length
@@ -195,6 +213,8 @@ def test_frames_going_back_or_off_the_event_geometry_are_refused(tmp_path: Path,
     assert _refused(small, out, capsys) == (
         "the frame stream is 32×24, the event stream 64×48: convert aedat4 reads cameras whose frames and events share pixels (DAVIS)"
     )
+    roi = write_aedat4(tmp_path / "roi.aedat4", data | {"frames": data["frames"][:, :24, :32]})
+    assert _refused(roi, out, capsys) == "frame 0 is 32×24 at (0, 0), not the sensor's 64×48: a DAVIS's frames and events share pixels"
     # dv-processing refuses to write a frame earlier than the last, so the third frame's times are
     # rewritten in an uncompressed file: its timestamp and exposure start become the first frame's - 1
     plain = write_aedat4(tmp_path / "plain.aedat4", data, compression="NONE", packets=1)
