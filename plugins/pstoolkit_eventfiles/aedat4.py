@@ -55,8 +55,10 @@ class Container:
     data_end: int
 
 
-def _table_fields(header: bytes, where: Path) -> tuple[int, int]:
-    """(compression, dataTablePosition) of the IOHeader flatbuffer (fields 0 and 1; defaults 0 and -1)."""
+def _header_fields(header: bytes, where: Path) -> tuple[int, int]:
+    """(compression, dataTablePosition) of the IOHeader flatbuffer (fields 0 and 1; defaults 0 and
+    -1), after checking that its description (field 2) is UTF-8 text: ``aedat`` 2.3 aborts the whole
+    process on one that is not, instead of raising."""
 
     def unpack(fmt: str, at: int) -> int:
         if at < 0 or at + struct.calcsize(fmt) > len(header):
@@ -66,12 +68,20 @@ def _table_fields(header: bytes, where: Path) -> tuple[int, int]:
     table = unpack("<I", 0)
     vtable = table - unpack("<i", table)
     vtable_size = unpack("<H", vtable)
-    values = []
-    for field, (fmt, default) in enumerate((("<i", 0), ("<q", -1))):
-        slot = 4 + 2 * field
-        offset = unpack("<H", vtable + slot) if slot + 2 <= vtable_size else 0
-        values.append(unpack(fmt, table + offset) if offset else default)
-    return values[0], values[1]
+    offsets = [unpack("<H", vtable + 4 + 2 * field) if 4 + 2 * field + 2 <= vtable_size else 0 for field in range(3)]
+    compression = unpack("<i", table + offsets[0]) if offsets[0] else 0
+    table_at = unpack("<q", table + offsets[1]) if offsets[1] else -1
+    if not offsets[2]:
+        raise UserError(f"{where}: the AEDAT4 header has no description of the streams")
+    text = table + offsets[2] + unpack("<I", table + offsets[2])
+    length = unpack("<I", text)
+    if text + 4 + length > len(header):
+        raise UserError(f"{where}: the AEDAT4 header is damaged (its description runs past its {len(header)} bytes)")
+    try:
+        header[text + 4 : text + 4 + length].decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise UserError(f"{where}: the AEDAT4 header's description is not UTF-8 text (byte {exc.start})") from None
+    return compression, table_at
 
 
 def walk_container(src: Path) -> Container:
@@ -91,7 +101,7 @@ def walk_container(src: Path) -> Container:
         header = f.read(length)
         if len(header) < length:
             raise UserError(f"{src}: truncated: the AEDAT4 header claims {length:,} bytes, the file holds {len(header):,}")
-        compression, table_at = _table_fields(header, src)
+        compression, table_at = _header_fields(header, src)
         if compression not in COMPRESSIONS:
             raise UserError(f"{src}: unknown AEDAT4 compression {compression}")
         data_end = size if table_at < 0 else table_at
@@ -166,6 +176,8 @@ def choose_streams(src: Path, id_to_stream: dict[int, dict[str, Any]]) -> Stream
         raise UserError(f"{src}: no event stream in the AEDAT4 description")
     events = kinds["events"][0]
     width, height = int(id_to_stream[events]["width"]), int(id_to_stream[events]["height"])
+    if width < 1 or height < 1:
+        raise UserError(f"{src}: the event stream is {width}×{height} pixels")
     frames = kinds["frame"][0] if kinds.get("frame") else None
     if frames is not None:
         size = (int(id_to_stream[frames]["width"]), int(id_to_stream[frames]["height"]))
