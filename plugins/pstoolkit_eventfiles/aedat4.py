@@ -153,6 +153,18 @@ def _times(src: Path, t: Any, what: str) -> np.ndarray:
     return t
 
 
+def check_span(src: Path, first_us: int, last_us: int, limit_bytes: int) -> None:
+    """UserError when events from ``first_us`` to ``last_us`` need a millisecond index (int64, one
+    entry per ms, spec §6) beyond ``limit_bytes``: one crafted or damaged int64 time would otherwise
+    make the writer allocate terabytes."""
+    need = ((last_us - first_us) // 1000 + 2) * 8
+    if need > limit_bytes:
+        raise UserError(
+            f"{src}: events from {first_us} µs to {last_us} µs: the capture's millisecond index would take {need:,} bytes, "
+            f"beyond {limit_bytes:,} (PSFMT_MAX_ARRAY_BYTES)"
+        )
+
+
 @dataclass
 class Streams:
     """The recording's one event stream and, when present, its one frame stream (stream ids)."""
@@ -265,6 +277,8 @@ class Aedat4(_EventFile):
         writer.begin_events(width, height)
         frames = FrameSink(src, writer, width, height)
         monotone = Monotone()
+        limit_bytes = psfmt.Limits.from_env().max_array_bytes
+        first_us: int | None = None
         triggers: list[psfmt.Triggers] = []
         outside = skipped_triggers = 0
         for k, packet in enumerate(packets(src, self.decoder)):
@@ -276,8 +290,11 @@ class Aedat4(_EventFile):
                 inside = (x < width) & (y < height)
                 outside += int(len(block) - np.count_nonzero(inside))
                 p = np.where(block["on"], 1, -1).astype(np.int8)
-                events = psfmt.EventArray(x[inside].astype(np.uint16), y[inside].astype(np.uint16), t[inside], p[inside])
-                writer.append_events(monotone(events))
+                events = monotone(psfmt.EventArray(x[inside].astype(np.uint16), y[inside].astype(np.uint16), t[inside], p[inside]))
+                if len(events):
+                    first_us = int(events.t[0]) if first_us is None else first_us
+                    check_span(src, first_us, int(events.t[-1]), limit_bytes)
+                writer.append_events(events)
             elif sid == streams.frames and "frame" in packet:
                 frames(packet["frame"])
             elif "triggers" in packet:

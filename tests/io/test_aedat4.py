@@ -209,7 +209,7 @@ def test_damaged_and_crafted_files_are_refused_in_one_line(recording: Path, tmp_
         assert _refused(src, out, capsys).startswith(expected[name]), name
 
 
-def test_frames_going_back_or_off_the_event_geometry_are_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_frames_going_back_or_off_the_geometry_and_time_jumps_are_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     data = sample(seed=2, n=300)
     out = tmp_path / "out.h5"
     small = write_aedat4(tmp_path / "small.aedat4", data | {"frames": data["frames"][:, :24, :32]}, frame_size=(32, 24))
@@ -231,4 +231,15 @@ def test_frames_going_back_or_off_the_event_geometry_are_refused(tmp_path: Path,
     back.write_bytes(bytes(blob))
     assert _refused(back, out, capsys) == (
         f"frame 2's exposure starts at {WINDOWS[0][0] - 1} µs, before frame 1's at {WINDOWS[1][0]} µs"
+    )
+    # one damaged event time 2^50 µs on: the capture's millisecond index would take 9 TB
+    blob = bytearray(plain.read_bytes())
+    at, end = next((at, end) for stream, at, end in _packets(bytes(blob)) if stream == 0)
+    last = struct.pack("<q", int(data["t"][-1]))
+    assert blob[at:end].count(last) >= 1
+    blob[at:end] = blob[at:end].replace(last, struct.pack("<q", 1 << 50))
+    jump = tmp_path / "jump.aedat4"
+    jump.write_bytes(bytes(blob))
+    assert _refused(jump, out, capsys).startswith(
+        f"events from {data['t'][0]} µs to {1 << 50} µs: the capture's millisecond index would take 9,007,199,246,"
     )
