@@ -48,11 +48,10 @@ FRAME_FORMATS = {"L": ("L", 1), "I;16": ("L", 1), "RGB": ("RGB", 3), "RGBA": ("R
 
 @dataclass(frozen=True)
 class Container:
-    """What the container walk found: the compression, the packets and where they end (bytes)."""
+    """What the container walk found: the compression and the number of packets."""
 
     compression: str
     packets: int
-    data_end: int
 
 
 def _header_fields(header: bytes, where: Path) -> tuple[int, int]:
@@ -120,7 +119,7 @@ def walk_container(src: Path) -> Container:
                 raise UserError(f"{src}: truncated: packet {packets} at byte {at:,} claims {stored:,} bytes, the data end at byte {data_end:,}")
             at += 8 + stored
             packets += 1
-    return Container(COMPRESSIONS[compression], packets, data_end)
+    return Container(COMPRESSIONS[compression], packets)
 
 
 def _decoder_error(src: Path, exc: BaseException) -> UserError:
