@@ -1,4 +1,5 @@
-"""First-party plugin: event-file converters (Prophesee RAW EVT 3.0/2.0, Metavision DAT, DSEC-style HDF5).
+"""First-party plugin: event-file converters (Prophesee RAW EVT 3.0/2.0, Metavision DAT, DSEC-style HDF5,
+iniVation AEDAT4).
 
 The import sits inside the hook, so the command line starts without loading this plugin's modules.
 """
@@ -10,7 +11,8 @@ from pstoolkit import Registry, hookimpl
 
 @hookimpl
 def pstoolkit_register_converters(registry: Registry) -> None:
+    from pstoolkit_eventfiles.aedat4 import Aedat4
     from pstoolkit_eventfiles.converters import Dat, Dsec, Raw
 
-    for converter in (Raw, Dat, Dsec):
+    for converter in (Raw, Dat, Dsec, Aedat4):
         registry.register(converter)

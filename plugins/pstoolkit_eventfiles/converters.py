@@ -1,4 +1,5 @@
-"""The ``raw``, ``dat`` and ``dsec`` converters: event recordings → hybrid captures, in bounded memory.
+"""The ``raw``, ``dat`` and ``dsec`` converters: event recordings → hybrid captures, in bounded memory
+(``aedat4`` in ``pstoolkit_eventfiles.aedat4`` builds on ``_EventFile`` here).
 
 Events stream from the decoder into ``psfmt.CaptureWriter`` block by block. A capture's events are
 sorted; the few that a sensor stamps earlier than their predecessor (small backward TIME_LOW steps,
@@ -138,7 +139,7 @@ class _EventFile(Converter):
     def convert(self, src: Path, out: Path, options: dict[str, Any], progress: Progress) -> list[Path]:
         if src.is_dir():
             raise UserError(f"{src}: is a folder, expected a {self.name} file")
-        frames = load_frames(options["frames"])
+        frames = load_frames(options.get("frames", ""))
         lights = load_lights(options["lights"])
         calibration = load_calibration(options["calibration"])
         description = "\n".join([f"{src.name} converted by pstoolkit convert {self.name}", *self.prepare(src, options)])
@@ -155,7 +156,7 @@ class _EventFile(Converter):
                     writer.set_triggers(triggers.t, triggers.channel, triggers.value)
                 if frames is not None and not (frames.has_windows or frames.has_instant_lights):
                     time_frames(frames, triggers, options["trigger_channel"], Path(options["frames"]))
-                write_attachments(writer, frames, lights, calibration)
+                write_attachments(writer, frames, lights, self.complete_calibration(calibration))
             report = psfmt.validate(staging)
             if report.errors:
                 raise UserError(f"{out}: not written: {report.errors[0].text}")
@@ -177,6 +178,11 @@ class _EventFile(Converter):
         """Stream the events of ``src`` into ``writer``; return the triggers and a note on anything
         skipped ("" when nothing was)."""
         raise NotImplementedError
+
+    def complete_calibration(self, calibration: psfmt.Calibration | None) -> psfmt.Calibration | None:
+        """The calibration written with the events (``--calibration``'s, completed with what the
+        recording itself implies)."""
+        return calibration
 
 
 def _notes(stats_clean: bool, summary: str, monotone: Monotone) -> str:
