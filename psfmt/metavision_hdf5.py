@@ -22,15 +22,13 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import h5py
 import numpy as np
 
+from psfmt._ecf.batch import decode_batch
 from psfmt._ecf.chunk import FILTER_ID, MAX_CHUNK_EVENTS, MESSAGES, OK
-from psfmt._ecf.loop import compiled
-from psfmt._ecf.vector import decode_vector
 from psfmt._evt3.engine import resolve
 from psfmt.errors import FormatError
 from psfmt.events import EventArray, Triggers, check_window
@@ -199,8 +197,8 @@ class MetavisionHdf5File:
                 raise self._fail(f"{EVENTS}: time goes back at event {lo + int(np.argmax(back)) + 1:,}")
         return EventArray(x, y, t, 2 * p.astype(np.int8) - 1)
 
-    def _raw_chunks(self, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The stored bytes of chunks c0 … c1-1 (one buffer) with each one's start, end and event count."""
+    def _raw_chunks(self, c0: int, c1: int) -> tuple[list[bytes], list[int]]:
+        """The stored bytes of chunks c0 … c1-1 and the event count of each one's header, checked."""
         ds_id = self._events.id
         parts, counts = [], []
         for c in range(c0, c1):
@@ -212,8 +210,8 @@ class MetavisionHdf5File:
                 raise self._fail(f"{EVENTS}: chunk {c} stores {info.size:,} bytes, beyond the {self.limits.max_chunk_bytes:,} allowed")
             mask, data = ds_id.read_direct_chunk((offset,))
             valid = min(self.chunk, self.count - offset)
-            if mask & 1:  # the filter was skipped for this chunk: raw 16-byte records
-                raise self._fail(f"{EVENTS}: chunk {c} is stored unfiltered, which this reader does not decode")
+            if mask & 1:
+                raise self._fail(f"{EVENTS}: chunk {c} is stored without its ECF filter, which this reader does not decode")
             if len(data) < 4:
                 raise self._fail(f"{EVENTS}: chunk {c} has {len(data)} bytes, too few for an ECF header")
             n = int.from_bytes(data[:4], "little") >> 2
@@ -223,39 +221,21 @@ class MetavisionHdf5File:
                 raise self._fail(f"{EVENTS}: chunk {c}'s header counts {n:,} events where the dataset has {valid:,}")
             parts.append(data)
             counts.append(n)
-        sizes = np.array([len(b) for b in parts], np.int64)
-        ends = np.cumsum(sizes)
-        return np.frombuffer(b"".join(parts), np.uint8), ends - sizes, ends, np.array(counts, np.int64)
+        return parts, counts
 
     def _decode_ecf(self, c0: int, c1: int) -> EventArray:
-        buf, starts, ends, counts = self._raw_chunks(c0, c1)
-        at = np.cumsum(counts) - counts
-        total = int(counts.sum())
-        x, y = np.empty(total, np.uint16), np.empty(total, np.uint16)
-        t, p = np.empty(total, np.int64), np.empty(total, np.int8)
-        status = np.zeros(len(counts), np.int64)
-        args = (self.width, self.height, x, y, t, p)
-        if self.engine == "numba":
-            kernel = compiled()
-            parts = min(self.threads, len(counts))
-            if parts > 1:
-                cuts = np.linspace(0, len(counts), parts + 1).astype(int)
-                with ThreadPoolExecutor(parts) as pool:
-                    list(pool.map(lambda a, b: kernel(buf, starts[a:b], ends[a:b], counts[a:b], at[a:b], *args, status[a:b]), cuts[:-1], cuts[1:]))
-            else:
-                kernel(buf, starts, ends, counts, at, *args, status)
-        else:
-            decode_vector(buf, starts, ends, counts, at, *args, status)
+        chunks, counts = self._raw_chunks(c0, c1)
+        x, y, t, p, status = decode_batch(chunks, np.array(counts), self.width, self.height, self.engine, self.threads)
         bad = np.flatnonzero(status != OK)
         if len(bad):
             k = int(bad[0])
             raise self._fail(f"{EVENTS}: chunk {c0 + k} (events {(c0 + k) * self.chunk:,}…) {MESSAGES[int(status[k])]}")
-        if len(at) > 1:
-            back = np.flatnonzero(t[at[1:]] < t[at[1:] - 1])
-            if len(back):
-                k = int(back[0]) + 1
-                raise self._fail(f"{EVENTS}: time goes back from chunk {c0 + k - 1} to chunk {c0 + k}")
-        keep = min(total, self.count - c0 * self.chunk)  # a last chunk HDF5 padded to full size
+        at = np.cumsum(counts)[:-1]
+        back = np.flatnonzero(t[at] < t[at - 1])
+        if len(back):
+            k = int(back[0]) + 1
+            raise self._fail(f"{EVENTS}: time goes back from chunk {c0 + k - 1} to chunk {c0 + k}")
+        keep = min(len(t), self.count - c0 * self.chunk)  # a last chunk HDF5 padded to full size
         return EventArray(x[:keep], y[:keep], t[:keep], p[:keep])
 
     # -- time windows ---------------------------------------------------------------------------

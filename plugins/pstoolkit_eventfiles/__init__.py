@@ -1,4 +1,4 @@
-"""First-party plugin: event-file converters (Prophesee RAW EVT 3.0/2.0, Metavision DAT, DSEC-style HDF5).
+"""First-party plugin: event-file converters (Prophesee RAW EVT 3.0/2.0, Metavision DAT and HDF5, DSEC-style HDF5).
 
 The import sits inside the hook, so the command line starts without loading this plugin's modules.
 """
@@ -10,7 +10,7 @@ from pstoolkit import Registry, hookimpl
 
 @hookimpl
 def pstoolkit_register_converters(registry: Registry) -> None:
-    from pstoolkit_eventfiles.converters import Dat, Dsec, Raw
+    from pstoolkit_eventfiles.converters import Dat, Dsec, Hdf5, Raw
 
-    for converter in (Raw, Dat, Dsec):
+    for converter in (Raw, Dat, Hdf5, Dsec):
         registry.register(converter)
