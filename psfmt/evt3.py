@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from psfmt._evt3.decoding import DECODER_STATE, decode_numba, decode_numpy, skip_words, state_time_us
+from psfmt._evt3.decoding import DECODER_STATE, Output, decode_into, decode_numba, decode_numpy, skip_words, state_time_us
 from psfmt._evt3.encoding import ENCODER_STATE, encode_numba, encode_numpy
 from psfmt._evt3.engine import ENGINES, has_numba, resolve  # noqa: F401 -- ENGINES, has_numba: the old import path
 from psfmt._evt3.words import (  # noqa: F401 -- the word types and limits: the old import path
@@ -135,6 +135,18 @@ class Evt3File:
             yield decoder.feed(words)
 
     def read(self) -> tuple[EventArray, Triggers]:
+        if self.engine == "numba":
+            # one output for the whole file, sized at a word per event (sensors write more words
+            # than events) and grown if need be
+            decoder = self._decoder()
+            out = Output((self.path.stat().st_size - self.header.data_offset) // 2 + 12)
+            for _, words in iter_words(self.path, self.header, "<u2", self.chunk_words, self.stats):
+                counters = np.zeros(6, np.int64)
+                decode_into(words, decoder.state, counters, self.width, self.height, out)
+                self.stats.add_counters(counters)
+            events, triggers = out.take()
+            self.stats.events, self.stats.triggers = len(events), len(triggers)
+            return events, triggers
         parts = list(self.chunks())
         return EventArray.concatenate([e for e, _ in parts]), concat_triggers([t for _, t in parts])
 

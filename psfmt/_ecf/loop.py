@@ -34,36 +34,36 @@ def _put(v, k, width, height, x, y, p):  # type: ignore[no-untyped-def]
 
 
 def _times(buf, pos, end, n, o, t):  # type: ignore[no-untyped-def]
-    """Fill ``t[o:o + n]``; (position after the times, status)."""
+    """Fill ``t[o:o + n]``; (position after the times, status). Times add up in int64 with
+    wrap-around, as unsigned 64-bit sums: a sum below its predecessor went past 2⁶³ - 1."""
     if pos + 8 > end:
         return pos, SHORT
-    origin = np.uint64(0)
-    for k in range(8):
-        origin |= np.uint64(buf[pos + k]) << np.uint64(8 * k)
+    now = _u32(buf, pos) | (_u32(buf, pos + 4) << 32)
     pos += 8
-    now = np.int64(origin)
     i = 0
     while i < n:
         if pos >= end:
             return pos, SHORT
         c = np.int64(buf[pos])
         pos += 1
-        delta = np.uint64(0)
-        shift = 0
-        while (c >> 4) == 15:
-            if shift >= 4 * MAX_DIGITS:
-                return pos, LONG_DELTA
-            delta |= np.uint64(c & 15) << np.uint64(shift)
-            shift += 4
-            if pos >= end:
-                return pos, SHORT
-            c = np.int64(buf[pos])
-            pos += 1
-        if (c >> 4) != 0:
-            if shift >= 4 * MAX_DIGITS:
-                return pos, LONG_DELTA
-            delta |= np.uint64(c >> 4) << np.uint64(shift)
-        after = np.int64(np.uint64(now) + delta)
+        delta = c >> 4
+        if delta == 15:
+            delta = 0
+            shift = 0
+            while (c >> 4) == 15:
+                if shift >= 4 * MAX_DIGITS:
+                    return pos, LONG_DELTA
+                delta |= (c & 15) << shift
+                shift += 4
+                if pos >= end:
+                    return pos, SHORT
+                c = np.int64(buf[pos])
+                pos += 1
+            if (c >> 4) != 0:
+                if shift >= 4 * MAX_DIGITS:
+                    return pos, LONG_DELTA
+                delta |= (c >> 4) << shift
+        after = now + delta
         if after < now:
             return pos, TIME_BACK
         now = after
@@ -152,16 +152,41 @@ def _masked_x(buf, pos, end, n, o, width, x):  # type: ignore[no-untyped-def]
         w = _u16(buf, pos)
         pos += 2
         base = w >> 5
-        if base >= width:
-            return pos, OUTSIDE
-        x[o + i] = base
-        i += 1
-        for k in range(5):
-            if i < n and (w >> (4 - k)) & 1:
-                if base + 1 + k >= width:
-                    return pos, OUTSIDE
-                x[o + i] = base + 1 + k
-                i += 1
+        if base + 5 >= width:
+            # near the sensor's edge: every event checked one by one
+            if base >= width:
+                return pos, OUTSIDE
+            x[o + i] = base
+            i += 1
+            for k in range(5):
+                if i < n and (w >> (4 - k)) & 1:
+                    if base + 1 + k >= width:
+                        return pos, OUTSIDE
+                    x[o + i] = base + 1 + k
+                    i += 1
+        elif i + 6 <= n:
+            # without branches: each slot is written, and kept when its mask bit is set
+            j = o + i
+            x[j] = base
+            j += 1
+            x[j] = base + 1
+            j += (w >> 4) & 1
+            x[j] = base + 2
+            j += (w >> 3) & 1
+            x[j] = base + 3
+            j += (w >> 2) & 1
+            x[j] = base + 4
+            j += (w >> 1) & 1
+            x[j] = base + 5
+            j += w & 1
+            i = j - o
+        else:
+            x[o + i] = base
+            i += 1
+            for k in range(5):
+                if i < n and (w >> (4 - k)) & 1:
+                    x[o + i] = base + 1 + k
+                    i += 1
     return pos, OK
 
 
