@@ -37,20 +37,19 @@ def decode_loop(words, state, counters, width, height, ox, oy, ot, op, tt, tc, t
         w = np.int64(words[i])
         typ = w >> 12
         if typ == ADDR_X:
-            if have_high == 0:
+            x = w & 0x7FF
+            if have_high != 0 and y >= 0 and x < width and y < height:
+                ox[n] = x
+                oy[n] = y
+                ot[n] = now
+                op[n] = ((w >> 10) & 2) - 1
+                n += 1
+            elif have_high == 0:
                 no_time += 1
             elif y < 0:
                 no_y += 1
             else:
-                x = w & 0x7FF
-                if x >= width or y >= height:
-                    outside += 1
-                else:
-                    ox[n] = x
-                    oy[n] = y
-                    ot[n] = now
-                    op[n] = 1 if (w >> 11) & 1 else -1
-                    n += 1
+                outside += 1
         elif typ == ADDR_Y:
             y = w & 0x7FF
         elif typ == TIME_LOW:
