@@ -183,3 +183,35 @@ def test_not_metavision(tmp_path: Path) -> None:
         del f.attrs["geometry"], f.attrs["format"], f.attrs["system_ID"], f.attrs["generation"], f.attrs["sensor_generation"]
     with pytest.raises(FormatError, match="declares no sensor geometry"):
         MetavisionHdf5File(path)
+
+
+@pytest.mark.skipif(not has_numba(), reason="numba not installed")
+def test_engines_agree_on_damaged_chunks() -> None:
+    """Random byte changes, cuts and counts (seeded) in chunks of every mode: the compiled loop and
+    the numpy path accept the same chunks and decode them alike, and never read past a chunk."""
+    with h5py.File(DATA / "varied.hdf5", "r") as f:
+        ds = f["/extra/chunk1000"]
+        chunks = [ds.id.read_direct_chunk((c,))[1] for c in range(0, 7000, 1000)]
+    rng = np.random.default_rng(7)
+    accepted = refused = 0
+    for k in range(300):
+        data = bytearray(chunks[k % len(chunks)])
+        n = int.from_bytes(data[:4], "little") >> 2
+        kind = k % 3
+        if kind == 0:
+            for at in rng.integers(4, len(data), 3):
+                data[at] = int(rng.integers(0, 256))
+        elif kind == 1:
+            data = data[: int(rng.integers(4, len(data)))]
+        else:
+            n = int(rng.integers(1, 1200))
+            data[:4] = (n << 2 | (data[0] & 3)).to_bytes(4, "little")
+        got = [decode_batch([bytes(data)], np.array([n]), 1280, 720, engine) for engine in ("numba", "numpy")]
+        ok = [int(g[4][0]) == OK for g in got]
+        assert ok[0] == ok[1], k
+        if ok[0]:
+            accepted += 1
+            assert all(np.array_equal(a, b) for a, b in zip(got[0][:4], got[1][:4])), k
+        else:
+            refused += 1
+    assert accepted > 10 and refused > 100
