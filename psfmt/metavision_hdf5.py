@@ -29,7 +29,7 @@ import numpy as np
 
 from psfmt._ecf.batch import decode_batch
 from psfmt._ecf.chunk import FILTER_ID, MAX_CHUNK_EVENTS, MESSAGES, OK
-from psfmt._evt3.engine import resolve
+from psfmt._evt3.engine import resolve, usable_cores
 from psfmt.errors import FormatError
 from psfmt.events import EventArray, Triggers, check_window
 from psfmt.files import hdf5_errors, open_hdf5
@@ -52,11 +52,7 @@ FIELDS = {EVENTS: ("x", "y", "p", "t"), INDEXES: ("id", "ts"), TRIGGERS: ("p", "
 
 def default_threads() -> int:
     """Threads that decode ECF chunks side by side: the cores this process may use, at most 8."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        cores = os.cpu_count() or 1
-    return max(1, min(8, cores))
+    return max(1, min(8, usable_cores()))
 
 
 def _text(value: object) -> str:

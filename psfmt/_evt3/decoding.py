@@ -10,6 +10,8 @@ operations.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from psfmt._evt3.engine import jit
@@ -123,6 +125,39 @@ def decode_loop(words, state, counters, width, height, ox, oy, ot, op, tt, tc, t
 _decode_loop_compiled = jit(decode_loop)
 
 
+def advance_loop(words, state):  # type: ignore[no-untyped-def]
+    """Move ``state`` over ``words`` exactly as ``decode_loop`` would, writing nothing: what a thread
+    decoding the words after them starts from."""
+    have_high, high, wraps, low, y, bx, bp = state[0], state[1], state[2], state[3], state[4], state[5], state[6]
+    for i in range(words.shape[0]):
+        w = np.int64(words[i])
+        typ = w >> 12
+        if typ == ADDR_Y:
+            y = w & 0x7FF
+        elif typ == TIME_LOW:
+            low = w & 0xFFF
+        elif typ == VECT_12 or typ == VECT_8:
+            if bx >= 0:
+                bx += 12 if typ == VECT_12 else 8
+        elif typ == VECT_BASE_X:
+            bx = w & 0x7FF
+            bp = (w >> 11) & 1
+        elif typ == TIME_HIGH:
+            h = w & 0xFFF
+            if have_high == 0:
+                have_high = 1
+                low = 0
+            elif h != high:
+                if high - h >= WRAP_DROP:
+                    wraps += 1
+                low = 0
+            high = h
+    state[0], state[1], state[2], state[3], state[4], state[5], state[6] = have_high, high, wraps, low, y, bx, bp
+
+
+_advance_loop_compiled = jit(advance_loop)
+
+
 class Output:
     """Event and trigger columns that the compiled loop fills, grown as it needs: decoding a whole
     file into one such output spares a concatenation of per-block parts (a copy of every event)."""
@@ -140,8 +175,22 @@ class Output:
         for name in ("tt", "tc", "tv"):
             getattr(self, name).resize(triggers, refcheck=False)
 
-    def grow(self) -> None:
-        self._resize(len(self.x) + max(len(self.x) // 2, 12), 2 * len(self.tt))
+    def grow(self, events: int = 0, triggers: int = 0) -> None:
+        """Room for at least ``events`` and ``triggers`` more (at least half as much again)."""
+        self._resize(
+            max(len(self.x) + max(len(self.x) // 2, 12), self.n + events), max(2 * len(self.tt), self.m + triggers)
+        )  # fmt: skip
+
+    def append(self, other: Output) -> None:
+        """Add what ``other`` holds after what this output holds."""
+        if self.n + other.n > len(self.x) or self.m + other.m > len(self.tt):
+            self.grow(other.n, other.m)
+        for name in ("x", "y", "t", "p"):
+            getattr(self, name)[self.n : self.n + other.n] = getattr(other, name)[: other.n]
+        for name in ("tt", "tc", "tv"):
+            getattr(self, name)[self.m : self.m + other.m] = getattr(other, name)[: other.m]
+        self.n += other.n
+        self.m += other.m
 
     def take(self) -> tuple[EventArray, Triggers]:
         """The events and triggers written, as arrays of their exact size; the output is spent."""
@@ -163,6 +212,28 @@ def decode_into(words: np.ndarray, state: np.ndarray, counters: np.ndarray, widt
         start += used
         if start < len(words):
             out.grow()
+
+
+def decode_parallel(words: np.ndarray, state: np.ndarray, counters: np.ndarray, width: int, height: int, out: Output) -> None:
+    """``decode_into`` on two threads: the first decodes the first ~60 % of the words while the
+    second moves a copy of the state over them (``advance_loop``, cheaper than decoding) and decodes
+    the rest into an output of its own, appended at the end. Same events, state and counters."""
+    split = (len(words) * 5) // 8
+    head, tail = words[:split], words[split:]
+    tail_state, tail_counters = state.copy(), np.zeros_like(counters)
+    tail_out = Output(len(tail) + 12)
+
+    def second() -> None:
+        _advance_loop_compiled(head, tail_state)
+        decode_into(tail, tail_state, tail_counters, width, height, tail_out)
+
+    with ThreadPoolExecutor(1) as pool:
+        job = pool.submit(second)
+        decode_into(head, state, counters, width, height, out)
+        job.result()
+    out.append(tail_out)
+    state[:] = tail_state
+    counters += tail_counters
 
 
 def decode_numba(words: np.ndarray, state: np.ndarray, counters: np.ndarray, width: int, height: int) -> tuple[EventArray, Triggers]:
