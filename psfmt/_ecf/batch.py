@@ -39,11 +39,7 @@ def decode_batch(
     cuts = np.searchsorted(ends, np.linspace(0, int(ends[-1]), parts + 1)[1:-1])
     bounds = [0, *cuts.tolist(), len(counts)]
     with ThreadPoolExecutor(parts) as pool:
-        jobs = [
-            pool.submit(kernel, buf, starts[a:b], ends[a:b], counts[a:b], at[a:b], *args, status[a:b])
-            for a, b in zip(bounds[:-1], bounds[1:])
-            if b > a
-        ]
+        jobs = [pool.submit(kernel, buf, starts[a:b], ends[a:b], counts[a:b], at[a:b], *args, status[a:b]) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
         for job in jobs:
             job.result()
     return x, y, t, p, status
