@@ -257,8 +257,8 @@ class MetavisionHdf5File:
         ids, ts = table["id"].astype(np.uint64), table["ts"].astype(np.int64)
         if (ids > self.count).any() or (np.diff(ids.astype(np.int64)) < 0).any() or (np.diff(ts) < 0).any():
             raise self._fail(f"{INDEXES} is not an increasing index into the {self.count:,} events")
-        if abs(offset) > 1 << 62:
-            raise self._fail(f"{INDEXES} has an 'offset' of {offset}, beyond any time")
+        if abs(offset) > 1 << 62 or (len(ts) and int(np.abs(ts).max()) > 1 << 62):
+            raise self._fail(f"{INDEXES} holds times beyond ±2⁶² µs")
         k = int(np.searchsorted(ts - offset, t0_us, side="right")) - 1
         return int(ids[k]) if k >= 0 else 0
 

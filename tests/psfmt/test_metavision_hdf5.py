@@ -215,3 +215,15 @@ def test_engines_agree_on_damaged_chunks() -> None:
         else:
             refused += 1
     assert accepted > 10 and refused > 100
+
+
+def test_damaged_index_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "small.hdf5"
+    shutil.copy(DATA / "small.hdf5", path)
+    with h5py.File(path, "r+") as f:
+        idx = f["/CD/indexes"]
+        table = idx[()]
+        table["id"][5] = 10**9
+        idx[...] = table
+    with MetavisionHdf5File(path) as f, pytest.raises(FormatError, match="/CD/indexes is not an increasing index into the 20,000 events"):
+        f.window(1000, 2000)
