@@ -27,9 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
-from psfmt._evt3.decoding import DECODER_STATE, decode_numba, decode_numpy, skip_words, state_time_us
+from psfmt._evt3.decoding import DECODER_STATE, Output, decode_into, decode_numba, decode_numpy, decode_parallel, skip_words, state_time_us
 from psfmt._evt3.encoding import ENCODER_STATE, encode_numba, encode_numpy
-from psfmt._evt3.engine import ENGINES, has_numba, resolve  # noqa: F401 -- ENGINES, has_numba: the old import path
+from psfmt._evt3.engine import ENGINES, has_numba, resolve, usable_cores  # noqa: F401 -- ENGINES, has_numba: the old import path
 from psfmt._evt3.words import (  # noqa: F401 -- the word types and limits: the old import path
     ADDR_X,
     ADDR_Y,
@@ -57,6 +57,8 @@ from psfmt.rawheader import (
 )
 
 DEFAULT_CHUNK_WORDS = 1 << 22
+PARALLEL_MIN_WORDS = 1 << 18
+"""Blocks of at least this many words are decoded on two threads by ``Evt3File.read``."""
 
 
 @dataclass
@@ -135,6 +137,21 @@ class Evt3File:
             yield decoder.feed(words)
 
     def read(self) -> tuple[EventArray, Triggers]:
+        if self.engine == "numba":
+            # one output for the whole file, sized at a word per event (sensors write more words
+            # than events) and grown if need be; large blocks decoded on two threads where there are
+            # two cores
+            decoder = self._decoder()
+            out = Output((self.path.stat().st_size - self.header.data_offset) // 2 + 12)
+            parallel = usable_cores() > 1
+            for _, words in iter_words(self.path, self.header, "<u2", self.chunk_words, self.stats):
+                counters = np.zeros(6, np.int64)
+                decode = decode_parallel if parallel and len(words) >= PARALLEL_MIN_WORDS else decode_into
+                decode(words, decoder.state, counters, self.width, self.height, out)
+                self.stats.add_counters(counters)
+            events, triggers = out.take()
+            self.stats.events, self.stats.triggers = len(events), len(triggers)
+            return events, triggers
         parts = list(self.chunks())
         return EventArray.concatenate([e for e, _ in parts]), concat_triggers([t for _, t in parts])
 

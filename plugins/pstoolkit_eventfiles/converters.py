@@ -1,4 +1,4 @@
-"""The ``raw``, ``dat`` and ``dsec`` converters: event recordings → hybrid captures, in bounded memory
+"""The ``raw``, ``dat``, ``hdf5`` (Metavision) and ``dsec`` converters: event recordings → hybrid captures, in bounded memory
 (``aedat4`` in ``pstoolkit_eventfiles.aedat4`` builds on ``_EventFile`` here).
 
 Events stream from the decoder into ``psfmt.CaptureWriter`` block by block. A capture's events are
@@ -8,7 +8,7 @@ time and are counted. Whatever was skipped, dropped or re-timed is logged as one
 clean recording logs nothing. A recording that leaves no event (a header alone, every event outside
 the sensor) is refused unless ``--allow-empty`` asks for the empty capture.
 
-RAW and DAT files take their sensor size from the header as Metavision does
+RAW, DAT and Metavision HDF5 files take their sensor size from the header as Metavision does
 (``psfmt.rawheader.resolve_geometry``), or from ``--geometry WxH``; the capture's description records
 where it came from (``geometry_source = …``) and keeps the file's header lines.
 """
@@ -30,6 +30,7 @@ from psfmt.dsec import DEFAULT_CHUNK_EVENTS, DsecFile
 from psfmt.evt2 import Evt2File
 from psfmt.evt3 import Evt3File
 from psfmt.limits import MAX_SENSOR_SIDE
+from psfmt.metavision_hdf5 import MetavisionHdf5File
 from psfmt.rawheader import RawHeader, concat_triggers, missing_geometry, parse_geometry, read_header
 from psfmt.text import printable
 from pstoolkit import Converter, Option, Progress, UserError
@@ -245,6 +246,29 @@ class Dat(_EventFile):
         self, src: Path, writer: psfmt.CaptureWriter, options: dict[str, Any], progress: Progress
     ) -> tuple[psfmt.Triggers, str]:
         return _write_dat(src, self.reader, writer, progress)
+
+
+class Hdf5(_EventFile):
+    name = "hdf5"
+    summary = "Metavision HDF5 recordings (/CD/events, ECF-compressed or not; /EXT_TRIGGER/events), with frames, light model and calibration"
+    options = (GEOMETRY, *ATTACH_OPTIONS, ALLOW_EMPTY)
+
+    def prepare(self, src: Path, options: dict[str, Any]) -> list[str]:
+        with MetavisionHdf5File(src, geometry=geometry_option(options["geometry"])) as reader:
+            self.header = reader.header
+        return header_lines(self.header)
+
+    def write_events(
+        self, src: Path, writer: psfmt.CaptureWriter, options: dict[str, Any], progress: Progress
+    ) -> tuple[psfmt.Triggers, str]:
+        with MetavisionHdf5File(src, geometry=geometry_option(options["geometry"])) as reader:
+            writer.begin_events(reader.width, reader.height)
+            done = 0
+            for events in reader.chunks():
+                writer.append_events(events)
+                done += len(events)
+                progress(done / max(1, reader.count), "events")
+            return reader.triggers(), ""
 
 
 class Dsec(_EventFile):

@@ -10,12 +10,13 @@ operations.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from psfmt._evt3.engine import jit
 from psfmt._evt3.words import ADDR_X, ADDR_Y, EXT_TRIGGER, SKIPPED_TYPES, TIME_HIGH, TIME_LOW, VECT_8, VECT_12, VECT_BASE_X, WRAP_DROP
 from psfmt.events import EventArray, Triggers
-from psfmt.rawheader import concat_triggers
 
 DECODER_STATE = (0, 0, 0, 0, -1, -1, 0)
 """The state before the first word: have_high, high, wraps, low, y (-1: none yet), base_x (-1: none yet), base_p."""
@@ -26,7 +27,9 @@ def decode_loop(words, state, counters, width, height, ox, oy, ot, op, tt, tc, t
     returns (events written, triggers written, words consumed) and updates ``state`` and ``counters``
     (others, unknown, no_time, no_y, no_base, outside)."""
     have_high, high, wraps, low, y, bx, bp = state[0], state[1], state[2], state[3], state[4], state[5], state[6]
+    others, unknown, no_time, no_y, no_base, outside = counters[0], counters[1], counters[2], counters[3], counters[4], counters[5]
     cap, tcap = ox.shape[0], tt.shape[0]
+    now = (wraps << 24) | (high << 12) | low  # the time of the next event, kept up to date
     n = 0
     m = 0
     i = 0
@@ -35,52 +38,61 @@ def decode_loop(words, state, counters, width, height, ox, oy, ot, op, tt, tc, t
             break
         w = np.int64(words[i])
         typ = w >> 12
-        if typ == ADDR_Y:
-            y = w & 0x7FF
-        elif typ == ADDR_X:
-            if have_high == 0:
-                counters[2] += 1
+        if typ == ADDR_X:
+            x = w & 0x7FF
+            if have_high != 0 and y >= 0 and x < width and y < height:
+                ox[n] = x
+                oy[n] = y
+                ot[n] = now
+                op[n] = ((w >> 10) & 2) - 1
+                n += 1
+            elif have_high == 0:
+                no_time += 1
             elif y < 0:
-                counters[3] += 1
+                no_y += 1
             else:
-                x = w & 0x7FF
-                if x >= width or y >= height:
-                    counters[5] += 1
-                else:
-                    ox[n] = x
-                    oy[n] = y
-                    ot[n] = (wraps << 24) | (high << 12) | low
-                    op[n] = 1 if (w >> 11) & 1 else -1
-                    n += 1
-        elif typ == VECT_BASE_X:
-            bx = w & 0x7FF
-            bp = (w >> 11) & 1
+                outside += 1
+        elif typ == ADDR_Y:
+            y = w & 0x7FF
+        elif typ == TIME_LOW:
+            low = w & 0xFFF
+            now = (wraps << 24) | (high << 12) | low
         elif typ == VECT_12 or typ == VECT_8:
             nbits = 12 if typ == VECT_12 else 8
             if bx < 0:
-                counters[4] += 1
+                no_base += 1
             else:
                 if have_high == 0:
-                    counters[2] += 1
+                    no_time += 1
                 elif y < 0:
-                    counters[3] += 1
+                    no_y += 1
                 else:
-                    t = (wraps << 24) | (high << 12) | low
+                    bits = w & ((1 << nbits) - 1)
                     pol = 1 if bp else -1
-                    for k in range(nbits):
-                        if (w >> k) & 1:
-                            x = bx + k
-                            if x >= width or y >= height:
-                                counters[5] += 1
-                            else:
-                                ox[n] = x
-                                oy[n] = y
-                                ot[n] = t
-                                op[n] = pol
-                                n += 1
+                    if bx + nbits <= width and y < height:
+                        # every slot written, the count moved on by its bit: no branch per bit
+                        for k in range(nbits):
+                            ox[n] = bx + k
+                            oy[n] = y
+                            ot[n] = now
+                            op[n] = pol
+                            n += (bits >> k) & 1
+                    else:
+                        for k in range(nbits):
+                            if (bits >> k) & 1:
+                                x = bx + k
+                                if x >= width or y >= height:
+                                    outside += 1
+                                else:
+                                    ox[n] = x
+                                    oy[n] = y
+                                    ot[n] = now
+                                    op[n] = pol
+                                    n += 1
                 bx += nbits
-        elif typ == TIME_LOW:
-            low = w & 0xFFF
+        elif typ == VECT_BASE_X:
+            bx = w & 0x7FF
+            bp = (w >> 11) & 1
         elif typ == TIME_HIGH:
             h = w & 0xFFF
             if have_high == 0:
@@ -91,47 +103,145 @@ def decode_loop(words, state, counters, width, height, ox, oy, ot, op, tt, tc, t
                     wraps += 1
                 low = 0
             high = h
+            now = (wraps << 24) | (high << 12) | low
         elif typ == EXT_TRIGGER:
             if have_high == 0:
-                counters[2] += 1
+                no_time += 1
             else:
-                tt[m] = (wraps << 24) | (high << 12) | low
+                tt[m] = now
                 tc[m] = (w >> 8) & 0xF
                 tv[m] = w & 1
                 m += 1
         elif typ == 0x7 or typ == 0xE or typ == 0xF:
-            counters[0] += 1
+            others += 1
         else:
-            counters[1] += 1
+            unknown += 1
         i += 1
     state[0], state[1], state[2], state[3], state[4], state[5], state[6] = have_high, high, wraps, low, y, bx, bp
+    counters[0], counters[1], counters[2], counters[3], counters[4], counters[5] = others, unknown, no_time, no_y, no_base, outside
     return n, m, i
 
 
 _decode_loop_compiled = jit(decode_loop)
 
 
-def decode_numba(words: np.ndarray, state: np.ndarray, counters: np.ndarray, width: int, height: int) -> tuple[EventArray, Triggers]:
-    """The events and triggers of the uint16 ``words`` (coordinates below ``width`` × ``height``) by the
-    compiled loop, run over output buffers of bounded size until every word is used; updates ``state``
-    and adds to ``counters``."""
-    parts: list[EventArray] = []
-    trig: list[Triggers] = []
-    cap = max(12, min(12 * len(words), 1 << 23))
+def advance_loop(words, state):  # type: ignore[no-untyped-def]
+    """Move ``state`` over ``words`` exactly as ``decode_loop`` would, writing nothing: what a thread
+    decoding the words after them starts from."""
+    have_high, high, wraps, low, y, bx, bp = state[0], state[1], state[2], state[3], state[4], state[5], state[6]
+    for i in range(words.shape[0]):
+        w = np.int64(words[i])
+        typ = w >> 12
+        if typ == ADDR_Y:
+            y = w & 0x7FF
+        elif typ == TIME_LOW:
+            low = w & 0xFFF
+        elif typ == VECT_12 or typ == VECT_8:
+            if bx >= 0:
+                bx += 12 if typ == VECT_12 else 8
+        elif typ == VECT_BASE_X:
+            bx = w & 0x7FF
+            bp = (w >> 11) & 1
+        elif typ == TIME_HIGH:
+            h = w & 0xFFF
+            if have_high == 0:
+                have_high = 1
+                low = 0
+            elif h != high:
+                if high - h >= WRAP_DROP:
+                    wraps += 1
+                low = 0
+            high = h
+    state[0], state[1], state[2], state[3], state[4], state[5], state[6] = have_high, high, wraps, low, y, bx, bp
+
+
+_advance_loop_compiled = jit(advance_loop)
+
+
+class Output:
+    """Event and trigger columns that the compiled loop fills, grown as it needs: decoding a whole
+    file into one such output spares a concatenation of per-block parts (a copy of every event)."""
+
+    def __init__(self, events: int, triggers: int = 1 << 10) -> None:
+        self.x, self.y = np.empty(max(12, events), np.uint16), np.empty(max(12, events), np.uint16)
+        self.t, self.p = np.empty(max(12, events), np.int64), np.empty(max(12, events), np.int8)
+        self.tt, self.tc, self.tv = np.empty(triggers, np.int64), np.empty(triggers, np.uint8), np.empty(triggers, np.int8)
+        self.n = self.m = 0
+
+    def _resize(self, events: int, triggers: int) -> None:
+        # in place where the allocator can (always when shrinking): no copy of what is written
+        for name in ("x", "y", "t", "p"):
+            getattr(self, name).resize(events, refcheck=False)
+        for name in ("tt", "tc", "tv"):
+            getattr(self, name).resize(triggers, refcheck=False)
+
+    def grow(self, events: int = 0, triggers: int = 0) -> None:
+        """Room for at least ``events`` and ``triggers`` more (at least half as much again)."""
+        self._resize(
+            max(len(self.x) + max(len(self.x) // 2, 12), self.n + events), max(2 * len(self.tt), self.m + triggers)
+        )  # fmt: skip
+
+    def append(self, other: Output) -> None:
+        """Add what ``other`` holds after what this output holds."""
+        if self.n + other.n > len(self.x) or self.m + other.m > len(self.tt):
+            self.grow(other.n, other.m)
+        for name in ("x", "y", "t", "p"):
+            getattr(self, name)[self.n : self.n + other.n] = getattr(other, name)[: other.n]
+        for name in ("tt", "tc", "tv"):
+            getattr(self, name)[self.m : self.m + other.m] = getattr(other, name)[: other.m]
+        self.n += other.n
+        self.m += other.m
+
+    def take(self) -> tuple[EventArray, Triggers]:
+        """The events and triggers written, as arrays of their exact size; the output is spent."""
+        self._resize(self.n, self.m)
+        return EventArray(self.x, self.y, self.t, self.p), Triggers(self.tt, self.tc, self.tv)
+
+
+def decode_into(words: np.ndarray, state: np.ndarray, counters: np.ndarray, width: int, height: int, out: Output) -> None:
+    """Decode the uint16 ``words`` by the compiled loop into ``out`` (grown until every word is used);
+    updates ``state`` and adds to ``counters``."""
     start = 0
     while start < len(words):
-        ox, oy = np.empty(cap, np.uint16), np.empty(cap, np.uint16)
-        ot, op = np.empty(cap, np.int64), np.empty(cap, np.int8)
-        tt, tc, tv = np.empty(1 << 16, np.int64), np.empty(1 << 16, np.uint8), np.empty(1 << 16, np.int8)
-        n, m, used = _decode_loop_compiled(words[start:], state, counters, width, height, ox, oy, ot, op, tt, tc, tv)
-        parts.append(EventArray(ox[:n], oy[:n], ot[:n], op[:n]))
-        trig.append(Triggers(tt[:m], tc[:m], tv[:m]))
+        n, m, used = _decode_loop_compiled(
+            words[start:], state, counters, width, height, out.x[out.n :], out.y[out.n :], out.t[out.n :], out.p[out.n :],
+            out.tt[out.m :], out.tc[out.m :], out.tv[out.m :],
+        )  # fmt: skip
+        out.n += n
+        out.m += m
         start += used
-    if not parts:
-        return EventArray.empty(), concat_triggers([])
-    if len(parts) == 1:
-        return parts[0], trig[0]
-    return EventArray.concatenate(parts), concat_triggers(trig)
+        if start < len(words):
+            out.grow()
+
+
+def decode_parallel(words: np.ndarray, state: np.ndarray, counters: np.ndarray, width: int, height: int, out: Output) -> None:
+    """``decode_into`` on two threads: the first decodes the first ~60 % of the words while the
+    second moves a copy of the state over them (``advance_loop``, cheaper than decoding) and decodes
+    the rest into an output of its own, appended at the end. Same events, state and counters."""
+    split = (len(words) * 5) // 8
+    head, tail = words[:split], words[split:]
+    tail_state, tail_counters = state.copy(), np.zeros_like(counters)
+    tail_out = Output(len(tail) + 12)
+
+    def second() -> None:
+        _advance_loop_compiled(head, tail_state)
+        decode_into(tail, tail_state, tail_counters, width, height, tail_out)
+
+    with ThreadPoolExecutor(1) as pool:
+        job = pool.submit(second)
+        decode_into(head, state, counters, width, height, out)
+        job.result()
+    out.append(tail_out)
+    state[:] = tail_state
+    counters += tail_counters
+
+
+def decode_numba(words: np.ndarray, state: np.ndarray, counters: np.ndarray, width: int, height: int) -> tuple[EventArray, Triggers]:
+    """The events and triggers of the uint16 ``words`` (coordinates below ``width`` × ``height``) by the
+    compiled loop; updates ``state`` and adds to ``counters``."""
+    out = Output(len(words) + 12)  # sensors give fewer events than words; more only grows the output
+    decode_into(words, state, counters, width, height, out)
+    return out.take()
 
 
 def _ffill(mask: np.ndarray) -> np.ndarray:

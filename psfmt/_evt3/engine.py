@@ -23,6 +23,14 @@ def has_numba() -> bool:
     return _numba_installed() and os.environ.get("PSFMT_NUMBA", "1") != "0"
 
 
+def usable_cores() -> int:
+    """The CPU cores this process may run on (its affinity where the system reports one)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
 def resolve(engine: str) -> str:
     """``numba`` or ``numpy`` for one of ``ENGINES`` (``auto``: the compiled one when it can run);
     ValueError for another name, or for ``numba`` where it cannot run."""

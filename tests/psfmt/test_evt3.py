@@ -14,7 +14,7 @@ from psfmt import evt3
 from psfmt._evt3 import decoding, encoding
 from psfmt.errors import FormatError
 from psfmt.events import EventArray
-from psfmt.rawheader import read_header
+from psfmt.rawheader import format_header, read_header
 
 ENGINES = ["numpy"] + (["numba"] if evt3.has_numba() else [])
 
@@ -230,3 +230,41 @@ def test_the_vendor_compatible_decoder_reads_our_files(tmp_path: Path) -> None:
     assert np.array_equal(np.asarray(theirs.t, np.int64), events.t)
     assert np.array_equal(np.asarray(theirs.x), events.x) and np.array_equal(np.asarray(theirs.y), events.y)
     assert np.array_equal(np.where(np.asarray(theirs.p) > 0, 1, -1), events.p)
+
+
+def test_whole_file_read_grows_its_output_past_a_word_per_event(tmp_path: Path) -> None:
+    """Full vectors give 12 events a word, so reading a file whole grows its one output (and
+    triggers past the first thousand) several times; both engines and the reference agree."""
+    vec = [0x3000 | 5, 0x4FFF, 0x4FFF, 0x50FF] * 300
+    body = [th(1), tl(3), ay(2), *vec, *[0xA000 | (k & 1) for k in range(2500)], ax(7)]
+    path = tmp_path / "dense.raw"
+    path.write_bytes(format_header("EVT3", 2048, 4) + words(*body))
+    ref_events, ref_triggers, _ = reference(words(*body))
+    assert len(ref_events) == 300 * 32 + 1 and len(ref_triggers) == 2500
+    for engine in ENGINES:
+        raw = evt3.Evt3File(path, engine=engine, chunk_words=100)
+        events, triggers = raw.read()
+        assert same(events, ref_events) and np.array_equal(triggers.value, ref_triggers.value)
+        assert raw.stats.events == len(ref_events) and raw.stats.triggers == 2500
+
+
+@pytest.mark.skipif(not evt3.has_numba(), reason="numba not installed")
+def test_two_thread_read_matches_the_block_by_block_decode(tmp_path: Path) -> None:
+    """A file past ``PARALLEL_MIN_WORDS`` (vectors, wraps of the 24-bit time, triggers-free) read whole
+    on two threads gives the events and stats of decoding it block by block on one."""
+    rng = np.random.default_rng(11)
+    n = 300_000
+    t = np.sort(rng.integers(0, 3 << 24, n))  # two wraps
+    x = np.where(rng.random(n) < 0.5, np.arange(n) % 32 + 100, rng.integers(0, 640, n))
+    events = EventArray(x, rng.integers(0, 480, n), t // 64 * 64, np.where(rng.random(n) < 0.5, 1, -1))
+    order = np.lexsort((events.x, events.y, events.t))
+    events = events[order]
+    path = tmp_path / "big.raw"
+    evt3.write_raw(path, [events], 640, 480)
+    assert (path.stat().st_size - read_header(path).data_offset) // 2 >= evt3.PARALLEL_MIN_WORDS
+    whole = evt3.Evt3File(path, engine="numba")
+    got, _ = whole.read()
+    blocks = evt3.Evt3File(path, engine="numba", chunk_words=1 << 16)
+    want = EventArray.concatenate([e for e, _ in blocks.chunks()])
+    assert same(got, want) and same(got, events)
+    assert whole.stats.summary() == blocks.stats.summary()
