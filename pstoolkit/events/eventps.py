@@ -64,8 +64,9 @@ from psfmt import EventArray
 from pstoolkit._shared.vectors import unit
 from pstoolkit.errors import UserError
 from pstoolkit.events import fill as eventfill
-from pstoolkit.events.relation import MIN_RANK_RATIO, grey_light
+from pstoolkit.events.relation import MIN_RANK_RATIO, constraint_vectors, grey_light
 from pstoolkit.events.relation_kernel import NO_EVENT, pair_events, robust_fit
+from pstoolkit.events.rule import REFRACTORY_RULE, REFRACTORY_RULES, check_rule
 from pstoolkit.optics.lights import LightModel
 
 MAX_INTERVAL_PERIODS = 0.5
@@ -85,13 +86,14 @@ GEOMETRY_SAMPLES = 3600
 @dataclass(frozen=True)
 class Params:
     """What the method needs besides the events and the light: contrast thresholds C⁺, C⁻ (log units),
-    refractory period R (µs), the pair intervals used (µs; None: R and ``MAX_INTERVAL_PERIODS`` of
+    refractory period R (µs) and rule (``pstoolkit.events.rule.REFRACTORY_RULES``), the pair intervals used (µs; None: R and ``MAX_INTERVAL_PERIODS`` of
     the light period, unlimited for an aperiodic light), the constraints a pixel needs for its own fit,
     the Cauchy reweighting passes and their scale, and whether pixels without a fit get a normal."""
 
     contrast_pos: float
     contrast_neg: float
     refractory_us: float
+    refractory_rule: str = REFRACTORY_RULE
     min_interval_us: float | None = None
     max_interval_us: float | None = None
     min_pairs: int = 3
@@ -104,6 +106,12 @@ class Params:
             raise ValueError(f"contrast thresholds must be positive, got {self.contrast_pos} and {self.contrast_neg}")
         if self.refractory_us < 0 or self.min_pairs < 2 or self.reweight < 0 or not self.residual_scale > 0:
             raise ValueError("refractory_us ≥ 0, min_pairs ≥ 2, reweight ≥ 0 and residual_scale > 0 are required")
+        check_rule(self.refractory_rule, "eventps")
+
+    @property
+    def rate_limited(self) -> bool:
+        """Whether events pair by the "rate-limited" rule (with R = 0 both rules are the same)."""
+        return self.refractory_rule == REFRACTORY_RULES[1] and self.refractory_us > 0
 
     def intervals(self, period_us: float | None) -> tuple[float, float]:
         """The shortest and longest pair interval used (µs)."""
@@ -136,8 +144,9 @@ class NormalWindow:
 @dataclass
 class PairedWindow:
     """A window after pairing (``WindowSolver.pair``): its span and turns of the light, its events,
-    pairs, constraints (flat pixel (m,), unit v (m, 3)), and per pixel the events fired (P,) and the
-    sum of p·m(t) (P, 2) for the swing."""
+    pairs, relations (flat pixel (m,), grey light at the reference (m, 3) and at the later event
+    (m, 3), positive and negative thresholds crossed in between (m, 2); ``relation_kernel.pair_events``),
+    and per pixel the events fired (P,) and the sum of p·m(t) (P, 2) for the swing."""
 
     start_us: int
     end_us: int
@@ -145,7 +154,9 @@ class PairedWindow:
     events: int
     pairs: int
     constraint_pixel: np.ndarray
-    u: np.ndarray
+    reference: np.ndarray
+    later: np.ndarray
+    crossed: np.ndarray
     fired: np.ndarray
     swing: np.ndarray
 
@@ -214,7 +225,12 @@ class WindowSolver:
         self.min_interval_us, self.max_interval_us = params.intervals(light.period_us)
         pixels = self.width * self.height
         self.last_t = np.full(pixels, NO_EVENT, dtype=np.int64)
-        self.last_light = np.zeros((pixels, 3))
+        self.anchor_t = np.full(pixels, NO_EVENT, dtype=np.int64)
+        self.anchor_light = np.zeros((pixels, 3))
+        self.crossed = np.zeros((pixels, 2), dtype=np.int64)
+        self.start_us: int | None = None
+        """The stream's first event: a pixel's first event is exact under "rate-limited" when it
+        comes later than R after it (``pstoolkit.events.rule.exact_pairs``)."""
 
     def turns(self, span_us: float) -> float:
         """Turns of the light in ``span_us`` (0 for an aperiodic light)."""
@@ -228,15 +244,18 @@ class WindowSolver:
         pixels = self.width * self.height
         if len(events) and (int(events.x.max()) >= self.width or int(events.y.max()) >= self.height):
             raise UserError(f"eventps: an event lies outside the {self.width}×{self.height} sensor")
+        if self.start_us is None and len(events):
+            self.start_us = int(events.t[0])
         light, motion, period = self.path.rows(events.t)
         fired = np.zeros(pixels, dtype=np.int64)
         swing = np.zeros((pixels, 2))
-        constraint_pixel, u, pairs = pair_events(
+        constraint_pixel, reference, later, crossed, pairs = pair_events(
             events.x, events.y, events.t, events.p, self.width, light, motion, period, int(self.path.refractory_us),
-            self.last_t, self.last_light, float(self.min_interval_us), float(self.max_interval_us),
-            math.exp(params.contrast_pos), math.exp(params.contrast_neg), fired, swing,
+            params.rate_limited, self.start_us or 0, self.last_t, self.anchor_t, self.anchor_light, self.crossed,
+            float(self.min_interval_us), float(self.max_interval_us), fired, swing,
         )
-        return PairedWindow(int(start_us), int(end_us), turns, len(events), int(pairs), constraint_pixel, u, fired, swing)
+        return PairedWindow(int(start_us), int(end_us), turns, len(events), int(pairs), constraint_pixel, reference,
+                            later, crossed, fired, swing)
 
     def finish(self, paired: PairedWindow) -> NormalWindow:
         """The normals of a paired window: each pixel's own fit, and for the others the swing of the
@@ -244,8 +263,10 @@ class WindowSolver:
         windows may be finished in parallel."""
         params = self.params
         pixels = self.width * self.height
+        u, kept = constraint_vectors(paired.reference, paired.later, paired.crossed, params.contrast_pos, params.contrast_neg)
+        constraint_pixel = paired.constraint_pixel[kept]
         normal, values, sums, count = robust_fit(
-            paired.constraint_pixel, paired.u, pixels, params.min_pairs, params.reweight, params.residual_scale, ADJUGATE_STEPS
+            constraint_pixel, u, pixels, params.min_pairs, params.reweight, params.residual_scale, ADJUGATE_STEPS
         )
         fit = (count >= params.min_pairs) & (values[:, 1] > MIN_RANK_RATIO * values[:, 2])
         normal[~fit] = 0.0
@@ -272,7 +293,7 @@ class WindowSolver:
             confidence=confidence.reshape(shape).astype(np.float32),
             events=paired.events,
             pairs=paired.pairs,
-            constraints=len(paired.constraint_pixel),
+            constraints=len(constraint_pixel),
         )
 
 
@@ -387,7 +408,7 @@ def solve(
     solver = WindowSolver(light, width, height, params)
     pixels = solver.width * solver.height
     fired, swing = np.zeros(pixels, dtype=np.int64), np.zeros((pixels, 2))
-    constraints: list[tuple[np.ndarray, np.ndarray]] = []
+    relations: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
     first: int | None = None
     last = events_seen = pairs = 0
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
@@ -400,7 +421,7 @@ def solve(
             futures.append(pool.submit(solver.finish, paired))
             fired += paired.fired
             swing += paired.swing
-            constraints.append((paired.constraint_pixel, paired.u))
+            relations.append((paired.constraint_pixel, paired.reference, paired.later, paired.crossed))
             events_seen, pairs = events_seen + paired.events, pairs + paired.pairs
         first = first or 0
         whole = PairedWindow(
@@ -409,13 +430,19 @@ def solve(
             float(round(solver.turns(last - first))),
             events_seen,
             pairs,
-            np.concatenate([c for c, _ in constraints]) if constraints else np.empty(0, np.int64),
-            np.concatenate([u for _, u in constraints]) if constraints else np.empty((0, 3)),
+            *_joined(relations),
             fired,
             swing,
         )
         joined = pool.submit(solver.finish, whole)
         return joined.result(), [future.result() for future in futures]
+
+
+def _joined(relations: list[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]:
+    """The windows' relations (pixel, reference, later, crossed) end to end."""
+    if not relations:
+        return np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 3)), np.empty((0, 2), np.int64)
+    return tuple(np.concatenate(part) for part in zip(*relations))
 
 
 def _windows(chunks: Iterable[EventArray], window_us: float, solver: WindowSolver) -> Iterator[tuple[EventArray, int, int, float]]:

@@ -16,6 +16,8 @@ import math
 import numba
 import numpy as np
 
+from pstoolkit.events.rule import TIMESTAMP_RESOLUTION_US
+
 NO_EVENT = np.iinfo(np.int64).min
 """``last_t`` of a pixel that has not fired yet."""
 RANK_ONE = 1e-12
@@ -35,40 +37,59 @@ def pair_events(
     motion: np.ndarray,
     period_us: int,
     refractory_us: int,
+    rate_limited: bool,
+    start_us: int,
     last_t: np.ndarray,
-    last_light: np.ndarray,
+    anchor_t: np.ndarray,
+    anchor_light: np.ndarray,
+    crossed: np.ndarray,
     min_interval_us: float,
     max_interval_us: float,
-    exp_pos: float,
-    exp_neg: float,
     fired: np.ndarray,
     swing: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, int]:
-    """Unit constraint vectors of the time-ordered events (``x``, ``y``, ``t_us``, ``polarity``) of a
-    sensor ``width`` pixels wide. The grey light (rows of ``light``) and the unit direction of the
-    light's motion across the image plane (rows of ``motion``): with ``period_us`` > 0 both tabulate
-    one period per µs, and an event at t reads row t mod period, its light after the refractory
-    period row (t + refractory_us) mod period (the times must not decrease); with ``period_us`` = 0 they hold a row per event k,
-    the light after its refractory period in row n + k. ``last_t`` (P,) and ``last_light`` (P, 3)
-    hold each pixel's previous event (``NO_EVENT`` for none) and its light after the refractory
-    period; they are updated, so the next call continues the stream. A pair whose interval lies
-    outside [min_interval_us, max_interval_us] or whose v is zero gives no constraint. Also adds
-    each event to ``fired`` (P,) and p·motion to ``swing`` (P, 2). Returns the constraints' flat
-    pixels y·width + x (m,), v/|v| (m, 3) in event order, and the number of pairs."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """The relations of the time-ordered events (``x``, ``y``, ``t_us``, ``polarity``) of a sensor
+    ``width`` pixels wide under the refractory rule (``pstoolkit.events.rule``): each gives the grey
+    light at a reference time and at an event, and the thresholds crossed in between.
+
+    The grey light (rows of ``light``) and the unit direction of the light's motion across the image
+    plane (rows of ``motion``): with ``period_us`` > 0 both tabulate one period per µs, and an event at
+    t reads row t mod period, its light after the refractory period row (t + refractory_us) mod period
+    (the times must not decrease); with ``period_us`` = 0 they hold a row per event k, the light after
+    its refractory period in row n + k.
+
+    "reset-at-end" (``rate_limited`` false): every event and the one before it of its pixel, the
+    reference at t_prev + R, one threshold of the later event's polarity. "rate-limited": consecutive
+    exact events of a pixel (fired more than R + 1 µs after the pixel's previous event, or after
+    ``start_us`` for its first), the reference at the earlier one's time, every threshold of the
+    events after it up to the later one.
+
+    Per-pixel state, updated so that the next call continues the stream: ``last_t`` (P,) the previous
+    event (``NO_EVENT`` for none), ``anchor_t`` (P,) the time of the current reference and
+    ``anchor_light`` (P, 3) the light then (``NO_EVENT``: none yet), ``crossed`` (P, 2) the positive
+    and negative thresholds since it. A relation whose span lies outside [min_interval_us,
+    max_interval_us] is dropped. Also adds each event to ``fired`` (P,) and p·motion to ``swing``
+    (P, 2). Returns the relations' flat pixels y·width + x (m,), the light at the reference (m, 3) and
+    at the later event (m, 3), their thresholds crossed (m, 2) (positive, negative), in event order,
+    and the number of relations formed before the span filter."""
     count = t_us.shape[0]
     out_pixel = np.empty(count, np.int64)
-    out_v = np.empty((count, 3))
+    out_ref = np.empty((count, 3))
+    out_now = np.empty((count, 3))
+    out_crossed = np.empty((count, 2), np.int64)
     used = 0
     pairs = 0
+    exact_gap = refractory_us + TIMESTAMP_RESOLUTION_US
     # the start of the period holding the current event; times increase, so it only moves forward
     turn_start = t_us[0] - t_us[0] % period_us if period_us > 0 and count > 0 else 0
     for k in range(count):
         i = np.int64(y[k]) * width + np.int64(x[k])
         p = polarity[k]
+        t = t_us[k]
         if period_us > 0:
-            while t_us[k] - turn_start >= period_us:
+            while t - turn_start >= period_us:
                 turn_start += period_us
-            now = t_us[k] - turn_start
+            now = t - turn_start
             after = now + refractory_us
             while after >= period_us:
                 after -= period_us
@@ -77,24 +98,29 @@ def pair_events(
         fired[i] += 1
         swing[i, 0] += p * motion[now, 0]
         swing[i, 1] += p * motion[now, 1]
+        crossed[i, 0 if p > 0 else 1] += 1
         previous = last_t[i]
-        if previous != NO_EVENT:
-            pairs += 1
-            interval = t_us[k] - previous
-            if min_interval_us <= interval <= max_interval_us:
-                # v and −v give the same constraint, so p = −1's v is written as l_ref − e^{C⁻} l_now
-                scale_ref, scale_now = (exp_pos, 1.0) if p > 0 else (1.0, exp_neg)
-                v0 = scale_ref * last_light[i, 0] - scale_now * light[now, 0]
-                v1 = scale_ref * last_light[i, 1] - scale_now * light[now, 1]
-                v2 = scale_ref * last_light[i, 2] - scale_now * light[now, 2]
-                length = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-                if length > 0:
+        exact = True
+        if rate_limited:
+            exact = t - (start_us if previous == NO_EVENT else previous) > exact_gap
+        if exact:
+            if anchor_t[i] != NO_EVENT:
+                pairs += 1
+                interval = t - (previous if not rate_limited else anchor_t[i])
+                if min_interval_us <= interval <= max_interval_us:
                     out_pixel[used] = i
-                    out_v[used, 0], out_v[used, 1], out_v[used, 2] = v0 / length, v1 / length, v2 / length
+                    for c in range(3):
+                        out_ref[used, c] = anchor_light[i, c]
+                        out_now[used, c] = light[now, c]
+                    out_crossed[used, 0], out_crossed[used, 1] = crossed[i, 0], crossed[i, 1]
                     used += 1
-        last_t[i] = t_us[k]
-        last_light[i, 0], last_light[i, 1], last_light[i, 2] = light[after, 0], light[after, 1], light[after, 2]
-    return out_pixel[:used], out_v[:used], pairs
+            anchor_t[i] = t
+            reference = now if rate_limited else after
+            for c in range(3):
+                anchor_light[i, c] = light[reference, c]
+            crossed[i, 0] = crossed[i, 1] = 0
+        last_t[i] = t
+    return out_pixel[:used], out_ref[:used], out_now[:used], out_crossed[:used], pairs
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
