@@ -66,7 +66,8 @@ class EventPS(Solver):
         Option("min_interval_us", float, 0.0, "shortest pair interval used, µs (0 = the refractory period)", minimum=0.0),
         Option(
             "max_interval_us", float, 0.0,
-            f"longest pair interval used, µs (0 = {eventps.MAX_INTERVAL_PERIODS:g} of the light period; none for an aperiodic light)",
+            f"longest pair interval used, µs (0 = {eventps.MAX_INTERVAL_PERIODS:g} of the light period, "
+            f"{eventps.MAX_INTERVAL_PERIODS_RATE_LIMITED:g} under the rate-limited rule; none for an aperiodic light)",
             minimum=0.0,
         ),
         Option("min_pairs", int, 3, "constraints a pixel needs for its own fit", minimum=2),

@@ -65,13 +65,18 @@ from pstoolkit._shared.vectors import unit
 from pstoolkit.errors import UserError
 from pstoolkit.events import fill as eventfill
 from pstoolkit.events.relation import MIN_RANK_RATIO, constraint_vectors, grey_light
-from pstoolkit.events.relation_kernel import NO_EVENT, pair_events, robust_fit
+from pstoolkit.events.relation_kernel import NO_EVENT, bounded_fit, pair_events, robust_fit
 from pstoolkit.events.rule import REFRACTORY_RULE, REFRACTORY_RULES, check_rule
 from pstoolkit.optics.lights import LightModel
 
 MAX_INTERVAL_PERIODS = 0.5
-"""Default longest pair interval, as a share of the light period: a pixel near the ring's axis fires
-about once per half turn (its only pairs), while pairs that span a long attached shadow are dropped."""
+"""Default longest pair interval under "reset-at-end", as a share of the light period: a pixel near the
+ring's axis fires about once per half turn (its only pairs), while pairs that span a long attached
+shadow are dropped."""
+MAX_INTERVAL_PERIODS_RATE_LIMITED = 1.0
+"""The same under "rate-limited", whose exact events are sparse (a pixel whose level changes faster
+than C/R fires at the refractory rate, and those events only bound the level) and whose pairs keep
+every threshold between them, however long: a whole turn."""
 SWING_MIN_TURNS = 0.99
 """The swing argument needs a window of a full turn of the light (up to rounding its length to µs)."""
 MAX_TABLE_US = 1_000_000
@@ -86,8 +91,9 @@ GEOMETRY_SAMPLES = 3600
 @dataclass(frozen=True)
 class Params:
     """What the method needs besides the events and the light: contrast thresholds C⁺, C⁻ (log units),
-    refractory period R (µs) and rule (``pstoolkit.events.rule.REFRACTORY_RULES``), the pair intervals used (µs; None: R and ``MAX_INTERVAL_PERIODS`` of
-    the light period, unlimited for an aperiodic light), the constraints a pixel needs for its own fit,
+    refractory period R (µs) and rule (``pstoolkit.events.rule.REFRACTORY_RULES``), the pair intervals
+    used (µs; None: R and ``MAX_INTERVAL_PERIODS`` of the light period, or
+    ``MAX_INTERVAL_PERIODS_RATE_LIMITED`` under "rate-limited", unlimited for an aperiodic light), the constraints a pixel needs for its own fit,
     the Cauchy reweighting passes and their scale, and whether pixels without a fit get a normal."""
 
     contrast_pos: float
@@ -118,7 +124,8 @@ class Params:
         shortest = self.refractory_us if self.min_interval_us is None else self.min_interval_us
         if self.max_interval_us is not None:
             return shortest, self.max_interval_us
-        return shortest, MAX_INTERVAL_PERIODS * period_us if period_us else math.inf
+        share = MAX_INTERVAL_PERIODS_RATE_LIMITED if self.rate_limited else MAX_INTERVAL_PERIODS
+        return shortest, share * period_us if period_us else math.inf
 
 
 @dataclass
@@ -145,7 +152,8 @@ class NormalWindow:
 class PairedWindow:
     """A window after pairing (``WindowSolver.pair``): its span and turns of the light, its events,
     pairs, relations (flat pixel (m,), grey light at the reference (m, 3) and at the later event
-    (m, 3), positive and negative thresholds crossed in between (m, 2); ``relation_kernel.pair_events``),
+    (m, 3), positive and negative thresholds crossed in between (m, 2), 0 for an exact relation or the
+    sign of a bound (m,) int8; ``relation_kernel.pair_events``),
     and per pixel the events fired (P,) and the sum of p·m(t) (P, 2) for the swing."""
 
     start_us: int
@@ -157,6 +165,7 @@ class PairedWindow:
     reference: np.ndarray
     later: np.ndarray
     crossed: np.ndarray
+    bound: np.ndarray
     fired: np.ndarray
     swing: np.ndarray
 
@@ -214,6 +223,22 @@ def _motion(direction: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(unit(np.roll(xy, -1, axis=0) - np.roll(xy, 1, axis=0)))
 
 
+BOUND_PRIOR = 1e-3
+"""Weight of the pull towards a pixel's filled normal in ``relation_kernel.bounded_fit``: enough to pick
+a normal where its own constraints leave it free, small against any one constraint (weight 1)."""
+BOUND_PASSES = 20
+"""Most passes of ``relation_kernel.bounded_fit``."""
+
+
+def _bounded(normal: np.ndarray, todo: np.ndarray, exact_pixel: np.ndarray, u: np.ndarray,
+             bound_pixel: np.ndarray, w: np.ndarray) -> None:
+    """Refines the filled normals (P, 3) of the pixels ``todo`` in place with their own exact
+    constraints (n·u = 0) and bounds (n·w ≥ 0), grouped by pixel for ``relation_kernel.bounded_fit``."""
+    exact_order, bound_order = np.argsort(exact_pixel, kind="stable"), np.argsort(bound_pixel, kind="stable")
+    bounded_fit(normal, todo, exact_pixel[exact_order], np.ascontiguousarray(u[exact_order]),
+                bound_pixel[bound_order], np.ascontiguousarray(w[bound_order]), BOUND_PRIOR, BOUND_PASSES)
+
+
 class WindowSolver:
     """Solves windows of one event stream: pairs them in time order, keeping each pixel's last event
     between them, and fits each paired window on its own."""
@@ -249,13 +274,13 @@ class WindowSolver:
         light, motion, period = self.path.rows(events.t)
         fired = np.zeros(pixels, dtype=np.int64)
         swing = np.zeros((pixels, 2))
-        constraint_pixel, reference, later, crossed, pairs = pair_events(
+        constraint_pixel, reference, later, crossed, bound, pairs = pair_events(
             events.x, events.y, events.t, events.p, self.width, light, motion, period, int(self.path.refractory_us),
             params.rate_limited, self.start_us or 0, self.last_t, self.anchor_t, self.anchor_light, self.crossed,
             float(self.min_interval_us), float(self.max_interval_us), fired, swing,
         )
         return PairedWindow(int(start_us), int(end_us), turns, len(events), int(pairs), constraint_pixel, reference,
-                            later, crossed, fired, swing)
+                            later, crossed, bound, fired, swing)
 
     def finish(self, paired: PairedWindow) -> NormalWindow:
         """The normals of a paired window: each pixel's own fit, and for the others the swing of the
@@ -263,8 +288,10 @@ class WindowSolver:
         windows may be finished in parallel."""
         params = self.params
         pixels = self.width * self.height
-        u, kept = constraint_vectors(paired.reference, paired.later, paired.crossed, params.contrast_pos, params.contrast_neg)
-        constraint_pixel = paired.constraint_pixel[kept]
+        vectors, kept = constraint_vectors(paired.reference, paired.later, paired.crossed, params.contrast_pos, params.contrast_neg)
+        pixel, bound = paired.constraint_pixel[kept], paired.bound[kept]
+        exact = bound == 0
+        constraint_pixel, u = pixel[exact], vectors[exact]
         normal, values, sums, count = robust_fit(
             constraint_pixel, u, pixels, params.min_pairs, params.reweight, params.residual_scale, ADJUGATE_STEPS
         )
@@ -273,18 +300,26 @@ class WindowSolver:
         confidence = np.where(fit, eventfill.FIT, 0.0)
         rest = ~fit
         if params.fill and rest.any():
-            if self.path.circles_axis and paired.turns >= SWING_MIN_TURNS:
+            swing = self.path.circles_axis and paired.turns >= SWING_MIN_TURNS
+            if swing:
                 contrast = 0.5 * (params.contrast_pos + params.contrast_neg)
                 normal[rest] = eventfill.swing_normals(
                     paired.fired[rest], paired.swing[rest], paired.turns, contrast, self.path.tan_zenith
                 )
                 confidence[rest] = eventfill.SWING
-            else:
-                filled, found = eventfill.neighbour_normals(sums, count, rest, (self.height, self.width), params.min_pairs)
+            # under "rate-limited" a pixel that fires at the refractory rate lags its level, so its event
+            # count no longer measures its swing: its neighbours' constraints are the better start
+            need = rest if not swing else rest & (paired.fired > 0) & params.rate_limited
+            if need.any():
+                filled, found = eventfill.neighbour_normals(sums, count, need, (self.height, self.width), params.min_pairs)
                 normal[found] = filled[found]
                 confidence[found] = eventfill.NEIGHBOURS
-                normal[rest & ~found] = eventfill.AXIS
-                confidence[rest & ~found] = eventfill.SWING
+                if not swing:
+                    normal[need & ~found] = eventfill.AXIS
+                    confidence[need & ~found] = eventfill.SWING
+            if not exact.all():
+                _bounded(normal, np.flatnonzero(rest & (paired.fired > 0)), constraint_pixel, u, pixel[~exact],
+                         -bound[~exact, None] * vectors[~exact])
         shape = (self.height, self.width)
         return NormalWindow(
             start_us=paired.start_us,
@@ -408,7 +443,7 @@ def solve(
     solver = WindowSolver(light, width, height, params)
     pixels = solver.width * solver.height
     fired, swing = np.zeros(pixels, dtype=np.int64), np.zeros((pixels, 2))
-    relations: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+    relations: list[tuple[np.ndarray, ...]] = []
     first: int | None = None
     last = events_seen = pairs = 0
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
@@ -421,7 +456,7 @@ def solve(
             futures.append(pool.submit(solver.finish, paired))
             fired += paired.fired
             swing += paired.swing
-            relations.append((paired.constraint_pixel, paired.reference, paired.later, paired.crossed))
+            relations.append((paired.constraint_pixel, paired.reference, paired.later, paired.crossed, paired.bound))
             events_seen, pairs = events_seen + paired.events, pairs + paired.pairs
         first = first or 0
         whole = PairedWindow(
@@ -439,9 +474,9 @@ def solve(
 
 
 def _joined(relations: list[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]:
-    """The windows' relations (pixel, reference, later, crossed) end to end."""
+    """The windows' relations (pixel, reference, later, crossed, bound) end to end."""
     if not relations:
-        return np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 3)), np.empty((0, 2), np.int64)
+        return np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 3)), np.empty((0, 2), np.int64), np.empty(0, np.int8)
     return tuple(np.concatenate(part) for part in zip(*relations))
 
 

@@ -47,7 +47,7 @@ def pair_events(
     max_interval_us: float,
     fired: np.ndarray,
     swing: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """The relations of the time-ordered events (``x``, ``y``, ``t_us``, ``polarity``) of a sensor
     ``width`` pixels wide under the refractory rule (``pstoolkit.events.rule``): each gives the grey
     light at a reference time and at an event, and the thresholds crossed in between.
@@ -62,7 +62,9 @@ def pair_events(
     reference at t_prev + R, one threshold of the later event's polarity. "rate-limited": consecutive
     exact events of a pixel (fired more than R + 1 µs after the pixel's previous event, or after
     ``start_us`` for its first), the reference at the earlier one's time, every threshold of the
-    events after it up to the later one.
+    events after it up to the later one; and each event fired at the end of a blind time after an
+    exact one, which only bounds the change since it: p·(L(t) − L(t_ref)) ≥ p·Δ (``bound`` = p; 0
+    for an exact relation).
 
     Per-pixel state, updated so that the next call continues the stream: ``last_t`` (P,) the previous
     event (``NO_EVENT`` for none), ``anchor_t`` (P,) the time of the current reference and
@@ -70,13 +72,14 @@ def pair_events(
     and negative thresholds since it. A relation whose span lies outside [min_interval_us,
     max_interval_us] is dropped. Also adds each event to ``fired`` (P,) and p·motion to ``swing``
     (P, 2). Returns the relations' flat pixels y·width + x (m,), the light at the reference (m, 3) and
-    at the later event (m, 3), their thresholds crossed (m, 2) (positive, negative), in event order,
-    and the number of relations formed before the span filter."""
+    at the later event (m, 3), their thresholds crossed (m, 2) (positive, negative), ``bound`` (m,)
+    int8, in event order, and the number of exact relations formed before the span filter."""
     count = t_us.shape[0]
     out_pixel = np.empty(count, np.int64)
     out_ref = np.empty((count, 3))
     out_now = np.empty((count, 3))
     out_crossed = np.empty((count, 2), np.int64)
+    out_bound = np.zeros(count, np.int8)
     used = 0
     pairs = 0
     exact_gap = refractory_us + TIMESTAMP_RESOLUTION_US
@@ -103,24 +106,25 @@ def pair_events(
         exact = True
         if rate_limited:
             exact = t - (start_us if previous == NO_EVENT else previous) > exact_gap
+        if anchor_t[i] != NO_EVENT:
+            pairs += 1 if exact else 0
+            interval = t - (previous if not rate_limited else anchor_t[i])
+            if min_interval_us <= interval <= max_interval_us:
+                out_pixel[used] = i
+                for c in range(3):
+                    out_ref[used, c] = anchor_light[i, c]
+                    out_now[used, c] = light[now, c]
+                out_crossed[used, 0], out_crossed[used, 1] = crossed[i, 0], crossed[i, 1]
+                out_bound[used] = 0 if exact else p
+                used += 1
         if exact:
-            if anchor_t[i] != NO_EVENT:
-                pairs += 1
-                interval = t - (previous if not rate_limited else anchor_t[i])
-                if min_interval_us <= interval <= max_interval_us:
-                    out_pixel[used] = i
-                    for c in range(3):
-                        out_ref[used, c] = anchor_light[i, c]
-                        out_now[used, c] = light[now, c]
-                    out_crossed[used, 0], out_crossed[used, 1] = crossed[i, 0], crossed[i, 1]
-                    used += 1
             anchor_t[i] = t
             reference = now if rate_limited else after
             for c in range(3):
                 anchor_light[i, c] = light[reference, c]
             crossed[i, 0] = crossed[i, 1] = 0
         last_t[i] = t
-    return out_pixel[:used], out_ref[:used], out_now[:used], out_crossed[:used], pairs
+    return out_pixel[:used], out_ref[:used], out_now[:used], out_crossed[:used], out_bound[:used], pairs
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -241,3 +245,60 @@ def robust_fit(
         sign = -1.0 if z < 0 else 1.0
         normal[i, 0], normal[i, 1], normal[i, 2] = sign * x, sign * y, sign * z
     return normal, values, sums, count
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def bounded_fit(
+    normal: np.ndarray,
+    todo: np.ndarray,
+    exact_pixel: np.ndarray,
+    u: np.ndarray,
+    bound_pixel: np.ndarray,
+    w: np.ndarray,
+    prior: float,
+    passes: int,
+) -> None:
+    """Refines the normals (P, 3) of the pixels ``todo`` (k,) in place with their own constraints:
+    exact ones n·u = 0 (``exact_pixel`` (m,), unit ``u`` (m, 3)) and one-sided ones n·w ≥ 0
+    (``bound_pixel`` (b,), unit ``w`` (b, 3)). Each pass takes the smallest eigenvector of
+    Σ u uᵀ + Σ w wᵀ over the violated w + ``prior``·(I − n₀n₀ᵀ), n₀ the starting normal (the
+    squared hinge, with a pull to the start where the constraints leave n free), for at most
+    ``passes`` passes or until the violated set stops changing the normal; flipped to n_z ≥ 0.
+    Pixel arrays must be sorted (as ``pair_events`` gives them after a stable sort by pixel)."""
+    exact_start = np.searchsorted(exact_pixel, todo)
+    exact_end = np.searchsorted(exact_pixel, todo, side="right")
+    bound_start = np.searchsorted(bound_pixel, todo)
+    bound_end = np.searchsorted(bound_pixel, todo, side="right")
+    for k in range(todo.shape[0]):
+        i = todo[k]
+        if bound_end[k] == bound_start[k]:
+            continue
+        x0, y0, z0 = normal[i, 0], normal[i, 1], normal[i, 2]
+        e = _pixel_sums(u, exact_start[k], exact_end[k], 0.0, 0.0, 0.0, 0.0)
+        x, y, z = x0, y0, z0
+        for _ in range(passes):
+            s0 = e[0] + prior * (1.0 - x0 * x0)
+            s1 = e[1] - prior * x0 * y0
+            s2 = e[2] - prior * x0 * z0
+            s3 = e[3] + prior * (1.0 - y0 * y0)
+            s4 = e[4] - prior * y0 * z0
+            s5 = e[5] + prior * (1.0 - z0 * z0)
+            for j in range(bound_start[k], bound_end[k]):
+                a, b, c = w[j, 0], w[j, 1], w[j, 2]
+                if a * x + b * y + c * z < 0.0:
+                    s0 += a * a
+                    s1 += a * b
+                    s2 += a * c
+                    s3 += b * b
+                    s4 += b * c
+                    s5 += c * c
+            _, _, _, nx, ny, nz = _smallest_by_adjugate((s0, s1, s2, s3, s4, s5), 8)
+            if nx == 0.0 and ny == 0.0 and nz == 0.0:
+                break
+            if nz < 0:
+                nx, ny, nz = -nx, -ny, -nz
+            moved = (nx - x) ** 2 + (ny - y) ** 2 + (nz - z) ** 2
+            x, y, z = nx, ny, nz
+            if moved < SETTLED:
+                break
+        normal[i, 0], normal[i, 1], normal[i, 2] = x, y, z
