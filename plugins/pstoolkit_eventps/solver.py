@@ -74,6 +74,7 @@ class EventPS(Solver):
         Option("reweight", int, 3, "Cauchy reweighting passes of each pixel's fit (0 = plain least squares, as the paper)", minimum=0),
         Option("residual_scale", float, 0.03, "Cauchy scale of a pair's residual n·v/|v|", minimum=1e-6),
         Option("fill", bool, True, "give pixels without their own fit a normal from the ring's swing or their neighbours"),
+        Option("balance", bool, True, "set the ratio C⁺/C⁻ from the events' polarities over whole turns of a ring light (keeping the mean C)"),
         Option(
             "window_us", float, 0.0,
             "also solve one normal map per window of this many µs (maps['normal_sequence']); 0 = off",
@@ -116,6 +117,7 @@ class EventPS(Solver):
             reweight=options["reweight"],
             residual_scale=options["residual_scale"],
             fill=options["fill"],
+            balance=options["balance"],
         )
         stream = events.read()
         target = psfmt.target_size(capture)
@@ -140,8 +142,9 @@ class EventPS(Solver):
             "events": whole.events,
             "pairs": whole.pairs,
             "constraints": whole.constraints,
-            "contrast_pos": contrast_pos,
-            "contrast_neg": contrast_neg,
+            "contrast_pos": whole.contrasts[0],
+            "contrast_neg": whole.contrasts[1],
+            "hot_pixels": whole.hot,
             "refractory_us": params.refractory_us,
             "refractory_rule": params.refractory_rule,
             "min_interval_us": shortest,

@@ -84,6 +84,8 @@ MAX_TABLE_US = 1_000_000
 ADJUGATE_STEPS = 2
 """Power steps on the adjugate that refine a pixel's first normal and move it after each reweighting
 (``eventkernel``)."""
+BALANCE_MIN_EVENTS = 1000
+"""Fewest rising and falling events ``balanced_contrasts`` needs (a share known to about 3 %)."""
 GEOMETRY_SAMPLES = 3600
 """Samples of one light period to measure its zenith and whether it circles the axis."""
 
@@ -94,7 +96,8 @@ class Params:
     refractory period R (µs) and rule (``pstoolkit.events.rule.REFRACTORY_RULES``), the pair intervals
     used (µs; None: R and ``MAX_INTERVAL_PERIODS`` of the light period, or
     ``MAX_INTERVAL_PERIODS_RATE_LIMITED`` under "rate-limited", unlimited for an aperiodic light), the constraints a pixel needs for its own fit,
-    the Cauchy reweighting passes and their scale, and whether pixels without a fit get a normal."""
+    the Cauchy reweighting passes and their scale, whether pixels without a fit get a normal, and
+    whether C⁺/C⁻ is balanced by the events' polarities over whole turns (``balanced_contrasts``)."""
 
     contrast_pos: float
     contrast_neg: float
@@ -106,6 +109,7 @@ class Params:
     reweight: int = 3
     residual_scale: float = 0.03
     fill: bool = True
+    balance: bool = True
 
     def __post_init__(self) -> None:
         if not (self.contrast_pos > 0 and self.contrast_neg > 0):
@@ -132,8 +136,9 @@ class Params:
 class NormalWindow:
     """The normals of one window [``start_us``, ``end_us``): ``normal`` (H, W, 3) float32 unit vectors
     at the event pixels (zero where none, with ``Params.fill`` off), ``confidence`` (H, W) float32
-    (``eventfill.FIT``, ``NEIGHBOURS``, ``SWING``; 0 for none), and the window's events, pairs of
-    consecutive events and constraints kept."""
+    (``eventfill.FIT``, ``NEIGHBOURS``, ``SWING``; 0 for none), the window's events, exact pairs,
+    exact constraints kept, the thresholds C⁺, C⁻ used (``balanced_contrasts``) and the hot pixels
+    left out (``eventfill.hot_pixels``)."""
 
     start_us: int
     end_us: int
@@ -142,6 +147,8 @@ class NormalWindow:
     events: int
     pairs: int
     constraints: int
+    contrasts: tuple[float, float]
+    hot: int
 
     def sources(self) -> dict[str, int]:
         """Pixels per source of their normal (``eventfill.SOURCES``)."""
@@ -154,7 +161,8 @@ class PairedWindow:
     pairs, relations (flat pixel (m,), grey light at the reference (m, 3) and at the later event
     (m, 3), positive and negative thresholds crossed in between (m, 2), 0 for an exact relation or the
     sign of a bound (m,) int8; ``relation_kernel.pair_events``),
-    and per pixel the events fired (P,) and the sum of p·m(t) (P, 2) for the swing."""
+    and per pixel the events fired, the rising ones and those fired at the end of a blind time (P, 3),
+    and the sum of p·m(t) (P, 2) for the swing."""
 
     start_us: int
     end_us: int
@@ -223,6 +231,22 @@ def _motion(direction: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(unit(np.roll(xy, -1, axis=0) - np.roll(xy, 1, axis=0)))
 
 
+def balanced_contrasts(fired: np.ndarray, contrast_pos: float, contrast_neg: float) -> tuple[float, float]:
+    """C⁺ and C⁻ with the calibration's mean and the ratio of the events' polarities over whole turns
+    of a periodic light (``fired`` (P, 3): events, rising ones, ones at the end of a blind time): a
+    pixel's level returns to where it started, so its rising and falling thresholds add up to the same,
+    N⁺·C⁺ ≈ N⁻·C⁻. Pixels that fired at the end of a blind time are left out (under "rate-limited" they
+    may still lag their level when the recording ends), and so is a count too small to say more than
+    the calibration (fewer than ``BALANCE_MIN_EVENTS``)."""
+    steady = fired[:, 2] == 0
+    rising, total = int(fired[steady, 1].sum()), int(fired[steady, 0].sum())
+    if min(rising, total - rising) < BALANCE_MIN_EVENTS:
+        return contrast_pos, contrast_neg
+    mean = 0.5 * (contrast_pos + contrast_neg)
+    ratio = (total - rising) / rising  # C⁺/C⁻
+    return 2.0 * mean * ratio / (1.0 + ratio), 2.0 * mean / (1.0 + ratio)
+
+
 BOUND_PRIOR = 1e-3
 """Weight of the pull towards a pixel's filled normal in ``relation_kernel.bounded_fit``: enough to pick
 a normal where its own constraints leave it free, small against any one constraint (weight 1)."""
@@ -272,7 +296,7 @@ class WindowSolver:
         if self.start_us is None and len(events):
             self.start_us = int(events.t[0])
         light, motion, period = self.path.rows(events.t)
-        fired = np.zeros(pixels, dtype=np.int64)
+        fired = np.zeros((pixels, 3), dtype=np.int64)
         swing = np.zeros((pixels, 2))
         constraint_pixel, reference, later, crossed, bound, pairs = pair_events(
             events.x, events.y, events.t, events.p, self.width, light, motion, period, int(self.path.refractory_us),
@@ -288,8 +312,14 @@ class WindowSolver:
         windows may be finished in parallel."""
         params = self.params
         pixels = self.width * self.height
-        vectors, kept = constraint_vectors(paired.reference, paired.later, paired.crossed, params.contrast_pos, params.contrast_neg)
-        pixel, bound = paired.constraint_pixel[kept], paired.bound[kept]
+        hot = eventfill.hot_pixels(paired.fired[:, 0], (self.height, self.width))
+        fired = np.where(hot, 0, paired.fired[:, 0])
+        contrast_pos, contrast_neg = params.contrast_pos, params.contrast_neg
+        if params.balance and self.path.circles_axis and paired.turns >= SWING_MIN_TURNS:
+            contrast_pos, contrast_neg = balanced_contrasts(paired.fired[~hot], contrast_pos, contrast_neg)
+        vectors, kept = constraint_vectors(paired.reference, paired.later, paired.crossed, contrast_pos, contrast_neg)
+        kept &= ~hot[paired.constraint_pixel]
+        pixel, bound, vectors = paired.constraint_pixel[kept], paired.bound[kept], vectors[kept]
         exact = bound == 0
         constraint_pixel, u = pixel[exact], vectors[exact]
         normal, values, sums, count = robust_fit(
@@ -304,12 +334,12 @@ class WindowSolver:
             if swing:
                 contrast = 0.5 * (params.contrast_pos + params.contrast_neg)
                 normal[rest] = eventfill.swing_normals(
-                    paired.fired[rest], paired.swing[rest], paired.turns, contrast, self.path.tan_zenith
+                    fired[rest], paired.swing[rest], paired.turns, contrast, self.path.tan_zenith
                 )
                 confidence[rest] = eventfill.SWING
             # under "rate-limited" a pixel that fires at the refractory rate lags its level, so its event
             # count no longer measures its swing: its neighbours' constraints are the better start
-            need = rest if not swing else rest & (paired.fired > 0) & params.rate_limited
+            need = rest if not swing else rest & ((fired > 0) & params.rate_limited | hot)
             if need.any():
                 filled, found = eventfill.neighbour_normals(sums, count, need, (self.height, self.width), params.min_pairs)
                 normal[found] = filled[found]
@@ -318,7 +348,7 @@ class WindowSolver:
                     normal[need & ~found] = eventfill.AXIS
                     confidence[need & ~found] = eventfill.SWING
             if not exact.all():
-                _bounded(normal, np.flatnonzero(rest & (paired.fired > 0)), constraint_pixel, u, pixel[~exact],
+                _bounded(normal, np.flatnonzero(rest & (fired > 0)), constraint_pixel, u, pixel[~exact],
                          -bound[~exact, None] * vectors[~exact])
         shape = (self.height, self.width)
         return NormalWindow(
@@ -329,6 +359,8 @@ class WindowSolver:
             events=paired.events,
             pairs=paired.pairs,
             constraints=len(constraint_pixel),
+            contrasts=(float(contrast_pos), float(contrast_neg)),
+            hot=int(np.count_nonzero(hot)),
         )
 
 
@@ -442,7 +474,7 @@ def solve(
         raise ValueError(f"window_us must be positive, got {window_us}")
     solver = WindowSolver(light, width, height, params)
     pixels = solver.width * solver.height
-    fired, swing = np.zeros(pixels, dtype=np.int64), np.zeros((pixels, 2))
+    fired, swing = np.zeros((pixels, 3), dtype=np.int64), np.zeros((pixels, 2))
     relations: list[tuple[np.ndarray, ...]] = []
     first: int | None = None
     last = events_seen = pairs = 0

@@ -36,6 +36,10 @@ SOURCES = {"fit": FIT, "neighbours": NEIGHBOURS, "swing": SWING}
 NEIGHBOUR_RADII = (1, 2, 4, 8)
 """Half-widths (event pixels) of the squares searched for neighbours' constraints, in turn."""
 AXIS = np.array([0.0, 0.0, 1.0])
+HOT_RATIO = 3.0
+HOT_MARGIN = 32
+"""A pixel is hot when it fires more than ``HOT_RATIO`` × the median of its neighbours + ``HOT_MARGIN``
+events (``hot_pixels``); the margin keeps a pixel beside silent ones from counting for a few events."""
 
 
 def swing_normals(fired: np.ndarray, swing: np.ndarray, turns: float, contrast: float, tan_zenith: float) -> np.ndarray:
@@ -47,6 +51,18 @@ def swing_normals(fired: np.ndarray, swing: np.ndarray, turns: float, contrast: 
     tilt = np.where(length > 0, np.arctan(np.tanh(log_swing / 2.0) / tan_zenith), 0.0)
     scale = np.sin(tilt) / np.where(length > 0, length, 1.0)
     return np.stack([scale * swing[:, 0], scale * swing[:, 1], np.cos(tilt)], axis=-1)
+
+
+def hot_pixels(fired: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(P,) bool of the pixels that fired (``fired`` (P,) events, (H, W) = ``shape``) more than
+    ``HOT_RATIO`` times the median of their eight neighbours and ``HOT_MARGIN`` more: a pixel on a
+    smooth surface fires about as often as its neighbours, a hot pixel on its own (leakage, a defect)."""
+    counts = fired.reshape(shape).astype(np.float64)
+    padded = np.pad(counts, 1, mode="edge")
+    h, w = shape
+    around = np.stack([padded[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
+                       for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx])
+    return (counts > HOT_RATIO * np.median(around, axis=0) + HOT_MARGIN).reshape(-1)
 
 
 def _box_sums(image: np.ndarray, radius: int) -> np.ndarray:

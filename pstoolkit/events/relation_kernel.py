@@ -70,10 +70,11 @@ def pair_events(
     event (``NO_EVENT`` for none), ``anchor_t`` (P,) the time of the current reference and
     ``anchor_light`` (P, 3) the light then (``NO_EVENT``: none yet), ``crossed`` (P, 2) the positive
     and negative thresholds since it. A relation whose span lies outside [min_interval_us,
-    max_interval_us] is dropped. Also adds each event to ``fired`` (P,) and p·motion to ``swing``
-    (P, 2). Returns the relations' flat pixels y·width + x (m,), the light at the reference (m, 3) and
-    at the later event (m, 3), their thresholds crossed (m, 2) (positive, negative), ``bound`` (m,)
-    int8, in event order, and the number of exact relations formed before the span filter."""
+    max_interval_us] is dropped. Also counts per pixel in ``fired`` (P, 3) the events, the rising ones
+    and those fired at the end of a blind time, and adds p·motion to ``swing`` (P, 2). Returns the
+    relations' flat pixels y·width + x (m,), the light at the reference (m, 3) and at the later event
+    (m, 3), their thresholds crossed (m, 2) (positive, negative), ``bound`` (m,) int8, in event order,
+    and the number of exact relations formed before the span filter."""
     count = t_us.shape[0]
     out_pixel = np.empty(count, np.int64)
     out_ref = np.empty((count, 3))
@@ -98,7 +99,8 @@ def pair_events(
                 after -= period_us
         else:
             now, after = k, count + k
-        fired[i] += 1
+        fired[i, 0] += 1
+        fired[i, 1] += 1 if p > 0 else 0
         swing[i, 0] += p * motion[now, 0]
         swing[i, 1] += p * motion[now, 1]
         crossed[i, 0 if p > 0 else 1] += 1
@@ -106,6 +108,7 @@ def pair_events(
         exact = True
         if rate_limited:
             exact = t - (start_us if previous == NO_EVENT else previous) > exact_gap
+            fired[i, 2] += 0 if exact else 1
         if anchor_t[i] != NO_EVENT:
             pairs += 1 if exact else 0
             interval = t - (previous if not rate_limited else anchor_t[i])
