@@ -252,15 +252,25 @@ BOUND_PRIOR = 1e-3
 a normal where its own constraints leave it free, small against any one constraint (weight 1)."""
 BOUND_PASSES = 20
 """Most passes of ``relation_kernel.bounded_fit``."""
+BOUND_SMOOTHING = 10
+"""Rounds of ``_bounded`` that restart each refined pixel from the mean of its and its neighbours'
+normals: where a pixel's own constraints leave its normal free, the surface's smoothness carries
+the fits at the edge of a steep region inwards (blobs, rate-limited 2 ms: 7.3° with none, 6.2°)."""
 
 
 def _bounded(normal: np.ndarray, todo: np.ndarray, exact_pixel: np.ndarray, u: np.ndarray,
-             bound_pixel: np.ndarray, w: np.ndarray) -> None:
+             bound_pixel: np.ndarray, w: np.ndarray, shape: tuple[int, int]) -> None:
     """Refines the filled normals (P, 3) of the pixels ``todo`` in place with their own exact
-    constraints (n·u = 0) and bounds (n·w ≥ 0), grouped by pixel for ``relation_kernel.bounded_fit``."""
+    constraints (n·u = 0) and bounds (n·w ≥ 0) (``relation_kernel.bounded_fit``), then
+    ``BOUND_SMOOTHING`` times again from the mean of their neighbourhood (``eventfill.neighbour_mean``
+    on the (H, W) grid ``shape``)."""
     exact_order, bound_order = np.argsort(exact_pixel, kind="stable"), np.argsort(bound_pixel, kind="stable")
-    bounded_fit(normal, todo, exact_pixel[exact_order], np.ascontiguousarray(u[exact_order]),
-                bound_pixel[bound_order], np.ascontiguousarray(w[bound_order]), BOUND_PRIOR, BOUND_PASSES)
+    exact_pixel, u = exact_pixel[exact_order], np.ascontiguousarray(u[exact_order])
+    bound_pixel, w = bound_pixel[bound_order], np.ascontiguousarray(w[bound_order])
+    for step in range(BOUND_SMOOTHING + 1):
+        if step:
+            normal[todo] = eventfill.neighbour_mean(normal, shape)[todo]
+        bounded_fit(normal, todo, exact_pixel, u, bound_pixel, w, BOUND_PRIOR, BOUND_PASSES)
 
 
 class WindowSolver:
@@ -349,7 +359,7 @@ class WindowSolver:
                     confidence[need & ~found] = eventfill.SWING
             if not exact.all():
                 _bounded(normal, np.flatnonzero(rest & (fired > 0)), constraint_pixel, u, pixel[~exact],
-                         -bound[~exact, None] * vectors[~exact])
+                         -bound[~exact, None] * vectors[~exact], (self.height, self.width))
         shape = (self.height, self.width)
         return NormalWindow(
             start_us=paired.start_us,

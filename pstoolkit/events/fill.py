@@ -77,6 +77,14 @@ def _box_sums(image: np.ndarray, radius: int) -> np.ndarray:
     )
 
 
+def neighbour_mean(normal: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """The normalised mean (P, 3) of each pixel's and its eight neighbours' normals (``normal`` (P, 3)
+    on a (H, W) = ``shape`` grid; zero where the sum is)."""
+    total = _box_sums(normal.reshape(shape + (3,)), 1).reshape(-1, 3)
+    length = np.sqrt(np.einsum("pc,pc->p", total, total))
+    return total / np.where(length > 0, length, 1.0)[:, None]
+
+
 def _matrices(six: np.ndarray) -> np.ndarray:
     """(B, 3, 3) symmetric matrices from their unique entries (B, 6): xx xy xz yy yz zz."""
     rows = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
