@@ -16,15 +16,35 @@ time (the whole stream when ``window_us`` is None), and ``threads=2`` fits windo
 the caller's thread pairs the next. ``solve`` gives the whole stream's map and its windows' maps from
 one pass (the ``eventps`` solver's windowed mode).
 
-Per window: consecutive events k−1, k of a pixel give n·v = 0 with v = e^{C⁺} l(t_ref) − l(t_k) for
-p_k = +1 and v = l(t_ref) − e^{C⁻} l(t_k) for p_k = −1 (facts of the paper; l the grey light,
-``pstoolkit.events.relation``), t_ref = t_{k−1} + R being when the sensor took its reference level
-(``pstoolkit.events.rule``: the simulator's rule, and the one EventPS's code applies when it evaluates
-the previous light at the last timestamp plus the refractory period). Pairs whose interval lies outside
-[``min_interval_us``, ``max_interval_us``] are dropped, as in the paper. A pixel with at least
-``min_pairs`` constraints of rank 2 gets the smallest eigenvector of Σ w v vᵀ (``eventkernel``);
-the others get a normal from the swing of the ring light or from their neighbours
-(``pstoolkit.events.fill``), and ``confidence`` says which (``eventfill.FIT``, ``NEIGHBOURS``, ``SWING``).
+Per window, the events pair by the refractory rule of ``params.refractory_rule``
+(``pstoolkit.events.rule``; a capture records it in ``/calibration@refractory_rule``):
+
+- "reset-at-end" (the paper's): consecutive events k−1, k of a pixel give n·v = 0 with
+  v = e^{C⁺} l(t_ref) − l(t_k) for p_k = +1 and v = l(t_ref) − e^{C⁻} l(t_k) for p_k = −1 (facts of the
+  paper; l the grey light, ``pstoolkit.events.relation``), t_ref = t_{k−1} + R being when the sensor
+  took its reference level (the one EventPS's code applies when it evaluates the previous light at the
+  last timestamp plus the refractory period).
+- "rate-limited": only events that fired at a crossing (more than R after the pixel's previous event)
+  are exact; consecutive exact events j < k give n·(e^{Δ/2} l(t_j) − e^{−Δ/2} l(t_k)) = 0 with
+  Δ = n⁺·C⁺ − n⁻·C⁻ the thresholds of every event after j up to k. An event fired at the end of a
+  blind time only bounds the change since the last exact one, p·(L(t) − L(t_j)) ≥ p·Δ: a half-space
+  n·w ≥ 0.
+
+Relations whose span lies outside [``min_interval_us``, ``max_interval_us``] are dropped, as in the
+paper. A pixel with at least ``min_pairs`` exact constraints of rank 2 gets the smallest eigenvector of
+Σ w v vᵀ (``relation_kernel.robust_fit``); the others get a normal from the swing of the ring light or
+from their neighbours (``pstoolkit.events.fill``), and ``confidence`` says which (``eventfill.FIT``,
+``NEIGHBOURS``, ``SWING``). Under "rate-limited" a pixel that fired but has no fit starts from its
+neighbours and is refined by its own exact constraints and bounds (``relation_kernel.bounded_fit``),
+restarting from its neighbourhood's mean ``BOUND_SMOOTHING`` times.
+
+Sensor noise: a pixel firing far more than its neighbours is hot (``eventfill.hot_pixels``): its
+events are left out and it takes its neighbours' normal. Under a ring light over whole turns C⁺/C⁻ is
+set from the polarities of the events (``balanced_contrasts``, keeping the calibration's mean), which
+corrects a calibration whose thresholds differ per polarity; the mean threshold, and a pixel's own
+threshold, are not identifiable from its events (a scaled threshold trades against its tilt) and are
+the calibration's. Events of background activity break the pairs they fall in; the Cauchy reweighting
+rejects most of them.
 
 Where this departs from the paper and its public code, and why:
 

@@ -1,12 +1,13 @@
-"""Compiled loops of the EventPS relation (numba): the pairing of consecutive same-pixel events into
-constraints as a stream goes by, and each pixel's robust fit of its constraints. They run on one core
-and release the GIL.
+"""Compiled loops of the EventPS relation (numba): the pairing of same-pixel events into relations as
+a stream goes by, each pixel's robust fit of its exact constraints, and the refinement of a pixel
+without a fit by its constraints and bounds. They run on one core and release the GIL.
 
-Constraints follow ``pstoolkit.events.relation``: a pair of consecutive events k−1, k of a pixel with
-polarity p_k gives n·v = 0 with v = e^{C⁺} l(t_ref) − l(t_k) for p = +1 and v = l(t_ref) − e^{C⁻} l(t_k)
-for p = −1, where t_ref = t_{k−1} + R (the reference rule of ``pstoolkit.events.rule``) and l(t) the
-grey light. The callers give the light at each event's time and at the end of its refractory
-period, so the loops know nothing of light models.
+Relations follow ``pstoolkit.events.rule``: the grey light at a reference time and at a later event,
+and the thresholds crossed in between, so that L(t) − L(t_ref) = n⁺·C⁺ − n⁻·C⁻ (exact) or bounds it
+(an event of the "rate-limited" rule fired at the end of a blind time);
+``pstoolkit.events.relation.constraint_vectors`` turns them into constraints n·v = 0 or n·w ≥ 0. The
+callers give the light at each event's time and at the end of its refractory period, so the loops
+know nothing of light models.
 """
 
 from __future__ import annotations
