@@ -449,3 +449,21 @@ def test_balanced_contrasts_keep_the_mean() -> None:
     pos, neg = eventps.balanced_contrasts(fired, 0.2, 0.1)
     np.testing.assert_allclose([pos / neg, pos + neg], [1.25, 0.3])
     assert eventps.balanced_contrasts(fired[:1] // 2, 0.2, 0.1) == (0.2, 0.1)
+
+
+def test_rate_limited_windows_do_not_depend_on_the_chunking(blobs_rate_limited: psfmt.Capture) -> None:
+    """Under "rate-limited" a pixel carries its last exact event, the thresholds since it and its last
+    event between chunks and windows: any chunking gives the same windows, and ``solve`` the map of
+    the stream taken whole."""
+    light = build_light_model(blobs_rate_limited.lights)
+    events = blobs_rate_limited.events.read()
+    params = eventps.Params(contrast_pos=0.15, contrast_neg=0.15, refractory_us=2000, refractory_rule="rate-limited")
+    window_us = light.period_us / 3
+    whole = list(eventps.stream([events], light, 32, 32, params, window_us=window_us))
+    pieces = list(eventps.stream(events.chunks(501), light, 32, 32, params, window_us=window_us))
+    (alone,) = eventps.stream([events], light, 32, 32, params)
+    joined, windows = eventps.solve(events.chunks(3000), light, 32, 32, params, window_us=window_us)
+    for a, b in [*zip(whole, pieces, strict=True), *zip(whole, windows, strict=True), (alone, joined)]:
+        np.testing.assert_array_equal(a.normal, b.normal)
+        assert (a.pairs, a.constraints, a.contrasts) == (b.pairs, b.constraints, b.contrasts)
+    assert sum(w.pairs for w in whole) == alone.pairs
