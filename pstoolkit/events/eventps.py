@@ -38,6 +38,9 @@ from their neighbours (``pstoolkit.events.fill``), and ``confidence`` says which
 neighbours and is refined by its own exact constraints and bounds (``relation_kernel.bounded_fit``),
 restarting from its neighbourhood's mean ``BOUND_SMOOTHING`` times.
 
+A fit more than ``eventfill.OUTLIER_DEG`` from the mean of its eight neighbours' normals is an
+isolated outlier and takes that mean (confidence ``NEIGHBOURS``).
+
 Sensor noise: a pixel firing far more than its neighbours is hot (``eventfill.hot_pixels``): its
 events are left out and it takes its neighbours' normal. Under a ring light over whole turns C⁺/C⁻ is
 set from the polarities of the events (``balanced_contrasts``, keeping the calibration's mean), which
@@ -380,6 +383,9 @@ class WindowSolver:
             if not exact.all():
                 _bounded(normal, np.flatnonzero(rest & (fired > 0)), constraint_pixel, u, pixel[~exact],
                          -bound[~exact, None] * vectors[~exact], (self.height, self.width))
+            mean, outlier = eventfill.isolated_outliers(normal, fit, (self.height, self.width))
+            normal[outlier] = mean[outlier]
+            confidence[outlier] = eventfill.NEIGHBOURS
         shape = (self.height, self.width)
         return NormalWindow(
             start_us=paired.start_us,

@@ -467,3 +467,18 @@ def test_rate_limited_windows_do_not_depend_on_the_chunking(blobs_rate_limited: 
         np.testing.assert_array_equal(a.normal, b.normal)
         assert (a.pairs, a.constraints, a.contrasts) == (b.pairs, b.constraints, b.contrasts)
     assert sum(w.pairs for w in whole) == alone.pairs
+
+
+def test_a_fit_that_disagrees_with_all_its_neighbours_is_an_outlier() -> None:
+    """On a plane, one fit turned 25° away takes its neighbours' mean; one turned 15° stays."""
+    plane = np.tile(eventfill.AXIS, (25, 1))
+    normal = plane.copy()
+    normal[6] = [np.sin(np.radians(25)), 0.0, np.cos(np.radians(25))]
+    normal[18] = [0.0, np.sin(np.radians(15)), np.cos(np.radians(15))]
+    mean, outlier = eventfill.isolated_outliers(normal, np.ones(25, bool), (5, 5))
+    assert np.flatnonzero(outlier).tolist() == [6]
+    assert _angle(mean[6], plane[6]) < 1e-6
+    assert not eventfill.isolated_outliers(normal, np.arange(25) != 6, (5, 5))[1].any()
+    lonely = np.zeros(25, bool)
+    lonely[[0, 1, 6]] = True  # two fitted neighbours cannot overrule a fit
+    assert not eventfill.isolated_outliers(normal, lonely, (5, 5))[1].any()
