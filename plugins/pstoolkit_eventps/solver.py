@@ -24,6 +24,7 @@ import numpy as np
 import psfmt
 from pstoolkit import Option, Progress, Solver, SolverResult, UserError, build_light_model
 from pstoolkit.events import eventps
+from pstoolkit.events.rule import REFRACTORY_RULE, check_rule
 from pstoolkit.solve.cluster import available_cpus, max_parallel
 from pstoolkit_eventps.resample import Resampler, event_to_frame_affine
 
@@ -38,6 +39,11 @@ def _contrasts(capture: psfmt.Capture, contrast: float, where: str) -> tuple[flo
     if cal.contrast_pos is None or cal.contrast_neg is None:
         raise UserError(f"eventps: {where} has no contrast threshold in its calibration; set one with --set contrast=C")
     return float(cal.contrast_pos), float(cal.contrast_neg)
+
+
+def refractory_rule(calibration: psfmt.Calibration, where: str) -> str:
+    """The capture's refractory rule (absent: the format's default), or a UserError naming ``where``."""
+    return check_rule(calibration.refractory_rule or REFRACTORY_RULE, f"eventps: {where}")
 
 
 def _check_sequence_size(stream: psfmt.EventArray, window_us: float, target: tuple[int, int]) -> None:
@@ -60,13 +66,15 @@ class EventPS(Solver):
         Option("min_interval_us", float, 0.0, "shortest pair interval used, µs (0 = the refractory period)", minimum=0.0),
         Option(
             "max_interval_us", float, 0.0,
-            f"longest pair interval used, µs (0 = {eventps.MAX_INTERVAL_PERIODS:g} of the light period; none for an aperiodic light)",
+            f"longest pair interval used, µs (0 = {eventps.MAX_INTERVAL_PERIODS:g} of the light period, "
+            f"{eventps.MAX_INTERVAL_PERIODS_RATE_LIMITED:g} under the rate-limited rule; none for an aperiodic light)",
             minimum=0.0,
         ),
         Option("min_pairs", int, 3, "constraints a pixel needs for its own fit", minimum=2),
         Option("reweight", int, 3, "Cauchy reweighting passes of each pixel's fit (0 = plain least squares, as the paper)", minimum=0),
         Option("residual_scale", float, 0.03, "Cauchy scale of a pair's residual n·v/|v|", minimum=1e-6),
         Option("fill", bool, True, "give pixels without their own fit a normal from the ring's swing or their neighbours"),
+        Option("balance", bool, True, "set the ratio C⁺/C⁻ from the events' polarities over whole turns of a ring light (keeping the mean C)"),
         Option(
             "window_us", float, 0.0,
             "also solve one normal map per window of this many µs (maps['normal_sequence']); 0 = off",
@@ -102,12 +110,14 @@ class EventPS(Solver):
             contrast_pos=contrast_pos,
             contrast_neg=contrast_neg,
             refractory_us=options["refractory_us"] or float(capture.calibration.refractory_us or 0.0),
+            refractory_rule=refractory_rule(capture.calibration, where),
             min_interval_us=options["min_interval_us"] or None,
             max_interval_us=options["max_interval_us"] or None,
             min_pairs=options["min_pairs"],
             reweight=options["reweight"],
             residual_scale=options["residual_scale"],
             fill=options["fill"],
+            balance=options["balance"],
         )
         stream = events.read()
         target = psfmt.target_size(capture)
@@ -132,9 +142,11 @@ class EventPS(Solver):
             "events": whole.events,
             "pairs": whole.pairs,
             "constraints": whole.constraints,
-            "contrast_pos": contrast_pos,
-            "contrast_neg": contrast_neg,
+            "contrast_pos": whole.contrasts[0],
+            "contrast_neg": whole.contrasts[1],
+            "hot_pixels": whole.hot,
             "refractory_us": params.refractory_us,
+            "refractory_rule": params.refractory_rule,
             "min_interval_us": shortest,
             "max_interval_us": longest if np.isfinite(longest) else None,
             "event_size": [events.height, events.width],

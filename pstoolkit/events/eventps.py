@@ -16,15 +16,38 @@ time (the whole stream when ``window_us`` is None), and ``threads=2`` fits windo
 the caller's thread pairs the next. ``solve`` gives the whole stream's map and its windows' maps from
 one pass (the ``eventps`` solver's windowed mode).
 
-Per window: consecutive events k−1, k of a pixel give n·v = 0 with v = e^{C⁺} l(t_ref) − l(t_k) for
-p_k = +1 and v = l(t_ref) − e^{C⁻} l(t_k) for p_k = −1 (facts of the paper; l the grey light,
-``pstoolkit.events.relation``), t_ref = t_{k−1} + R being when the sensor took its reference level
-(``pstoolkit.events.rule``: the simulator's rule, and the one EventPS's code applies when it evaluates
-the previous light at the last timestamp plus the refractory period). Pairs whose interval lies outside
-[``min_interval_us``, ``max_interval_us``] are dropped, as in the paper. A pixel with at least
-``min_pairs`` constraints of rank 2 gets the smallest eigenvector of Σ w v vᵀ (``eventkernel``);
-the others get a normal from the swing of the ring light or from their neighbours
-(``pstoolkit.events.fill``), and ``confidence`` says which (``eventfill.FIT``, ``NEIGHBOURS``, ``SWING``).
+Per window, the events pair by the refractory rule of ``params.refractory_rule``
+(``pstoolkit.events.rule``; a capture records it in ``/calibration@refractory_rule``):
+
+- "reset-at-end" (the paper's): consecutive events k−1, k of a pixel give n·v = 0 with
+  v = e^{C⁺} l(t_ref) − l(t_k) for p_k = +1 and v = l(t_ref) − e^{C⁻} l(t_k) for p_k = −1 (facts of the
+  paper; l the grey light, ``pstoolkit.events.relation``), t_ref = t_{k−1} + R being when the sensor
+  took its reference level (the one EventPS's code applies when it evaluates the previous light at the
+  last timestamp plus the refractory period).
+- "rate-limited": only events that fired at a crossing (more than R after the pixel's previous event)
+  are exact; consecutive exact events j < k give n·(e^{Δ/2} l(t_j) − e^{−Δ/2} l(t_k)) = 0 with
+  Δ = n⁺·C⁺ − n⁻·C⁻ the thresholds of every event after j up to k. An event fired at the end of a
+  blind time only bounds the change since the last exact one, p·(L(t) − L(t_j)) ≥ p·Δ: a half-space
+  n·w ≥ 0.
+
+Relations whose span lies outside [``min_interval_us``, ``max_interval_us``] are dropped, as in the
+paper. A pixel with at least ``min_pairs`` exact constraints of rank 2 gets the smallest eigenvector of
+Σ w v vᵀ (``relation_kernel.robust_fit``); the others get a normal from the swing of the ring light or
+from their neighbours (``pstoolkit.events.fill``), and ``confidence`` says which (``eventfill.FIT``,
+``NEIGHBOURS``, ``SWING``). Under "rate-limited" a pixel that fired but has no fit starts from its
+neighbours and is refined by its own exact constraints and bounds (``relation_kernel.bounded_fit``),
+restarting from its neighbourhood's mean ``BOUND_SMOOTHING`` times.
+
+A fit more than ``eventfill.OUTLIER_DEG`` from the mean of its eight neighbours' normals is an
+isolated outlier and takes that mean (confidence ``NEIGHBOURS``).
+
+Sensor noise: a pixel firing far more than its neighbours is hot (``eventfill.hot_pixels``): its
+events are left out and it takes its neighbours' normal. Under a ring light over whole turns C⁺/C⁻ is
+set from the polarities of the events (``balanced_contrasts``, keeping the calibration's mean), which
+corrects a calibration whose thresholds differ per polarity; the mean threshold, and a pixel's own
+threshold, are not identifiable from its events (a scaled threshold trades against its tilt) and are
+the calibration's. Events of background activity break the pairs they fall in; the Cauchy reweighting
+rejects most of them.
 
 Where this departs from the paper and its public code, and why:
 
@@ -64,13 +87,19 @@ from psfmt import EventArray
 from pstoolkit._shared.vectors import unit
 from pstoolkit.errors import UserError
 from pstoolkit.events import fill as eventfill
-from pstoolkit.events.relation import MIN_RANK_RATIO, grey_light
-from pstoolkit.events.relation_kernel import NO_EVENT, pair_events, robust_fit
+from pstoolkit.events.relation import MIN_RANK_RATIO, constraint_vectors, grey_light
+from pstoolkit.events.relation_kernel import NO_EVENT, bounded_fit, pair_events, robust_fit
+from pstoolkit.events.rule import REFRACTORY_RULE, REFRACTORY_RULES, check_rule
 from pstoolkit.optics.lights import LightModel
 
 MAX_INTERVAL_PERIODS = 0.5
-"""Default longest pair interval, as a share of the light period: a pixel near the ring's axis fires
-about once per half turn (its only pairs), while pairs that span a long attached shadow are dropped."""
+"""Default longest pair interval under "reset-at-end", as a share of the light period: a pixel near the
+ring's axis fires about once per half turn (its only pairs), while pairs that span a long attached
+shadow are dropped."""
+MAX_INTERVAL_PERIODS_RATE_LIMITED = 1.0
+"""The same under "rate-limited", whose exact events are sparse (a pixel whose level changes faster
+than C/R fires at the refractory rate, and those events only bound the level) and whose pairs keep
+every threshold between them, however long: a whole turn."""
 SWING_MIN_TURNS = 0.99
 """The swing argument needs a window of a full turn of the light (up to rounding its length to µs)."""
 MAX_TABLE_US = 1_000_000
@@ -78,6 +107,8 @@ MAX_TABLE_US = 1_000_000
 ADJUGATE_STEPS = 2
 """Power steps on the adjugate that refine a pixel's first normal and move it after each reweighting
 (``eventkernel``)."""
+BALANCE_MIN_EVENTS = 1000
+"""Fewest rising and falling events ``balanced_contrasts`` needs (a share known to about 3 %)."""
 GEOMETRY_SAMPLES = 3600
 """Samples of one light period to measure its zenith and whether it circles the axis."""
 
@@ -85,40 +116,52 @@ GEOMETRY_SAMPLES = 3600
 @dataclass(frozen=True)
 class Params:
     """What the method needs besides the events and the light: contrast thresholds C⁺, C⁻ (log units),
-    refractory period R (µs), the pair intervals used (µs; None: R and ``MAX_INTERVAL_PERIODS`` of
-    the light period, unlimited for an aperiodic light), the constraints a pixel needs for its own fit,
-    the Cauchy reweighting passes and their scale, and whether pixels without a fit get a normal."""
+    refractory period R (µs) and rule (``pstoolkit.events.rule.REFRACTORY_RULES``), the pair intervals
+    used (µs; None: R and ``MAX_INTERVAL_PERIODS`` of the light period, or
+    ``MAX_INTERVAL_PERIODS_RATE_LIMITED`` under "rate-limited", unlimited for an aperiodic light), the constraints a pixel needs for its own fit,
+    the Cauchy reweighting passes and their scale, whether pixels without a fit get a normal, and
+    whether C⁺/C⁻ is balanced by the events' polarities over whole turns (``balanced_contrasts``)."""
 
     contrast_pos: float
     contrast_neg: float
     refractory_us: float
+    refractory_rule: str = REFRACTORY_RULE
     min_interval_us: float | None = None
     max_interval_us: float | None = None
     min_pairs: int = 3
     reweight: int = 3
     residual_scale: float = 0.03
     fill: bool = True
+    balance: bool = True
 
     def __post_init__(self) -> None:
         if not (self.contrast_pos > 0 and self.contrast_neg > 0):
             raise ValueError(f"contrast thresholds must be positive, got {self.contrast_pos} and {self.contrast_neg}")
         if self.refractory_us < 0 or self.min_pairs < 2 or self.reweight < 0 or not self.residual_scale > 0:
             raise ValueError("refractory_us ≥ 0, min_pairs ≥ 2, reweight ≥ 0 and residual_scale > 0 are required")
+        check_rule(self.refractory_rule, "eventps")
+
+    @property
+    def rate_limited(self) -> bool:
+        """Whether events pair by the "rate-limited" rule (with R = 0 both rules are the same)."""
+        return self.refractory_rule == REFRACTORY_RULES[1] and self.refractory_us > 0
 
     def intervals(self, period_us: float | None) -> tuple[float, float]:
         """The shortest and longest pair interval used (µs)."""
         shortest = self.refractory_us if self.min_interval_us is None else self.min_interval_us
         if self.max_interval_us is not None:
             return shortest, self.max_interval_us
-        return shortest, MAX_INTERVAL_PERIODS * period_us if period_us else math.inf
+        share = MAX_INTERVAL_PERIODS_RATE_LIMITED if self.rate_limited else MAX_INTERVAL_PERIODS
+        return shortest, share * period_us if period_us else math.inf
 
 
 @dataclass
 class NormalWindow:
     """The normals of one window [``start_us``, ``end_us``): ``normal`` (H, W, 3) float32 unit vectors
     at the event pixels (zero where none, with ``Params.fill`` off), ``confidence`` (H, W) float32
-    (``eventfill.FIT``, ``NEIGHBOURS``, ``SWING``; 0 for none), and the window's events, pairs of
-    consecutive events and constraints kept."""
+    (``eventfill.FIT``, ``NEIGHBOURS``, ``SWING``; 0 for none), the window's events, exact pairs,
+    exact constraints kept, the thresholds C⁺, C⁻ used (``balanced_contrasts``) and the hot pixels
+    left out (``eventfill.hot_pixels``)."""
 
     start_us: int
     end_us: int
@@ -127,6 +170,8 @@ class NormalWindow:
     events: int
     pairs: int
     constraints: int
+    contrasts: tuple[float, float]
+    hot: int
 
     def sources(self) -> dict[str, int]:
         """Pixels per source of their normal (``eventfill.SOURCES``)."""
@@ -136,8 +181,11 @@ class NormalWindow:
 @dataclass
 class PairedWindow:
     """A window after pairing (``WindowSolver.pair``): its span and turns of the light, its events,
-    pairs, constraints (flat pixel (m,), unit v (m, 3)), and per pixel the events fired (P,) and the
-    sum of p·m(t) (P, 2) for the swing."""
+    pairs, relations (flat pixel (m,), grey light at the reference (m, 3) and at the later event
+    (m, 3), positive and negative thresholds crossed in between (m, 2), 0 for an exact relation or the
+    sign of a bound (m,) int8; ``relation_kernel.pair_events``),
+    and per pixel the events fired, the rising ones and those fired at the end of a blind time (P, 3),
+    and the sum of p·m(t) (P, 2) for the swing."""
 
     start_us: int
     end_us: int
@@ -145,7 +193,10 @@ class PairedWindow:
     events: int
     pairs: int
     constraint_pixel: np.ndarray
-    u: np.ndarray
+    reference: np.ndarray
+    later: np.ndarray
+    crossed: np.ndarray
+    bound: np.ndarray
     fired: np.ndarray
     swing: np.ndarray
 
@@ -203,6 +254,49 @@ def _motion(direction: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(unit(np.roll(xy, -1, axis=0) - np.roll(xy, 1, axis=0)))
 
 
+def balanced_contrasts(fired: np.ndarray, contrast_pos: float, contrast_neg: float) -> tuple[float, float]:
+    """C⁺ and C⁻ with the calibration's mean and the ratio of the events' polarities over whole turns
+    of a periodic light (``fired`` (P, 3): events, rising ones, ones at the end of a blind time): a
+    pixel's level returns to where it started, so its rising and falling thresholds add up to the same,
+    N⁺·C⁺ ≈ N⁻·C⁻. Pixels that fired at the end of a blind time are left out (under "rate-limited" they
+    may still lag their level when the recording ends), and so is a count too small to say more than
+    the calibration (fewer than ``BALANCE_MIN_EVENTS``)."""
+    steady = fired[:, 2] == 0
+    rising, total = int(fired[steady, 1].sum()), int(fired[steady, 0].sum())
+    if min(rising, total - rising) < BALANCE_MIN_EVENTS:
+        return contrast_pos, contrast_neg
+    mean = 0.5 * (contrast_pos + contrast_neg)
+    ratio = (total - rising) / rising  # C⁺/C⁻
+    return 2.0 * mean * ratio / (1.0 + ratio), 2.0 * mean / (1.0 + ratio)
+
+
+BOUND_PRIOR = 1e-3
+"""Weight of the pull towards a pixel's filled normal in ``relation_kernel.bounded_fit``: enough to pick
+a normal where its own constraints leave it free, small against any one constraint (weight 1)."""
+BOUND_PASSES = 20
+"""Most passes of ``relation_kernel.bounded_fit``."""
+BOUND_SMOOTHING = 100
+"""Rounds of ``_bounded`` that restart each refined pixel from the mean of its and its neighbours'
+normals: where a pixel's own constraints leave its normal free, the surface's smoothness carries
+the fits at the edge of a steep region inwards (blobs 128 px, rate-limited 2 ms: 7.3° with none,
+6.2° with 10 rounds, 5.55° with 100, 5.52° with 200; a 5×5 mean instead of 3×3 does worse)."""
+
+
+def _bounded(normal: np.ndarray, todo: np.ndarray, exact_pixel: np.ndarray, u: np.ndarray,
+             bound_pixel: np.ndarray, w: np.ndarray, shape: tuple[int, int]) -> None:
+    """Refines the filled normals (P, 3) of the pixels ``todo`` in place with their own exact
+    constraints (n·u = 0) and bounds (n·w ≥ 0) (``relation_kernel.bounded_fit``), then
+    ``BOUND_SMOOTHING`` times again from the mean of their neighbourhood (``eventfill.neighbour_mean``
+    on the (H, W) grid ``shape``)."""
+    exact_order, bound_order = np.argsort(exact_pixel, kind="stable"), np.argsort(bound_pixel, kind="stable")
+    exact_pixel, u = exact_pixel[exact_order], np.ascontiguousarray(u[exact_order])
+    bound_pixel, w = bound_pixel[bound_order], np.ascontiguousarray(w[bound_order])
+    for step in range(BOUND_SMOOTHING + 1):
+        if step:
+            normal[todo] = eventfill.neighbour_mean(normal, shape)[todo]
+        bounded_fit(normal, todo, exact_pixel, u, bound_pixel, w, BOUND_PRIOR, BOUND_PASSES)
+
+
 class WindowSolver:
     """Solves windows of one event stream: pairs them in time order, keeping each pixel's last event
     between them, and fits each paired window on its own."""
@@ -214,7 +308,12 @@ class WindowSolver:
         self.min_interval_us, self.max_interval_us = params.intervals(light.period_us)
         pixels = self.width * self.height
         self.last_t = np.full(pixels, NO_EVENT, dtype=np.int64)
-        self.last_light = np.zeros((pixels, 3))
+        self.anchor_t = np.full(pixels, NO_EVENT, dtype=np.int64)
+        self.anchor_light = np.zeros((pixels, 3))
+        self.crossed = np.zeros((pixels, 2), dtype=np.int64)
+        self.start_us: int | None = None
+        """The stream's first event: a pixel's first event is exact under "rate-limited" when it
+        comes later than R after it (``pstoolkit.events.rule.exact_pairs``)."""
 
     def turns(self, span_us: float) -> float:
         """Turns of the light in ``span_us`` (0 for an aperiodic light)."""
@@ -228,15 +327,18 @@ class WindowSolver:
         pixels = self.width * self.height
         if len(events) and (int(events.x.max()) >= self.width or int(events.y.max()) >= self.height):
             raise UserError(f"eventps: an event lies outside the {self.width}×{self.height} sensor")
+        if self.start_us is None and len(events):
+            self.start_us = int(events.t[0])
         light, motion, period = self.path.rows(events.t)
-        fired = np.zeros(pixels, dtype=np.int64)
+        fired = np.zeros((pixels, 3), dtype=np.int64)
         swing = np.zeros((pixels, 2))
-        constraint_pixel, u, pairs = pair_events(
+        constraint_pixel, reference, later, crossed, bound, pairs = pair_events(
             events.x, events.y, events.t, events.p, self.width, light, motion, period, int(self.path.refractory_us),
-            self.last_t, self.last_light, float(self.min_interval_us), float(self.max_interval_us),
-            math.exp(params.contrast_pos), math.exp(params.contrast_neg), fired, swing,
+            params.rate_limited, self.start_us or 0, self.last_t, self.anchor_t, self.anchor_light, self.crossed,
+            float(self.min_interval_us), float(self.max_interval_us), fired, swing,
         )
-        return PairedWindow(int(start_us), int(end_us), turns, len(events), int(pairs), constraint_pixel, u, fired, swing)
+        return PairedWindow(int(start_us), int(end_us), turns, len(events), int(pairs), constraint_pixel, reference,
+                            later, crossed, bound, fired, swing)
 
     def finish(self, paired: PairedWindow) -> NormalWindow:
         """The normals of a paired window: each pixel's own fit, and for the others the swing of the
@@ -244,26 +346,47 @@ class WindowSolver:
         windows may be finished in parallel."""
         params = self.params
         pixels = self.width * self.height
+        hot = eventfill.hot_pixels(paired.fired[:, 0], (self.height, self.width))
+        fired = np.where(hot, 0, paired.fired[:, 0])
+        contrast_pos, contrast_neg = params.contrast_pos, params.contrast_neg
+        if params.balance and self.path.circles_axis and paired.turns >= SWING_MIN_TURNS:
+            contrast_pos, contrast_neg = balanced_contrasts(paired.fired[~hot], contrast_pos, contrast_neg)
+        vectors, kept = constraint_vectors(paired.reference, paired.later, paired.crossed, contrast_pos, contrast_neg)
+        kept &= ~hot[paired.constraint_pixel]
+        pixel, bound, vectors = paired.constraint_pixel[kept], paired.bound[kept], vectors[kept]
+        exact = bound == 0
+        constraint_pixel, u = pixel[exact], vectors[exact]
         normal, values, sums, count = robust_fit(
-            paired.constraint_pixel, paired.u, pixels, params.min_pairs, params.reweight, params.residual_scale, ADJUGATE_STEPS
+            constraint_pixel, u, pixels, params.min_pairs, params.reweight, params.residual_scale, ADJUGATE_STEPS
         )
         fit = (count >= params.min_pairs) & (values[:, 1] > MIN_RANK_RATIO * values[:, 2])
         normal[~fit] = 0.0
         confidence = np.where(fit, eventfill.FIT, 0.0)
         rest = ~fit
         if params.fill and rest.any():
-            if self.path.circles_axis and paired.turns >= SWING_MIN_TURNS:
+            swing = self.path.circles_axis and paired.turns >= SWING_MIN_TURNS
+            if swing:
                 contrast = 0.5 * (params.contrast_pos + params.contrast_neg)
                 normal[rest] = eventfill.swing_normals(
-                    paired.fired[rest], paired.swing[rest], paired.turns, contrast, self.path.tan_zenith
+                    fired[rest], paired.swing[rest], paired.turns, contrast, self.path.tan_zenith
                 )
                 confidence[rest] = eventfill.SWING
-            else:
-                filled, found = eventfill.neighbour_normals(sums, count, rest, (self.height, self.width), params.min_pairs)
+            # under "rate-limited" a pixel that fires at the refractory rate lags its level, so its event
+            # count no longer measures its swing: its neighbours' constraints are the better start
+            need = rest if not swing else rest & ((fired > 0) & params.rate_limited | hot)
+            if need.any():
+                filled, found = eventfill.neighbour_normals(sums, count, need, (self.height, self.width), params.min_pairs)
                 normal[found] = filled[found]
                 confidence[found] = eventfill.NEIGHBOURS
-                normal[rest & ~found] = eventfill.AXIS
-                confidence[rest & ~found] = eventfill.SWING
+                if not swing:
+                    normal[need & ~found] = eventfill.AXIS
+                    confidence[need & ~found] = eventfill.SWING
+            if not exact.all():
+                _bounded(normal, np.flatnonzero(rest & (fired > 0)), constraint_pixel, u, pixel[~exact],
+                         -bound[~exact, None] * vectors[~exact], (self.height, self.width))
+            mean, outlier = eventfill.isolated_outliers(normal, fit, (self.height, self.width))
+            normal[outlier] = mean[outlier]
+            confidence[outlier] = eventfill.NEIGHBOURS
         shape = (self.height, self.width)
         return NormalWindow(
             start_us=paired.start_us,
@@ -272,7 +395,9 @@ class WindowSolver:
             confidence=confidence.reshape(shape).astype(np.float32),
             events=paired.events,
             pairs=paired.pairs,
-            constraints=len(paired.constraint_pixel),
+            constraints=len(constraint_pixel),
+            contrasts=(float(contrast_pos), float(contrast_neg)),
+            hot=int(np.count_nonzero(hot)),
         )
 
 
@@ -386,8 +511,8 @@ def solve(
         raise ValueError(f"window_us must be positive, got {window_us}")
     solver = WindowSolver(light, width, height, params)
     pixels = solver.width * solver.height
-    fired, swing = np.zeros(pixels, dtype=np.int64), np.zeros((pixels, 2))
-    constraints: list[tuple[np.ndarray, np.ndarray]] = []
+    fired, swing = np.zeros((pixels, 3), dtype=np.int64), np.zeros((pixels, 2))
+    relations: list[tuple[np.ndarray, ...]] = []
     first: int | None = None
     last = events_seen = pairs = 0
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
@@ -400,7 +525,7 @@ def solve(
             futures.append(pool.submit(solver.finish, paired))
             fired += paired.fired
             swing += paired.swing
-            constraints.append((paired.constraint_pixel, paired.u))
+            relations.append((paired.constraint_pixel, paired.reference, paired.later, paired.crossed, paired.bound))
             events_seen, pairs = events_seen + paired.events, pairs + paired.pairs
         first = first or 0
         whole = PairedWindow(
@@ -409,13 +534,19 @@ def solve(
             float(round(solver.turns(last - first))),
             events_seen,
             pairs,
-            np.concatenate([c for c, _ in constraints]) if constraints else np.empty(0, np.int64),
-            np.concatenate([u for _, u in constraints]) if constraints else np.empty((0, 3)),
+            *_joined(relations),
             fired,
             swing,
         )
         joined = pool.submit(solver.finish, whole)
         return joined.result(), [future.result() for future in futures]
+
+
+def _joined(relations: list[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]:
+    """The windows' relations (pixel, reference, later, crossed, bound) end to end."""
+    if not relations:
+        return np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 3)), np.empty((0, 2), np.int64), np.empty(0, np.int8)
+    return tuple(np.concatenate(part) for part in zip(*relations))
 
 
 def _windows(chunks: Iterable[EventArray], window_us: float, solver: WindowSolver) -> Iterator[tuple[EventArray, int, int, float]]:

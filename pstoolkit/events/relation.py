@@ -100,3 +100,19 @@ def smallest_eigenvectors(sums: np.ndarray, counts: np.ndarray, min_pairs: int) 
     ok[candidate[determined]] = True
     normal[ok] = n
     return normal, ok
+
+
+def constraint_vectors(
+    reference: np.ndarray, later: np.ndarray, crossed: np.ndarray, contrast_pos: np.ndarray, contrast_neg: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Unit constraint vectors v/|v| (m, 3) of relations (``pair_events``): the log level rose by
+    Δ = n⁺·C⁺ − n⁻·C⁻ from the reference to the later event, so a Lambertian normal satisfies
+    n·(e^{Δ/2} l_ref − e^{−Δ/2} l_now) = 0 (the symmetric split keeps both terms of order one).
+    ``contrast_pos``/``contrast_neg`` are scalars or one per relation. Returns the vectors (zero where
+    v = 0) and the (m,) bool of the others."""
+    delta = crossed[:, 0] * contrast_pos - crossed[:, 1] * contrast_neg
+    half = np.exp(0.5 * np.asarray(delta, dtype=np.float64))[:, None]
+    v = half * reference - later / half
+    length = np.sqrt(np.einsum("mc,mc->m", v, v))
+    keep = length > 0
+    return v / np.where(keep, length, 1.0)[:, None], keep

@@ -1,12 +1,13 @@
-"""Compiled loops of the EventPS relation (numba): the pairing of consecutive same-pixel events into
-constraints as a stream goes by, and each pixel's robust fit of its constraints. They run on one core
-and release the GIL.
+"""Compiled loops of the EventPS relation (numba): the pairing of same-pixel events into relations as
+a stream goes by, each pixel's robust fit of its exact constraints, and the refinement of a pixel
+without a fit by its constraints and bounds. They run on one core and release the GIL.
 
-Constraints follow ``pstoolkit.events.relation``: a pair of consecutive events k−1, k of a pixel with
-polarity p_k gives n·v = 0 with v = e^{C⁺} l(t_ref) − l(t_k) for p = +1 and v = l(t_ref) − e^{C⁻} l(t_k)
-for p = −1, where t_ref = t_{k−1} + R (the reference rule of ``pstoolkit.events.rule``) and l(t) the
-grey light. The callers give the light at each event's time and at the end of its refractory
-period, so the loops know nothing of light models.
+Relations follow ``pstoolkit.events.rule``: the grey light at a reference time and at a later event,
+and the thresholds crossed in between, so that L(t) − L(t_ref) = n⁺·C⁺ − n⁻·C⁻ (exact) or bounds it
+(an event of the "rate-limited" rule fired at the end of a blind time);
+``pstoolkit.events.relation.constraint_vectors`` turns them into constraints n·v = 0 or n·w ≥ 0. The
+callers give the light at each event's time and at the end of its refractory period, so the loops
+know nothing of light models.
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import math
 
 import numba
 import numpy as np
+
+from pstoolkit.events.rule import TIMESTAMP_RESOLUTION_US
 
 NO_EVENT = np.iinfo(np.int64).min
 """``last_t`` of a pixel that has not fired yet."""
@@ -35,66 +38,97 @@ def pair_events(
     motion: np.ndarray,
     period_us: int,
     refractory_us: int,
+    rate_limited: bool,
+    start_us: int,
     last_t: np.ndarray,
-    last_light: np.ndarray,
+    anchor_t: np.ndarray,
+    anchor_light: np.ndarray,
+    crossed: np.ndarray,
     min_interval_us: float,
     max_interval_us: float,
-    exp_pos: float,
-    exp_neg: float,
     fired: np.ndarray,
     swing: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, int]:
-    """Unit constraint vectors of the time-ordered events (``x``, ``y``, ``t_us``, ``polarity``) of a
-    sensor ``width`` pixels wide. The grey light (rows of ``light``) and the unit direction of the
-    light's motion across the image plane (rows of ``motion``): with ``period_us`` > 0 both tabulate
-    one period per µs, and an event at t reads row t mod period, its light after the refractory
-    period row (t + refractory_us) mod period (the times must not decrease); with ``period_us`` = 0 they hold a row per event k,
-    the light after its refractory period in row n + k. ``last_t`` (P,) and ``last_light`` (P, 3)
-    hold each pixel's previous event (``NO_EVENT`` for none) and its light after the refractory
-    period; they are updated, so the next call continues the stream. A pair whose interval lies
-    outside [min_interval_us, max_interval_us] or whose v is zero gives no constraint. Also adds
-    each event to ``fired`` (P,) and p·motion to ``swing`` (P, 2). Returns the constraints' flat
-    pixels y·width + x (m,), v/|v| (m, 3) in event order, and the number of pairs."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """The relations of the time-ordered events (``x``, ``y``, ``t_us``, ``polarity``) of a sensor
+    ``width`` pixels wide under the refractory rule (``pstoolkit.events.rule``): each gives the grey
+    light at a reference time and at an event, and the thresholds crossed in between.
+
+    The grey light (rows of ``light``) and the unit direction of the light's motion across the image
+    plane (rows of ``motion``): with ``period_us`` > 0 both tabulate one period per µs, and an event at
+    t reads row t mod period, its light after the refractory period row (t + refractory_us) mod period
+    (the times must not decrease); with ``period_us`` = 0 they hold a row per event k, the light after
+    its refractory period in row n + k.
+
+    "reset-at-end" (``rate_limited`` false): every event and the one before it of its pixel, the
+    reference at t_prev + R, one threshold of the later event's polarity. "rate-limited": consecutive
+    exact events of a pixel (fired more than R + 1 µs after the pixel's previous event, or after
+    ``start_us`` for its first), the reference at the earlier one's time, every threshold of the
+    events after it up to the later one; and each event fired at the end of a blind time after an
+    exact one, which only bounds the change since it: p·(L(t) − L(t_ref)) ≥ p·Δ (``bound`` = p; 0
+    for an exact relation).
+
+    Per-pixel state, updated so that the next call continues the stream: ``last_t`` (P,) the previous
+    event (``NO_EVENT`` for none), ``anchor_t`` (P,) the time of the current reference and
+    ``anchor_light`` (P, 3) the light then (``NO_EVENT``: none yet), ``crossed`` (P, 2) the positive
+    and negative thresholds since it. A relation whose span lies outside [min_interval_us,
+    max_interval_us] is dropped. Also counts per pixel in ``fired`` (P, 3) the events, the rising ones
+    and those fired at the end of a blind time, and adds p·motion to ``swing`` (P, 2). Returns the
+    relations' flat pixels y·width + x (m,), the light at the reference (m, 3) and at the later event
+    (m, 3), their thresholds crossed (m, 2) (positive, negative), ``bound`` (m,) int8, in event order,
+    and the number of exact relations formed before the span filter."""
     count = t_us.shape[0]
     out_pixel = np.empty(count, np.int64)
-    out_v = np.empty((count, 3))
+    out_ref = np.empty((count, 3))
+    out_now = np.empty((count, 3))
+    out_crossed = np.empty((count, 2), np.int64)
+    out_bound = np.zeros(count, np.int8)
     used = 0
     pairs = 0
+    exact_gap = refractory_us + TIMESTAMP_RESOLUTION_US
     # the start of the period holding the current event; times increase, so it only moves forward
     turn_start = t_us[0] - t_us[0] % period_us if period_us > 0 and count > 0 else 0
     for k in range(count):
         i = np.int64(y[k]) * width + np.int64(x[k])
         p = polarity[k]
+        t = t_us[k]
         if period_us > 0:
-            while t_us[k] - turn_start >= period_us:
+            while t - turn_start >= period_us:
                 turn_start += period_us
-            now = t_us[k] - turn_start
+            now = t - turn_start
             after = now + refractory_us
             while after >= period_us:
                 after -= period_us
         else:
             now, after = k, count + k
-        fired[i] += 1
+        fired[i, 0] += 1
+        fired[i, 1] += 1 if p > 0 else 0
         swing[i, 0] += p * motion[now, 0]
         swing[i, 1] += p * motion[now, 1]
+        crossed[i, 0 if p > 0 else 1] += 1
         previous = last_t[i]
-        if previous != NO_EVENT:
-            pairs += 1
-            interval = t_us[k] - previous
+        exact = True
+        if rate_limited:
+            exact = t - (start_us if previous == NO_EVENT else previous) > exact_gap
+            fired[i, 2] += 0 if exact else 1
+        if anchor_t[i] != NO_EVENT:
+            pairs += 1 if exact else 0
+            interval = t - (previous if not rate_limited else anchor_t[i])
             if min_interval_us <= interval <= max_interval_us:
-                # v and −v give the same constraint, so p = −1's v is written as l_ref − e^{C⁻} l_now
-                scale_ref, scale_now = (exp_pos, 1.0) if p > 0 else (1.0, exp_neg)
-                v0 = scale_ref * last_light[i, 0] - scale_now * light[now, 0]
-                v1 = scale_ref * last_light[i, 1] - scale_now * light[now, 1]
-                v2 = scale_ref * last_light[i, 2] - scale_now * light[now, 2]
-                length = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-                if length > 0:
-                    out_pixel[used] = i
-                    out_v[used, 0], out_v[used, 1], out_v[used, 2] = v0 / length, v1 / length, v2 / length
-                    used += 1
-        last_t[i] = t_us[k]
-        last_light[i, 0], last_light[i, 1], last_light[i, 2] = light[after, 0], light[after, 1], light[after, 2]
-    return out_pixel[:used], out_v[:used], pairs
+                out_pixel[used] = i
+                for c in range(3):
+                    out_ref[used, c] = anchor_light[i, c]
+                    out_now[used, c] = light[now, c]
+                out_crossed[used, 0], out_crossed[used, 1] = crossed[i, 0], crossed[i, 1]
+                out_bound[used] = 0 if exact else p
+                used += 1
+        if exact:
+            anchor_t[i] = t
+            reference = now if rate_limited else after
+            for c in range(3):
+                anchor_light[i, c] = light[reference, c]
+            crossed[i, 0] = crossed[i, 1] = 0
+        last_t[i] = t
+    return out_pixel[:used], out_ref[:used], out_now[:used], out_crossed[:used], out_bound[:used], pairs
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -215,3 +249,60 @@ def robust_fit(
         sign = -1.0 if z < 0 else 1.0
         normal[i, 0], normal[i, 1], normal[i, 2] = sign * x, sign * y, sign * z
     return normal, values, sums, count
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def bounded_fit(
+    normal: np.ndarray,
+    todo: np.ndarray,
+    exact_pixel: np.ndarray,
+    u: np.ndarray,
+    bound_pixel: np.ndarray,
+    w: np.ndarray,
+    prior: float,
+    passes: int,
+) -> None:
+    """Refines the normals (P, 3) of the pixels ``todo`` (k,) in place with their own constraints:
+    exact ones n·u = 0 (``exact_pixel`` (m,), unit ``u`` (m, 3)) and one-sided ones n·w ≥ 0
+    (``bound_pixel`` (b,), unit ``w`` (b, 3)). Each pass takes the smallest eigenvector of
+    Σ u uᵀ + Σ w wᵀ over the violated w + ``prior``·(I − n₀n₀ᵀ), n₀ the starting normal (the
+    squared hinge, with a pull to the start where the constraints leave n free), for at most
+    ``passes`` passes or until the violated set stops changing the normal; flipped to n_z ≥ 0.
+    Pixel arrays must be sorted (as ``pair_events`` gives them after a stable sort by pixel)."""
+    exact_start = np.searchsorted(exact_pixel, todo)
+    exact_end = np.searchsorted(exact_pixel, todo, side="right")
+    bound_start = np.searchsorted(bound_pixel, todo)
+    bound_end = np.searchsorted(bound_pixel, todo, side="right")
+    for k in range(todo.shape[0]):
+        i = todo[k]
+        if bound_end[k] == bound_start[k]:
+            continue
+        x0, y0, z0 = normal[i, 0], normal[i, 1], normal[i, 2]
+        e = _pixel_sums(u, exact_start[k], exact_end[k], 0.0, 0.0, 0.0, 0.0)
+        x, y, z = x0, y0, z0
+        for _ in range(passes):
+            s0 = e[0] + prior * (1.0 - x0 * x0)
+            s1 = e[1] - prior * x0 * y0
+            s2 = e[2] - prior * x0 * z0
+            s3 = e[3] + prior * (1.0 - y0 * y0)
+            s4 = e[4] - prior * y0 * z0
+            s5 = e[5] + prior * (1.0 - z0 * z0)
+            for j in range(bound_start[k], bound_end[k]):
+                a, b, c = w[j, 0], w[j, 1], w[j, 2]
+                if a * x + b * y + c * z < 0.0:
+                    s0 += a * a
+                    s1 += a * b
+                    s2 += a * c
+                    s3 += b * b
+                    s4 += b * c
+                    s5 += c * c
+            _, _, _, nx, ny, nz = _smallest_by_adjugate((s0, s1, s2, s3, s4, s5), 8)
+            if nx == 0.0 and ny == 0.0 and nz == 0.0:
+                break
+            if nz < 0:
+                nx, ny, nz = -nx, -ny, -nz
+            moved = (nx - x) ** 2 + (ny - y) ** 2 + (nz - z) ** 2
+            x, y, z = nx, ny, nz
+            if moved < SETTLED:
+                break
+        normal[i, 0], normal[i, 1], normal[i, 2] = x, y, z
