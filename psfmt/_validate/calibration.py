@@ -64,8 +64,9 @@ def check_sensor_model(g: h5py.Group, out: Findings) -> None:
         value = attr(g, key)
         if value is None:
             continue
-        if not (is_number(value) and value >= 0):
-            out.error(where, f"{key} must be a finite number ≥ 0, got {value!r}")
+        if not (is_number(value) and value >= 0) or (key == "hot_pixel_fraction" and value > 1):
+            bound = "between 0 and 1" if key == "hot_pixel_fraction" else "≥ 0"
+            out.error(where, f"{key} must be a finite number {bound}, got {value!r}")
         elif name is None:
             out.error(where, f"{key} is a sensor-model figure without {layout.SENSOR_MODEL_NAME}")
 

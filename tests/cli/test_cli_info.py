@@ -46,7 +46,7 @@ def test_info_json_numbers_of_a_hybrid_capture(tmp_path: Path, capsys: pytest.Ca
         str(path), "hybrid", "1.3", "tests 9.9", CREATED)
     assert d["camera"] == {"model": "orthographic"}
     assert d["frames"] == {"count": 3, "width": 64, "height": 64, "channels": 3, "dtype": "uint8", "bit_depth": 8,
-                           "saturation": 255.0, "exposure_ms": [10.0, 10.0, 10.0]}
+                           "saturation": 255.0, "black_level": 0.0, "exposure_ms": [10.0, 10.0, 10.0]}
     last = (N_EVENTS - 1) * EVENT_STEP_US
     duration_s = (last + 1) / 1e6
     assert d["events"] == {"count": N_EVENTS, "width": 32, "height": 32, "t_first_us": 0, "t_last_us": last,
