@@ -186,7 +186,9 @@ class Calibration:
     K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]] in frame pixels (centre of projection at the origin,
     scene at z < 0; ``psfmt.camera`` states the projection), an orthographic one None.
     ``view_direction`` (3,) is the unit vector from the surface to the camera (for a perspective
-    camera, that of the principal point).
+    camera, that of the principal point). ``sensor_model`` (spec §9.2, optional): how the sensors of a
+    synthetic capture were modelled, ``{"name": str, figure: float …}`` with the figures of
+    ``psfmt.layout.SENSOR_MODEL_FIGURES`` it records.
     """
 
     event_to_frame: np.ndarray | None = None
@@ -197,6 +199,7 @@ class Calibration:
     camera_model: str = "orthographic"
     view_direction: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
     intrinsics: np.ndarray | None = None
+    sensor_model: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         for name in ("event_to_frame", "intrinsics"):
@@ -217,6 +220,8 @@ class Calibration:
             parts.append(cut(self.refractory_rule))
         if self.event_to_frame is not None:
             parts.append("event→frame affine")
+        if self.sensor_model is not None:
+            parts.append(f"sensor model {cut(str(self.sensor_model.get('name', '')))}")
         return f"Calibration({', '.join(parts)})"
 
 

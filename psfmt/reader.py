@@ -83,6 +83,10 @@ def _read_calibration(group: h5py.Group | None) -> Calibration:
     for key in keys:
         if key in group:
             kwargs[key] = group[key][()]
+    name = attrs(group, (layout.SENSOR_MODEL_NAME,))
+    if name:
+        kwargs["sensor_model"] = {"name": str(name[layout.SENSOR_MODEL_NAME]),
+                                  **{k: float(v) for k, v in attrs(group, layout.SENSOR_MODEL_FIGURES).items()}}
     return Calibration(**kwargs)
 
 

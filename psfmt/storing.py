@@ -55,6 +55,11 @@ def put_calibration(root: h5py.Group, calibration: Calibration) -> None:
             group.attrs[key] = float(value)
     if calibration.refractory_rule is not None:
         group.attrs["refractory_rule"] = str(calibration.refractory_rule)
+    if calibration.sensor_model is not None:
+        group.attrs[layout.SENSOR_MODEL_NAME] = str(calibration.sensor_model.get("name", ""))
+        for key in layout.SENSOR_MODEL_FIGURES:
+            if calibration.sensor_model.get(key) is not None:
+                group.attrs[key] = float(calibration.sensor_model[key])
 
 
 def put_result(root: h5py.Group, result: Result, compress: dict[str, Any] | None = None) -> None:

@@ -26,6 +26,7 @@ import psfmt
 import pstoolkit
 from pstoolkit import Converter, Option, Progress, UserError
 from pstoolkit.events.rule import REFRACTORY_RULES
+from pstoolkit.sim.sensor import MAX_NOISE_HZ, MAX_RATE_SPREAD_DECADES, SENSOR_PRESETS
 from pstoolkit_diligent.folder import FILENAMES, ObjectFolder, scan_object
 from pstoolkit_diligent.geometry import (
     Square,
@@ -42,6 +43,11 @@ from pstoolkit_diligent.semireal import (
 )
 
 _SEMI = SemiRealConfig()
+PRESET_OVERRIDES = (
+    "contrast_sigma", "refractory_us", "refractory_rule", "leak_hz", "shot_noise_hz", "rate_spread_decades",
+    "hot_pixel_fraction", "hot_pixel_hz", "bit_depth", "black_level", "full_well_e", "read_noise_e",
+)
+"""The semi-real options that override a field of the --sensor preset when given (None: the preset's)."""
 UINT16_WHITE = 65535
 
 SELECTION_OPTIONS = (
@@ -170,14 +176,29 @@ class DiLiGenT(_Folders):
     summary = "DiLiGenT object folders: 96 frames as stored, or semi-real hybrid captures (--semi-real)"
     semi_real_options = (
         Option("event_scale", float, _SEMI.event_scale, "semi-real: event pixels per frame pixel", minimum=0.0, maximum=1.0),
-        Option("contrast", float, _SEMI.contrast, "semi-real: event contrast threshold C (log units)", minimum=0.01, maximum=5.0),
-        Option("refractory_us", float, _SEMI.refractory_us, "semi-real: event refractory period, µs", minimum=0.0),
-        Option("refractory_rule", str, _SEMI.refractory_rule, "semi-real: what an event pixel does after its refractory period (docs/sensors.md)",
+        Option("sensor", str, _SEMI.sensor_model, "semi-real: sensor preset, event and frame sensor (docs/sensors.md); the options "
+               "below marked 'preset' override single fields of it (None: the preset's)", choices=tuple(SENSOR_PRESETS)),
+        Option("contrast", float, None, "semi-real, preset: event contrast threshold C, both polarities (log units)", minimum=0.01, maximum=5.0),
+        Option("contrast_neg", float, None, "semi-real, preset: threshold C⁻ of −1 events (log units)", minimum=0.01, maximum=5.0),
+        Option("contrast_sigma", float, None, "semi-real, preset: per-pixel spread σ of the thresholds", minimum=0.0, maximum=1.0),
+        Option("refractory_us", float, None, "semi-real, preset: event refractory period, µs", minimum=0.0),
+        Option("refractory_rule", str, None, "semi-real, preset: what an event pixel does after its refractory period (docs/sensors.md)",
                choices=REFRACTORY_RULES),
+        Option("leak_hz", float, None, "semi-real, preset: leak, +1 events per pixel and second of a static pixel", minimum=0.0, maximum=MAX_NOISE_HZ),
+        Option("shot_noise_hz", float, None, "semi-real, preset: shot-noise events per pixel and second in the dark", minimum=0.0,
+               maximum=MAX_NOISE_HZ),
+        Option("rate_spread_decades", float, None, "semi-real, preset: per-pixel spread of the noise rates, decades", minimum=0.0,
+               maximum=MAX_RATE_SPREAD_DECADES),
+        Option("hot_pixel_fraction", float, None, "semi-real, preset: share of hot pixels", minimum=0.0, maximum=1.0),
+        Option("hot_pixel_hz", float, None, "semi-real, preset: events per second of a hot pixel", minimum=0.0, maximum=MAX_NOISE_HZ),
+        Option("bit_depth", int, None, "semi-real, preset: frame bits (8, 10, 12, 16)", minimum=8, maximum=16),
+        Option("black_level", float, None, "semi-real, preset: stored frame value of no light", minimum=0.0),
+        Option("full_well_e", float, None, "semi-real, preset: frame electrons at saturation (shot noise; 0: none)", minimum=0.0),
+        Option("read_noise_e", float, None, "semi-real, preset: frame read noise, electrons rms", minimum=0.0),
         Option("frames", int, _SEMI.frames, "semi-real: long-exposure frames per light period", minimum=1, maximum=36),
         Option("periods", int, _SEMI.periods, "semi-real: light periods to record", minimum=1, maximum=1000),
         Option("period_ms", float, _SEMI.period_ms, "semi-real: one loop of the 36 boundary lights, ms", minimum=0.0),
-        Option("seed", int, _SEMI.seed, "semi-real: seed of the event generator", minimum=0),
+        Option("seed", int, _SEMI.seed, "semi-real: seed of the sensors' noise", minimum=0),
     )
     options = (
         *SELECTION_OPTIONS,
@@ -209,12 +230,14 @@ class DiLiGenT(_Folders):
 
     @staticmethod
     def semi_real_config(options: dict[str, Any]) -> SemiRealConfig:
-        return SemiRealConfig(
+        contrast = options["contrast"]
+        return SemiRealConfig.with_preset(
+            options["sensor"],
             size=options["size"] or _SEMI.size,
             event_scale=options["event_scale"],
-            contrast=options["contrast"],
-            refractory_us=options["refractory_us"],
-            refractory_rule=options["refractory_rule"],
+            contrast=contrast,
+            contrast_neg=contrast if options["contrast_neg"] is None else options["contrast_neg"],
+            **{name: options[name] for name in PRESET_OVERRIDES},
             frames=options["frames"],
             periods=options["periods"],
             period_ms=options["period_ms"],

@@ -8,13 +8,16 @@ and scaled so that the 99th percentile of all masked values of the 36 images is 
 lights each pixel's log-irradiance ``ln(I + ε)`` runs linearly in time, which defines I(t) for:
 
 - **frames**: ``frames`` long exposures per period, frame k the mean of I(t) over
-  [k·T/frames, (k+1)·T/frames) (exact: the integral of an exponential is closed-form), times 255,
-  rounded and clamped to 8 bit: an LDR camera whose white is the 99th-percentile irradiance;
+  [k·T/frames, (k+1)·T/frames) (exact: the integral of an exponential is closed-form), through the
+  frame sensor of the configuration (``pstoolkit.sim.sensor.FrameSensor``; the ``ideal`` preset's:
+  times 255, rounded and clamped to 8 bit): an LDR camera whose white (saturation, above the black
+  level) is the 99th-percentile irradiance;
 - **events**: grey = 0.299 R + 0.587 G + 0.114 B area-averaged to the event grid
   (``size·event_scale`` pixels a side), log-interpolated the same way and fed to the ESIM-style
-  generator (no threshold noise) under the configured refractory period and rule;
+  generator with the configured event sensor (thresholds and their spread, refractory period and
+  rule, leak, shot noise, hot pixels);
 - **discrete lights** (the frame-based comparison): K of the 36 key images, evenly spread over the
-  loop, as instantaneous 8-bit frames of the same scale.
+  loop, as instantaneous frames of the same scale and sensor.
 
 The capture's light model is ``sampled``, periodic, through the key directions with intensity 1
 (the images are already divided by the intensities); the ground truth is resized and re-normalised.
@@ -32,6 +35,7 @@ from pstoolkit import GREY_WEIGHTS, Progress, SampledLight, UserError
 from pstoolkit.events.rule import LOG_EPS, log_irradiance
 from pstoolkit.grid import area_weights, event_shape
 from pstoolkit.sim.esim import Render, simulate_events
+from pstoolkit.sim.sensor import FRAME_BIT_DEPTHS, FrameSensor
 from pstoolkit.sim.timing import CaptureTiming, append_event_chunks
 from pstoolkit_diligent.folder import ObjectFolder
 from pstoolkit_diligent.geometry import area_resize, crop, resize_truth, square_around
@@ -46,7 +50,6 @@ BOUNDARY_LOOP: tuple[int, ...] = (
 """The 0-based ids of the 36 boundary lights of the 12×8 grid (id = 8·column + row), in loop order."""
 MARGIN_PX = 16
 NORMALISE_PERCENTILE = 99.0
-LDR_WHITE = 255
 
 
 @dataclass
@@ -121,9 +124,9 @@ def window_mean(log_keys: np.ndarray, knots_us: np.ndarray, t0_us: float, t1_us:
     return total / (t1_us - t0_us) - LOG_EPS
 
 
-def ldr(irradiance: np.ndarray) -> np.ndarray:
-    """8-bit pixels of normalised irradiance: 1.0 is white, brighter clips."""
-    return np.clip(np.rint(irradiance * LDR_WHITE), 0, LDR_WHITE).astype(np.uint8)
+def ldr(irradiance: np.ndarray, sensor: FrameSensor, rng: np.random.Generator) -> np.ndarray:
+    """Pixels of normalised irradiance through ``sensor``: 1.0 is its saturation, brighter clips."""
+    return sensor.quantise(irradiance * sensor.signal_range(), rng)
 
 
 def event_render(log_keys: np.ndarray, knots_us: np.ndarray, period_us: int) -> Render:
@@ -161,20 +164,25 @@ def write_semi_real(
     keys = key_lights(obj, config.size, lambda f, m: progress(FRAMES_SHARE * f, m))
     period = config.period_us
     knots = knot_times_us(period)
-    writer.begin_frames(config.size, config.size, 3, np.uint8, bit_depth=8)
+    sensor = config.frame_sensor()
+    writer.begin_frames(config.size, config.size, 3, FRAME_BIT_DEPTHS[sensor.bit_depth], bit_depth=sensor.bit_depth,
+                        black_level=sensor.black_level)
+    rng = np.random.default_rng(np.random.SeedSequence(config.seed).spawn(1)[0])
     count = 0
     if config.discrete_lights:
         pick = np.arange(config.discrete_lights) * len(BOUNDARY_LOOP) // config.discrete_lights
         writer.append_frames(
-            ldr(keys.images[pick]), light_direction=keys.directions[pick], light_intensity=np.ones((len(pick), 3))
+            ldr(keys.images[pick], sensor, rng), light_direction=keys.directions[pick], light_intensity=np.ones((len(pick), 3))
         )
     else:
         log_rgb = log_irradiance(keys.images)
         bounds = config.exposure_bounds_us()
-        exposures = [ldr(window_mean(log_rgb, knots, bounds[k], bounds[k + 1])) for k in range(config.frames)]
+        means = [window_mean(log_rgb, knots, bounds[k], bounds[k + 1]) for k in range(config.frames)]
         for p in range(config.periods):
-            for k, exposure in enumerate(exposures):
-                writer.append_frames(exposure, t_start_us=[p * period + bounds[k]], t_end_us=[p * period + bounds[k + 1]])
+            # each period's frames draw their own noise
+            for k, mean in enumerate(means):
+                writer.append_frames(ldr(mean, sensor, rng), t_start_us=[p * period + bounds[k]],
+                                     t_end_us=[p * period + bounds[k + 1]])
         count = _write_events(keys, knots, config, writer, progress)
     writer.set_lights(boundary_light(keys, knots, period))
     writer.set_ground_truth(psfmt.GroundTruth(normal=keys.normal, mask=keys.mask))

@@ -50,6 +50,25 @@ def check_calibration(f: h5py.File, out: Findings) -> None:
         out.error(where, f"refractory_rule {rule!r} is not one of {', '.join(REFRACTORY_RULES)}")
     if layout.EVENTS in f and attr(g, "contrast_pos") is None:
         out.warn(where, "contrast thresholds are unknown; solvers fall back to their defaults")
+    check_sensor_model(g, out)
+
+
+def check_sensor_model(g: h5py.Group, out: Findings) -> None:
+    """The optional sensor-model attributes (spec §9.2): a string name, and figures that are finite
+    numbers ≥ 0, only beside a name."""
+    where = f"/{layout.CALIBRATION}"
+    name = attr(g, layout.SENSOR_MODEL_NAME)
+    if name is not None and not isinstance(name, str):
+        out.error(where, f"{layout.SENSOR_MODEL_NAME} must be a string, got {name!r}")
+    for key in layout.SENSOR_MODEL_FIGURES:
+        value = attr(g, key)
+        if value is None:
+            continue
+        if not (is_number(value) and value >= 0) or (key == "hot_pixel_fraction" and value > 1):
+            bound = "between 0 and 1" if key == "hot_pixel_fraction" else "≥ 0"
+            out.error(where, f"{key} must be a finite number {bound}, got {value!r}")
+        elif name is None:
+            out.error(where, f"{key} is a sensor-model figure without {layout.SENSOR_MODEL_NAME}")
 
 
 def file_version(f: h5py.File) -> tuple[int, int]:

@@ -33,6 +33,7 @@ def describe(capture: psfmt.Capture) -> dict[str, Any]:
             "dtype": str(frames.data.dtype),
             "bit_depth": frames.bit_depth,
             "saturation": frames.saturation,
+            "black_level": frames.black_level,
         }
         if frames.has_windows:
             exposure = (frames.t_end_us - frames.t_start_us) / 1000.0
@@ -64,6 +65,8 @@ def describe(capture: psfmt.Capture) -> dict[str, Any]:
             "refractory_rule_recorded": calibration.refractory_rule is not None,
             **event_to_frame(capture),
         }
+    if capture.calibration.sensor_model is not None:
+        out["sensor_model"] = dict(capture.calibration.sensor_model)
     if capture.lights is not None:
         out["lights"] = {
             "model": capture.lights.model,
@@ -142,6 +145,7 @@ def _text(d: dict[str, Any]) -> str:
         lines.append(f"  description: {s(d['description'])}")
     if "frames" in d:
         f = d["frames"]
+        black = f", black level {f['black_level']:g}" if f["black_level"] else ""
         timing = (
             "exposure " + ", ".join(f"{e:g}" for e in f["exposure_ms"]) + " ms"
             if "exposure_ms" in f
@@ -149,7 +153,7 @@ def _text(d: dict[str, Any]) -> str:
         )
         lines.append(
             f"  frames: {f['count']} × {f['width']}×{f['height']}×{f['channels']} {f['dtype']} "
-            f"({f['bit_depth']}-bit, saturation {f['saturation']:g}), {timing}"
+            f"({f['bit_depth']}-bit, saturation {f['saturation']:g}{black}), {timing}"
         )
     cam = d["camera"]
     if "fx" in cam:
@@ -177,6 +181,18 @@ def _text(d: dict[str, Any]) -> str:
         rows = "; ".join(" ".join(f"{v:g}" for v in row) for row in sensor["event_to_frame"])
         assumed = "" if sensor["event_to_frame_recorded"] else " (not recorded: the same field of view assumed)"
         lines.append(f"  event→frame affine: [{rows}] (event pixel centres to frame pixels){assumed}")
+    if "sensor_model" in d:
+        m = d["sensor_model"]
+
+        def figure(key: str, label: str, unit: str = "") -> str:
+            return f"{label} {m[key]:g}{unit}" if m.get(key) else ""
+
+        figures = [figure("contrast_sigma", "threshold σ"), figure("leak_hz", "leak", " Hz"),
+                   figure("shot_noise_hz", "shot noise", " Hz (dark)"), figure("rate_spread_decades", "rate spread", " decades"),
+                   f"hot pixels {100 * m['hot_pixel_fraction']:g} % at {m.get('hot_pixel_hz', 0):g} Hz" if m.get("hot_pixel_fraction") else "",
+                   figure("full_well_e", "frame full well", " e⁻"), figure("read_noise_e", "read noise", " e⁻")]
+        listed = ", ".join(x for x in figures if x) or "no noise"
+        lines.append(f"  sensor model: {s(m['name'])} ({listed})")
     if "lights" in d:
         params = ", ".join(f"{s(k)}={s(v)}" for k, v in d["lights"]["params"].items())
         lines.append(f"  lights: {s(d['lights']['model'])}" + (f" ({params})" if params else ""))
@@ -210,7 +226,8 @@ def info(
 ) -> None:
     """Show what a capture holds: resolution, frames and exposure, the camera model (with a perspective
     camera's focal lengths and principal point), events and rate, the event sensor's calibration
-    (contrast thresholds, refractory period and rule, the event→frame affine), lights, ground truth,
+    (contrast thresholds, refractory period and rule, the event→frame affine), the sensor model a
+    synthetic capture was made with (its noise figures), lights, ground truth,
     stored results, and the data rate against 24 RGB 8-bit frames."""
     with psfmt.read(file, verify=True) as capture:
         summary = describe(capture)

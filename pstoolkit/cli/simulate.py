@@ -12,6 +12,7 @@ from pstoolkit.cli.app import app, echo, progress_bar
 from pstoolkit.errors import UserError
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.sim.config import SimulationConfig
+from pstoolkit.sim.sensor import SENSOR_PRESETS
 from pstoolkit.solve.base import resolve_device
 
 _DEFAULTS = SimulationConfig()
@@ -37,19 +38,38 @@ def simulate_command(
     periods: int = typer.Option(_DEFAULTS.periods, "--periods", help="Light periods to record."),
     period_ms: float = typer.Option(_DEFAULTS.period_ms, "--period-ms", help="One turn of the ring light, milliseconds."),
     elevation_deg: float = typer.Option(_DEFAULTS.elevation_deg, "--elevation-deg", help="Elevation of the ring light above the image plane, degrees."),
-    contrast: float = typer.Option(_DEFAULTS.contrast, "--contrast", help="Event contrast threshold C (log units, both polarities)."),
-    contrast_sigma: float = typer.Option(_DEFAULTS.contrast_sigma, "--contrast-sigma", help="Per-pixel spread of the contrast threshold."),
-    refractory_us: float = typer.Option(_DEFAULTS.refractory_us, "--refractory-us", help="Event refractory period, µs."),
-    refractory_rule: str = typer.Option(_DEFAULTS.refractory_rule, "--refractory-rule", help=(
+    sensor: str = typer.Option(_DEFAULTS.sensor_model, "--sensor", help=(
+        f"Sensor preset, event and frame sensor: {', '.join(SENSOR_PRESETS)} (docs/sensors.md). The sensor options below "
+        "override single fields of it; their defaults are the preset's (those of ideal shown)."
+    )),
+    contrast: float | None = typer.Option(None, "--contrast", help=f"Event contrast threshold C, both polarities (log units) [ideal: {_DEFAULTS.contrast:g}]."),
+    contrast_pos: float | None = typer.Option(None, "--contrast-pos", help="Threshold C⁺ of +1 events (log units)."),
+    contrast_neg: float | None = typer.Option(None, "--contrast-neg", help="Threshold C⁻ of −1 events (log units)."),
+    contrast_sigma: float | None = typer.Option(None, "--contrast-sigma", help="Per-pixel spread σ of the thresholds, each N(C, σ) [ideal: 0]."),
+    refractory_us: float | None = typer.Option(None, "--refractory-us", help=f"Event refractory period, µs [ideal: {_DEFAULTS.refractory_us:g}]."),
+    refractory_rule: str | None = typer.Option(None, "--refractory-rule", help=(
         "What an event pixel does after its refractory period: reset-at-end (its reference resets to the level it sees "
         "then) or rate-limited (the reference moves one threshold per event; a change that persists keeps firing every "
-        "refractory period). See docs/sensors.md."
+        f"refractory period). See docs/sensors.md [ideal: {_DEFAULTS.refractory_rule}]."
     )),
+    leak_hz: float | None = typer.Option(None, "--leak-hz", help="Leak (background activity): +1 events per pixel and second of a static pixel [ideal: 0]."),
+    shot_noise_hz: float | None = typer.Option(None, "--shot-noise-hz", help=(
+        "Shot-noise events per pixel and second in the dark, ±1; a quarter of it at irradiance 1 [ideal: 0]."
+    )),
+    rate_spread_decades: float | None = typer.Option(None, "--rate-spread-decades", help=(
+        "Per-pixel spread of the leak and shot rates, decades (log10 σ) [ideal: 0]."
+    )),
+    hot_pixel_fraction: float | None = typer.Option(None, "--hot-pixel-fraction", help="Share of hot pixels [ideal: 0]."),
+    hot_pixel_hz: float | None = typer.Option(None, "--hot-pixel-hz", help="Events per second of a hot pixel, ±1 [ideal: 0]."),
+    bit_depth: int | None = typer.Option(None, "--bit-depth", help="Frame bits: 8 (uint8), 10, 12 or 16 (uint16) [ideal: 8]."),
+    black_level: float | None = typer.Option(None, "--black-level", help="Stored frame value of no light [ideal: 0]."),
+    full_well_e: float | None = typer.Option(None, "--full-well-e", help="Frame pixel's electrons at saturation: photon shot noise (0: none) [ideal: 0]."),
+    read_noise_e: float | None = typer.Option(None, "--read-noise-e", help="Frame read noise, electrons rms (needs a full well) [ideal: 0]."),
     noise: float = typer.Option(_DEFAULTS.noise, "--noise", help=(
-        "Frame read noise as a fraction of saturation, with shot noise of a 1/noise² e⁻ full well (0: none)."
+        "Frame noise in one number: read noise of this fraction of saturation with the shot noise of a 1/noise² e⁻ "
+        "full well, over --full-well-e and --read-noise-e (0: those)."
     )),
     brdf: str = typer.Option(_DEFAULTS.brdf, "--brdf", help="A registered BRDF: lambertian, ggx or a plugin's."),
-    bit_depth: int = typer.Option(_DEFAULTS.bit_depth, "--bit-depth", help="Frame bits: 8 (uint8), 12 or 16 (uint16)."),
     exposure_gain: float | None = typer.Option(None, "--exposure-gain", help="Pixel units per irradiance·second (default: set by --auto-gain)."),
     auto_gain: str = typer.Option(_DEFAULTS.auto_gain, "--auto-gain", help=(
         "The automatic gain puts at 80 % of saturation: diffuse, the brightest diffuse value of any frame (specular "
@@ -75,7 +95,11 @@ def simulate_command(
         if not any(o.name == "source" for o in entry.options):
             raise UserError(f"--source: scene {scene!r} takes no source folder")
         scene_options.append(f"source={source}")
-    config = SimulationConfig(
+    if contrast is not None:
+        contrast_pos = contrast if contrast_pos is None else contrast_pos
+        contrast_neg = contrast if contrast_neg is None else contrast_neg
+    config = SimulationConfig.with_preset(
+        sensor,
         scene=scene,
         size=size,
         seed=seed,
@@ -87,13 +111,22 @@ def simulate_command(
         periods=periods,
         period_ms=period_ms,
         elevation_deg=elevation_deg,
-        contrast=contrast,
+        contrast=contrast_pos,
+        contrast_neg=contrast_neg,
         contrast_sigma=contrast_sigma,
         refractory_us=refractory_us,
         refractory_rule=refractory_rule,
+        leak_hz=leak_hz,
+        shot_noise_hz=shot_noise_hz,
+        rate_spread_decades=rate_spread_decades,
+        hot_pixel_fraction=hot_pixel_fraction,
+        hot_pixel_hz=hot_pixel_hz,
+        bit_depth=bit_depth,
+        black_level=black_level,
+        full_well_e=full_well_e,
+        read_noise_e=read_noise_e,
         noise=noise,
         brdf=brdf,
-        bit_depth=bit_depth,
         exposure_gain=exposure_gain,
         auto_gain=auto_gain,
         shadows=shadows,

@@ -6,13 +6,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
-import numpy as np
-
 from pstoolkit.optics.layouts import RING, layout_lights
-from pstoolkit.sim.sensor import EventSensor
+from pstoolkit.sim.sensor import FRAME_BIT_DEPTHS, FrameSensor
 from pstoolkit.sim.timing import CaptureTiming
 
-BIT_DEPTHS = {8: np.uint8, 12: np.uint16, 16: np.uint16}
+BIT_DEPTHS = FRAME_BIT_DEPTHS
 AUTO_GAINS = ("diffuse", "peak")
 """What the automatic gain puts at ``DIFFUSE_LEVEL`` of saturation: the brightest diffuse value of any
 frame (highlights may clip) or the brightest value of all (nothing clips)."""
@@ -24,8 +22,9 @@ class SimulationConfig(CaptureTiming):
     renderer). ``scene_options`` are ``key=value`` strings checked against the scene's typed options;
     ``lights`` is the layout of a classic capture (``pstoolkit.optics.layouts``: ``ring``, ``grid`` or a
     light-table path; anything but ``ring`` writes a classic capture of all its K lights, and
-    ``discrete_lights`` must then be K or 0); ``noise`` is the read-noise standard deviation as a
-    fraction of saturation, with Poisson shot noise of a full well of 1/noise² electrons (0 = none);
+    ``discrete_lights`` must then be K or 0); ``noise`` is a shorthand for the frame sensor's noise:
+    read noise of that fraction of saturation with the shot noise of a full well of 1/noise² electrons,
+    over ``full_well_e`` and ``read_noise_e`` (0 = those);
     ``exposure_gain`` (pixel units per irradiance·second) overrides the automatic gain, which
     ``auto_gain`` (``AUTO_GAINS``) sets from the brightest diffuse or the brightest value."""
 
@@ -33,18 +32,19 @@ class SimulationConfig(CaptureTiming):
     scene_options: list[str] = field(default_factory=list)
     lights: str = RING
     elevation_deg: float = 45.0
-    contrast_sigma: float = 0.0
     noise: float = 0.0
     brdf: str = "ggx"
-    bit_depth: int = 8
     exposure_gain: float | None = None
     auto_gain: str = AUTO_GAINS[0]
     shadows: bool = True
     device: str = "cpu"
 
-    def sensor(self) -> EventSensor:
-        """``CaptureTiming.sensor`` with the per-pixel contrast mismatch."""
-        return replace(super().sensor(), sigma=self.contrast_sigma)
+    def frame_sensor(self) -> FrameSensor:
+        """``CaptureTiming.frame_sensor``, its noise set by ``noise`` when that is given."""
+        sensor = super().frame_sensor()
+        if self.noise == 0:
+            return sensor
+        return replace(sensor, full_well_e=1.0 / (self.noise * self.noise), read_noise_e=1.0 / self.noise)
 
     @property
     def discrete(self) -> bool:
@@ -58,9 +58,7 @@ class SimulationConfig(CaptureTiming):
             ("--discrete-lights", 0 <= self.discrete_lights <= 10000, "must be between 0 (hybrid capture) and 10000"),
             ("--period-ms", self.period_us >= 10 * max(self.frames, 1), "is too short for the frames (at least 10 µs per frame)"),
             ("--elevation-deg", 0 < self.elevation_deg <= 90, "must be in (0, 90] degrees"),
-            ("--contrast-sigma", 0 <= self.contrast_sigma <= 1, "must be between 0 and 1"),
             ("--noise", 0 <= self.noise <= 0.5, "must be between 0 and 0.5"),
-            ("--bit-depth", self.bit_depth in BIT_DEPTHS, "must be 8, 12 or 16"),
             ("--auto-gain", self.auto_gain in AUTO_GAINS, f"must be {' or '.join(AUTO_GAINS)}"),
         ]
         layout = layout_lights(self.lights)

@@ -33,11 +33,15 @@ each pixel sees ``L = ln(I + ε)`` and fires by the rule of ``pstoolkit.events.r
   each line between samples the events are the closed form of ``pstoolkit.sim.ring_engine``'s
   ``_fire_lanes_paced``). With ``R = 0`` the two are the same rule, ESIM's, and run as
   "reset-at-end".
-- **Leak** (v2e-style, optional): each pixel's reference drifts down by ``leak_hz · C⁺`` per second,
-  so a static pixel fires positive events at ``leak_hz``; the start reference is lowered by a uniform
-  random fraction of ``C⁺`` (seeded) so that static pixels do not fire in lockstep.
-- **Shot noise** (optional): a Poisson process of rate ``shot_noise_hz`` per pixel with random
-  polarity, added on top; shot events obey no refractory and leave the reference untouched.
+- **Leak** (v2e-style, optional): each pixel's reference drifts down by its rate times its ``C⁺``
+  per second, so a static pixel fires positive events at its leak rate (``EventSensor.leak_hz``,
+  spread per pixel by ``rate_spread_decades``); the start reference is lowered by a uniform random
+  fraction of ``C⁺`` (seeded) so that static pixels do not fire in lockstep. Leak events are
+  threshold crossings: the refractory rule applies to them as to any.
+- **Shot noise and hot pixels** (optional): ``pstoolkit.sim.event_noise.NoiseEvents`` draws them
+  for each chunk, the shot noise's rate set by each pixel's irradiance on its lines between samples,
+  and merges them into the chunk; a noise event within the refractory period after the pixel's
+  previous event is not emitted.
 
 Output: ``EventArray`` chunks in time order — each sorted by ``t`` and then by pixel (y·width + x),
 each starting no earlier than the previous one ended; times lie in ``[t0_us, t1_us]``. The same
@@ -56,6 +60,7 @@ from pstoolkit.errors import UserError
 from pstoolkit.events.rule import log_irradiance
 from pstoolkit.sim.esim_pixels import PacedPixels, Pixels
 from pstoolkit.sim.esim_sampling import RenderPixels, adaptive_blocks
+from pstoolkit.sim.event_noise import NoiseEvents
 from pstoolkit.sim.sensor import EventSensor, check_sampling
 
 Render = Callable[[np.ndarray], np.ndarray]
@@ -88,11 +93,19 @@ def _log_pixels(render_pixels: RenderPixels, t_us: np.ndarray, pixel: np.ndarray
     return log_irradiance(irradiance, eps, np.float32)
 
 
-def _shot_noise(rng: np.random.Generator, rate_hz: float, n_pixels: int, ta: float, tb: float,
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    count = rng.poisson(rate_hz * n_pixels * (tb - ta) * 1e-6)
-    return (rng.integers(0, n_pixels, count), rng.uniform(ta, tb, count),
-            (2 * rng.integers(0, 2, count) - 1).astype(np.int8))
+def irradiance_on_lines(knots_us: np.ndarray, levels: np.ndarray, drift_per_us: np.ndarray, t0_us: float, eps: float,
+                        ) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    """``level(pixel, t_us)`` for ``pstoolkit.sim.event_noise.NoiseEvents``: the irradiance on the lines
+    of L = ln(I + ``eps``) between the samples ``knots_us`` (S ≥ 2,) of ``levels`` (S, pixels), less
+    the leak's drift ``drift_per_us`` (pixels,) since ``t0_us``."""
+
+    def level(pixel: np.ndarray, t_us: np.ndarray) -> np.ndarray:
+        j = np.clip(np.searchsorted(knots_us, t_us, side="right") - 1, 0, len(knots_us) - 2)
+        w = (t_us - knots_us[j]) / (knots_us[j + 1] - knots_us[j])
+        log_level = (1.0 - w) * levels[j, pixel] + w * levels[j + 1, pixel] - drift_per_us[pixel] * (t_us - t0_us)
+        return np.maximum(np.exp(log_level) - eps, 0.0)
+
+    return level
 
 
 def _sorted_chunk(pix: np.ndarray, t: np.ndarray, pol: np.ndarray, width: int, n_pixels: int) -> EventArray:
@@ -165,20 +178,18 @@ def simulate_events(
     if sample_times_us is not None:
         sample_times_us = _check_sample_times(sample_times_us, float(t0_us), float(t1_us))
     n_pixels = width * height
-    _, rng_leak, rng_shot = sensor.rngs()
     c_pos, c_neg = sensor.thresholds(n_pixels)
-    eps, leak_hz, shot_noise_hz = sensor.eps, sensor.leak_hz, sensor.shot_noise_hz
+    eps = sensor.eps
+    noise = NoiseEvents(sensor, width, height, c_pos, c_neg) if sensor.fires_noise else None
 
     def log_render(t_us: np.ndarray) -> np.ndarray:
         return _log_frames(render, t_us, (height, width), eps)
 
     l_start = log_render(np.array([float(t0_us)]))[0]
-    reference = l_start.astype(np.float64)
     # Leak is a downward drift of the reference; it is applied as the equal upward drift
     # leak_per_us·(t − t0) of the signal, which keeps the signal piecewise linear.
-    leak_per_us = leak_hz * 1e-6 * c_pos
-    if leak_hz > 0:
-        reference -= rng_leak.uniform(0.0, 1.0, n_pixels) * c_pos
+    leak_per_us = sensor.leak_per_us(c_pos)
+    reference = l_start.astype(np.float64) - sensor.leak_start(c_pos)
     if sensor.paced:
         pixels: Pixels = PacedPixels(c_pos, c_neg, reference + c_pos, reference - c_neg, np.full(n_pixels, -np.inf),
                                      float(sensor.refractory_us))
@@ -191,12 +202,14 @@ def simulate_events(
 
     for times, block in adaptive_blocks(log_render, log_render_pixels, float(t0_us), float(t1_us), l_start, max_dlog,
                                         float(initial_dt_us), float(min_dt_us), int(chunk_samples), sample_times_us):
-        if leak_hz > 0:
+        if sensor.leak_hz > 0:
             block += leak_per_us * (times - t0_us)[:, None]
         pix, t, pol = pixels.advance(t_prev, m_prev, times, block)
-        if shot_noise_hz > 0:
-            s_pix, s_t, s_pol = _shot_noise(rng_shot, shot_noise_hz, n_pixels, t_prev, float(times[-1]))
-            pix, t, pol = np.concatenate((pix, s_pix)), np.concatenate((t, s_t)), np.concatenate((pol, s_pol))
+        chunk = _sorted_chunk(pix, t, pol, width, n_pixels) if len(t) else EventArray.empty()
+        if noise is not None:
+            level = irradiance_on_lines(np.concatenate(([t_prev], times)), np.vstack((m_prev[None], block)),
+                                        leak_per_us, float(t0_us), eps)
+            chunk = noise.merge(t_prev, float(times[-1]), chunk, level)
         t_prev, m_prev = float(times[-1]), block[-1]
-        if len(t):
-            yield _sorted_chunk(pix, t, pol, width, n_pixels)
+        if len(chunk):
+            yield chunk

@@ -44,6 +44,8 @@ from psfmt import EventArray
 from pstoolkit.errors import UserError
 from pstoolkit.grid import event_shape
 from pstoolkit.optics.lights import RingLight
+from pstoolkit.sim.esim import irradiance_on_lines
+from pstoolkit.sim.event_noise import NoiseEvents, static_leak
 from pstoolkit.sim.render import Renderer
 from pstoolkit.sim.ring_kernels.inputs import (
     EventRoom,
@@ -114,6 +116,23 @@ def _widen(room: EventRoom) -> EventRoom:
     )
 
 
+def _with_static_leak(
+    events: EventArray, unlit: np.ndarray, leak_per_us: np.ndarray, leak_start: np.ndarray, c_pos: np.ndarray,
+    sensor: EventSensor, ta: float, tb: float, width: int,
+) -> EventArray:
+    """``events`` of a block [``ta``, ``tb``) with the leak events of the ``unlit`` pixels, sorted by
+    (µs, pixel) as ``gather`` sorts."""
+    pix, t_us = static_leak(unlit, leak_per_us, leak_start, c_pos, sensor, ta, tb)
+    if not pix.size:
+        return events
+    all_pix = np.concatenate((events.y.astype(np.int64) * width + events.x, pix))
+    all_t = np.concatenate((events.t, t_us))
+    order = np.lexsort((all_pix, all_t))
+    all_pix = all_pix[order]
+    return EventArray(x=all_pix % width, y=all_pix // width, t=all_t[order],
+                      p=np.concatenate((events.p, np.ones(pix.size, np.int8)))[order])
+
+
 def simulate_ring(
     renderer: Renderer,
     *,
@@ -143,7 +162,9 @@ def simulate_ring(
         carries the window's sums.
     sensor
         The event sensor (default ``EventSensor()``); thresholds are drawn as
-        ``pstoolkit.sim.esim.simulate_events`` draws them. It may not leak or have shot noise.
+        ``pstoolkit.sim.esim.simulate_events`` draws them, and its noise as there: the leak as a drift
+        of each pixel's L (pixels that see no frame pixel leak in closed form), shot noise and hot
+        pixels by ``pstoolkit.sim.event_noise.NoiseEvents`` block by block.
     min_dt_us, max_dt_us
         Shortest and longest step, µs; the longest (away from the shadow-grid intervals in which a cast
         shadow falls on the pixel while it is lit; around those it steps at most one) defaults to
@@ -171,8 +192,6 @@ def simulate_ring(
         max_dlog = sensor.half_contrast()
     height, width = event_shape(renderer.maps.height, renderer.maps.width, event_scale)
     sensor.check("simulate_ring")
-    if sensor.noisy:
-        raise UserError("simulate_ring: the ring engine has no leak or shot noise (pstoolkit.sim.esim has)")
     check_sampling("simulate_ring", 0.0, t1_us, width, height, {"max_dlog": max_dlog, "min_dt_us": min_dt_us})
     ends = sorted({float(t) for t in window_ends_us} | {float(t1_us)})
     if ends[0] <= 0 or ends[-1] > t1_us:
@@ -187,7 +206,9 @@ def simulate_ring(
     owner = owner_slots(feet)
     n_events = height * width
     c_pos, c_neg = sensor.thresholds(n_events)
-    rule = EventRule(c_pos, c_neg, float(sensor.refractory_us), sensor.paced, float(sensor.eps))
+    leak_per_us = sensor.leak_per_us(c_pos)
+    rule = EventRule(c_pos, c_neg, float(sensor.refractory_us), sensor.paced, float(sensor.eps), leak_per_us,
+                     sensor.leak_hz > 0)
     limits = StepLimits(float(max_dlog), float(min_dt_us), float(max_dt_us), grid_dt_us)
     ring = ring_params(light)
     spans = _block_spans(ends, block_us, longest_us)
@@ -200,8 +221,13 @@ def simulate_ring(
         shade=np.zeros((*feet.pixel.shape, 2)), sums=np.zeros((*feet.pixel.shape, 2)),
     )
     start(0.0, frame, ring, table, renderer.shadows, rule.eps, state)
-    state.hi[:] = state.level + c_pos
-    state.lo[:] = state.level - c_neg
+    leak_start = sensor.leak_start(c_pos)
+    state.hi[:] = state.level - leak_start + c_pos
+    state.lo[:] = state.level - leak_start - c_neg
+    noise = NoiseEvents(sensor, width, height, c_pos, c_neg) if sensor.fires_noise else None
+    # event pixels over no frame pixel are never stepped: they see no light, and leak in closed form
+    dark = frame.pixel[:, 0] < 0
+    unlit = np.flatnonzero(dark) if sensor.leak_hz > 0 else np.empty(0, np.int64)
     if capacity is None:
         capacity = min(FIRST_ROOM, ROOM_BYTES // (9 * n_events))
     capacity = max(1, int(capacity))
@@ -211,6 +237,7 @@ def simulate_ring(
     for block, (ta, tb) in enumerate(spans):
         if block and renderer.shadows:
             table = block_table(renderer, ta, tb, frame, ring)
+        level_start = state.level.copy() if noise is not None else None
         order = everyone
         while True:
             advance(order, ta, tb, frame, ring, table, rule, limits, state, room, numba.get_num_threads())
@@ -220,8 +247,15 @@ def simulate_ring(
             # pixels fired more than there was room for: widen the room and run them again
             room = _widen(room)
         x, y, t, p = gather(room.t_us, room.polarity, room.count, width, math.floor(ta + 0.5), math.floor(tb + 0.5))
+        events = EventArray(x=x, y=y, t=t, p=p)
+        if unlit.size:
+            events = _with_static_leak(events, unlit, leak_per_us, leak_start, c_pos, sensor, ta, tb, width)
+        if noise is not None:
+            lines = np.stack([level_start, state.level])
+            lines[:, dark] = math.log(sensor.eps)
+            events = noise.merge(ta, tb, events, irradiance_on_lines(np.array([ta, tb]), lines, leak_per_us, 0.0, sensor.eps))
         sums = None
         if tb in window_ends_us:
             sums = np.take(state.sums.reshape(-1, 2), owner, axis=0)
             state.sums[:] = 0.0
-        yield Block(EventArray(x=x, y=y, t=t, p=p), tb, sums)
+        yield Block(events, tb, sums)

@@ -18,9 +18,10 @@ Both follow the event rule of ``pstoolkit.events.rule``. Memory stays bounded: t
 blocks.
 
 Frames: exposure (irradiance × seconds) times a gain that puts the brightest diffuse value of any
-frame at ``DIFFUSE_LEVEL`` of saturation, so specular highlights may clip as in an LDR camera
-(``auto_gain="peak"`` puts the brightest value of all there instead, so nothing clips); optional
-shot and read noise; quantised to 8, 12 or 16 bits. The same configuration and seed give the same data.
+frame at ``DIFFUSE_LEVEL`` of the range from black to saturation, so specular highlights may clip as
+in an LDR camera (``auto_gain="peak"`` puts the brightest value of all there instead, so nothing
+clips); then the frame sensor (``pstoolkit.sim.sensor.FrameSensor``): black level, optional shot and
+read noise, quantised to 8, 10, 12 or 16 bits. The same configuration and seed give the same data.
 
     config = SimulationConfig(scene="blobs", size=128, seed=0)
     summary = simulate(config, "blobs.h5", progress=lambda fraction, message: ...)
@@ -55,6 +56,7 @@ from pstoolkit.sim.esim import simulate_events
 from pstoolkit.sim.exposure import exposure_plan, exposure_samples
 from pstoolkit.sim.render import Renderer
 from pstoolkit.sim.scenes import SceneMaps
+from pstoolkit.sim.sensor import FrameSensor
 from pstoolkit.sim.timing import (  # noqa: F401 -- also importable from here, as before
     EVENT_MIN_STEP_TURNS,
     CaptureTiming,
@@ -112,23 +114,12 @@ def compiled_blocks(config: SimulationConfig, renderer: Renderer) -> Iterator[ri
     )
 
 
-def quantise(exposure: np.ndarray, gain: float, bit_depth: int, noise: float, rng: np.random.Generator) -> np.ndarray:
-    """Pixel values of a linear sensor: gain·exposure plus shot and read noise, clipped at saturation
-    and rounded to the integer type of ``bit_depth``."""
-    saturation = float(2**bit_depth - 1)
-    value = gain * np.asarray(exposure, dtype=np.float64)
-    if noise > 0:
-        full_well = 1.0 / (noise * noise)
-        electrons = rng.poisson(np.clip(value, 0.0, None) / saturation * full_well)
-        value = electrons * (saturation / full_well) + rng.normal(0.0, noise * saturation, value.shape)
-    return np.clip(np.rint(value), 0.0, saturation).astype(BIT_DEPTHS[bit_depth])
-
-
-def _auto_gain(peak: float, bit_depth: int) -> float:
-    """The gain that puts ``peak`` (the brightest value the gain is set by) at ``DIFFUSE_LEVEL``."""
+def _auto_gain(peak: float, sensor: FrameSensor) -> float:
+    """The gain that puts ``peak`` (the brightest value the gain is set by) at ``DIFFUSE_LEVEL`` of the
+    sensor's range above black."""
     if not peak > 0:
         raise UserError("the scene receives no light (every frame is black); check --elevation-deg or --lights")
-    return DIFFUSE_LEVEL * float(2**bit_depth - 1) / peak
+    return DIFFUSE_LEVEL * sensor.signal_range() / peak
 
 
 def _gain_brdfs(config: SimulationConfig, renderer: Renderer, diffuse: Any) -> list[Any]:
@@ -182,8 +173,9 @@ def _simulate(config: SimulationConfig, path: str | os.PathLike[str], progress: 
                 normal=maps.normal, mask=maps.mask, albedo=maps.albedo, depth=maps.depth, materials=maps.materials()
             )
         )
-        dtype = BIT_DEPTHS[config.bit_depth]
-        writer.begin_frames(config.size, config.size, 3, dtype, bit_depth=config.bit_depth)
+        sensor = config.frame_sensor()
+        writer.begin_frames(config.size, config.size, 3, BIT_DEPTHS[sensor.bit_depth], bit_depth=sensor.bit_depth,
+                            black_level=sensor.black_level)
         if config.discrete:
             n_frames = _write_discrete(config, renderer, diffuse, writer, noise_rng, report)
         else:
@@ -270,11 +262,12 @@ def _write_hybrid(
         sums = _FrameSums(config, renderer, brdfs, bounds)
         n_events = _write_events(config, renderer, event_size, writer, report, sums)
         exposures = sums.exposures()
-    gain = config.exposure_gain or _auto_gain(max(float(e[-1].max()) for e in exposures), config.bit_depth)
+    sensor = config.frame_sensor()
+    gain = config.exposure_gain or _auto_gain(max(float(e[-1].max()) for e in exposures), sensor)
     for p in range(config.periods):
         for k, exposure in enumerate(exposures):
             writer.append_frames(
-                quantise(exposure[0], gain, config.bit_depth, config.noise, rng),
+                sensor.quantise(gain * exposure[0], rng),
                 t_start_us=[p * period + bounds[k]],
                 t_end_us=[p * period + bounds[k + 1]],
             )
@@ -323,10 +316,11 @@ def _write_discrete(
     shaded = renderer.shade(t_us, _gain_brdfs(config, renderer, diffuse))
     images = renderer.scatter(shaded[0]).cpu().numpy()
     report(1.0, "frames")
-    gain = config.exposure_gain or _auto_gain(float(shaded[-1].max()), config.bit_depth)
+    sensor = config.frame_sensor()
+    gain = config.exposure_gain or _auto_gain(float(shaded[-1].max()), sensor)
     direction, intensity = renderer.light.evaluate(t_us)
     writer.append_frames(
-        quantise(images, gain, config.bit_depth, config.noise, rng),
+        sensor.quantise(gain * images, rng),
         light_direction=direction,
         light_intensity=intensity,
     )

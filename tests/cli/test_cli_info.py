@@ -43,10 +43,10 @@ def test_info_json_numbers_of_a_hybrid_capture(tmp_path: Path, capsys: pytest.Ca
     psfmt.write(known_capture(), path)
     d = info_json(path, capsys)
     assert (d["file"], d["kind"], d["format_version"], d["creator"], d["created"]) == (
-        str(path), "hybrid", "1.2", "tests 9.9", CREATED)
+        str(path), "hybrid", "1.3", "tests 9.9", CREATED)
     assert d["camera"] == {"model": "orthographic"}
     assert d["frames"] == {"count": 3, "width": 64, "height": 64, "channels": 3, "dtype": "uint8", "bit_depth": 8,
-                           "saturation": 255.0, "exposure_ms": [10.0, 10.0, 10.0]}
+                           "saturation": 255.0, "black_level": 0.0, "exposure_ms": [10.0, 10.0, 10.0]}
     last = (N_EVENTS - 1) * EVENT_STEP_US
     duration_s = (last + 1) / 1e6
     assert d["events"] == {"count": N_EVENTS, "width": 32, "height": 32, "t_first_us": 0, "t_last_us": last,
@@ -75,7 +75,7 @@ def test_info_text_of_a_hybrid_capture(tmp_path: Path, capsys: pytest.CaptureFix
     total = 100 * (3 * 64 * 64 * 3 + 2 * N_EVENTS) / REFERENCE_BYTES
     assert err == ""
     assert out.splitlines() == [
-        f"{path}: hybrid capture, format 1.2, by tests 9.9 at {CREATED}",
+        f"{path}: hybrid capture, format 1.3, by tests 9.9 at {CREATED}",
         "  description: hybrid sample, seed 0",
         "  frames: 3 × 64×64×3 uint8 (8-bit, saturation 255), exposure 10, 10, 10 ms",
         "  camera: orthographic",

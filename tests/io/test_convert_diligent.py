@@ -292,9 +292,12 @@ def test_diligent_pi_with_and_without_ground_truth(tmp_path: Path, capsys: pytes
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["--semi-reel"], ("converter 'diligent' has no option --semi-reel (options: --all, --contrast, --discrete-lights, "
-                           "--event-scale, --frames, --object, --period-ms, --periods, --refractory-rule, --refractory-us, "
-                           "--seed, --semi-real, --size; see `pstoolkit convert NAME --help`)")),
+        (["--semi-reel"], ("converter 'diligent' has no option --semi-reel (options: --all, --bit-depth, --black-level, "
+                           "--contrast, --contrast-neg, --contrast-sigma, --discrete-lights, --event-scale, --frames, "
+                           "--full-well-e, --hot-pixel-fraction, --hot-pixel-hz, --leak-hz, --object, --period-ms, --periods, "
+                           "--rate-spread-decades, --read-noise-e, --refractory-rule, --refractory-us, --seed, --semi-real, "
+                           "--sensor, --shot-noise-hz, --size; see `pstoolkit convert NAME --help`)")),
+        (["--semi-real", "--sensor", "evk5"], "option sensor: 'evk5' is not one of ideal, evk4, davis346"),
         (["--size"], "--size needs a value (int)"),
         (["--size", "big"], "option size: expected int, got 'big'"),
         (["--contrast", "0.2"], "--contrast: only with --semi-real or --discrete-lights"),

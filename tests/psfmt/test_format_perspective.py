@@ -138,8 +138,8 @@ ERRORS: dict[str, tuple[str, Edit, str]] = {
     ),
     "last row scaled": ("perspective", set_intrinsics(2 * K), "/calibration/intrinsics: last row is (0, 0, 2), expected (0, 0, 1)"),
     "last row not (0, 0, 1)": ("perspective", poke_k(2, 0, 1e-3), "/calibration/intrinsics: last row is (0.001, 0, 1), expected (0, 0, 1)"),
-    "unknown camera model": ("perspective", set_camera("fisheye\x1b[2J"), "/calibration: camera_model 'fisheye\\x1b[2J' is not defined in format 1.2"),
-    "camera model not a string": (ORTHO, set_camera(np.array([1, 2])), "/calibration: camera_model array([1, 2]) is not defined in format 1.2"),
+    "unknown camera model": ("perspective", set_camera("fisheye\x1b[2J"), "/calibration: camera_model 'fisheye\\x1b[2J' is not defined in format 1.3"),
+    "camera model not a string": (ORTHO, set_camera(np.array([1, 2])), "/calibration: camera_model array([1, 2]) is not defined in format 1.3"),
     "perspective in a 1.1 file": (
         "perspective", lambda f: f.attrs.__setitem__("format_version", "1.1"),
         "/calibration: camera_model 'perspective' needs format 1.2 or later, but the file is format 1.1",
@@ -185,7 +185,7 @@ def test_a_newer_minor_version_may_use_the_perspective_camera(tmp_path: Path) ->
         f.attrs["format_version"] = "1.7"
     report = psfmt.validate(path)
     assert report.errors == [] and [w.text for w in report.warnings] == [
-        "/: written by format 1.7, newer than 1.2: parts this reader does not know are ignored"]
+        "/: written by format 1.7, newer than 1.3: parts this reader does not know are ignored"]
     np.testing.assert_array_equal(psfmt.load(path).calibration.intrinsics, K)
 
 
@@ -247,12 +247,12 @@ def test_intrinsics_in_a_file_before_1_2_are_an_unknown_part(tmp_path: Path, ver
 
 
 @pytest.mark.parametrize("version", OLD_VERSIONS)
-def test_an_old_file_rewritten_is_version_1_2_with_the_same_content(tmp_path: Path, version: str) -> None:
+def test_an_old_file_rewritten_is_the_current_version_with_the_same_content(tmp_path: Path, version: str) -> None:
     with psfmt.read(old_file(version)) as old:
         psfmt.write(old, tmp_path / "new.h5")
     assert psfmt.validate(tmp_path / "new.h5").errors == []
     new = psfmt.load(tmp_path / "new.h5")
-    assert new.format_version == "1.2" and new.calibration.camera_model == "orthographic"
+    assert new.format_version == "1.3" and new.calibration.camera_model == "orthographic"
     assert new.calibration.refractory_rule == expected_old(version).calibration.refractory_rule
 
 
@@ -274,5 +274,5 @@ def test_an_orthographic_1_2_file_holds_what_a_1_1_writer_wrote_but_the_version(
         return found
 
     old, new = items(old_file("1.1")), items(path)
-    assert old["/"][1].pop("format_version") == "1.1" and new["/"][1].pop("format_version") == "1.2"  # type: ignore[index]
+    assert old["/"][1].pop("format_version") == "1.1" and new["/"][1].pop("format_version") == "1.3"  # type: ignore[index]
     assert new == old

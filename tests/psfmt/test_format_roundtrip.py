@@ -92,7 +92,7 @@ def test_every_field_survives_write_and_load(tmp_path: Path, kind: str) -> None:
     capture = sample_capture(kind, seed=3)
     psfmt.write(capture, tmp_path / "c.h5")
     loaded = psfmt.load(tmp_path / "c.h5")
-    assert loaded.format_version == psfmt.FORMAT_VERSION_STR == "1.2"
+    assert loaded.format_version == psfmt.FORMAT_VERSION_STR == "1.3"
     assert loaded.kind == kind
     assert_captures_equal(capture, loaded)
     report = psfmt.validate(tmp_path / "c.h5")
@@ -108,7 +108,7 @@ def test_a_perspective_camera_survives_write_and_load(tmp_path: Path, kind: str)
     psfmt.write(capture, tmp_path / "c.h5")
     assert psfmt.validate(tmp_path / "c.h5").errors == []
     loaded = psfmt.load(tmp_path / "c.h5")
-    assert loaded.format_version == "1.2" and loaded.calibration.camera_model == "perspective"
+    assert loaded.format_version == "1.3" and loaded.calibration.camera_model == "perspective"
     assert_captures_equal(capture, loaded)
     with h5py.File(tmp_path / "c.h5", "r") as f:
         assert f["calibration"].attrs["camera_model"] == "perspective"
@@ -209,7 +209,7 @@ def test_same_capture_gives_the_same_bytes(tmp_path: Path) -> None:
 def test_layout_on_disk_matches_the_spec(tmp_path: Path) -> None:
     psfmt.write(sample_capture("hybrid", seed=0), tmp_path / "c.h5")
     with h5py.File(tmp_path / "c.h5", "r") as f:
-        assert f.attrs["format"] == "hybrid-capture" and f.attrs["format_version"] == "1.2"
+        assert f.attrs["format"] == "hybrid-capture" and f.attrs["format_version"] == "1.3"
         assert set(f) == {"frames", "events", "triggers", "lights", "calibration", "ground_truth", "results"}
         dtypes = {c: f["events"][c].dtype.str for c in "xytp"}
         assert dtypes == {"x": "<u2", "y": "<u2", "t": "<i8", "p": "|i1"}

@@ -11,7 +11,7 @@ from psfmt import EventArray
 from pstoolkit.errors import UserError
 from pstoolkit.events.rule import LOG_EPS, consecutive_pairs, log_irradiance
 from pstoolkit.sim.esim import simulate_events
-from pstoolkit.sim.sensor import EventSensor
+from pstoolkit.sim.sensor import SHOT_NOISE_BRIGHT_FACTOR, EventSensor
 
 
 def run(render, t0: float, t1: float, chunk_samples: int = 64, initial_dt_us: float = 100.0,
@@ -124,7 +124,8 @@ def test_shot_noise_rate() -> None:
 
     rate_hz, duration_us = 50.0, 1_000_000
     events, _ = run(constant, 0, duration_us, shot_noise_hz=rate_hz, seed=1)
-    expected = rate_hz * SIZE * SIZE * duration_us * 1e-6
+    # at irradiance 0.5 the dark rate falls halfway to SHOT_NOISE_BRIGHT_FACTOR of it
+    expected = rate_hz * (1 - 0.5 * (1 - SHOT_NOISE_BRIGHT_FACTOR)) * SIZE * SIZE * duration_us * 1e-6
     assert abs(len(events) - expected) < 4 * np.sqrt(expected)
     assert abs(np.sum(events.p == 1) - expected / 2) < 4 * np.sqrt(expected / 4)
     assert len(EventArray.concatenate(list(simulate_events(constant, 0, duration_us, width=SIZE, height=SIZE)))) == 0

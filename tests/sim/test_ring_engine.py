@@ -340,7 +340,6 @@ def test_the_simulator_gives_the_same_capture_through_either_engine(monkeypatch:
 @pytest.mark.parametrize(("kwargs", "message"), [
     ({"sensor": EventSensor(contrast_pos=0.0)}, "simulate_ring: contrast_pos must be a positive number, got 0.0"),
     ({"sensor": EventSensor(refractory_us=-1.0)}, "simulate_ring: refractory_us must be zero or positive, got -1.0"),
-    ({"sensor": EventSensor(leak_hz=2.0)}, r"simulate_ring: the ring engine has no leak or shot noise \(pstoolkit.sim.esim has\)"),
     ({"min_dt_us": 0.0}, "simulate_ring: min_dt_us must be a positive number, got 0.0"),
     ({"window_ends_us": [0.0]}, r"simulate_ring: window ends must lie in \(0, t1_us = 30000.0\]"),
 ])

@@ -94,13 +94,16 @@ class ShadowTable(NamedTuple):
 class EventRule(NamedTuple):
     """The event rule of ``pstoolkit.events.rule`` as the kernels apply it: per event pixel thresholds
     ``c_pos`` and ``c_neg`` (E,), the refractory period, whether it is "rate-limited" (``paced``;
-    else "reset-at-end") and the ε of ``L = ln(I + ε)``."""
+    else "reset-at-end"), the ε of ``L = ln(I + ε)``, and the leak: each pixel's L drifts up against
+    its reference by ``leak_per_us`` (E,) per µs since 0 when ``leaky``."""
 
     c_pos: np.ndarray
     c_neg: np.ndarray
     refractory_us: float
     paced: bool
     eps: float
+    leak_per_us: np.ndarray
+    leaky: bool
 
 
 class StepLimits(NamedTuple):

@@ -44,6 +44,7 @@ def advance_pixels(
     is "rate-limited" when ``rule.paced`` (``fire_lanes_paced``), else "reset-at-end" (``fire_lanes``)."""
     pixel, specular, reach = frame.pixel, frame.specular, table.reach
     c_pos, c_neg, refractory_us, paced, eps = rule.c_pos, rule.c_neg, rule.refractory_us, rule.paced, rule.eps
+    leak_per_us, leaky = rule.leak_per_us, rule.leaky
     max_dlog, min_dt, max_dt, grid_dt = limits.max_dlog, limits.min_dt_us, limits.max_dt_us, limits.grid_dt_us
     level, hi, lo, blind_until, step, slope = state.level, state.hi, state.lo, state.blind_until_us, state.step_us, state.slope
     shade, sums, out_t, out_p, count = state.shade, state.sums, room.t_us, room.polarity, room.count
@@ -56,6 +57,7 @@ def advance_pixels(
     # a lane's pixel state (as ``PixelState``) and the azimuth at its last sample
     t, l0, s0, h, h_try = np.full(w, tb), np.zeros(w), np.zeros(w), np.zeros(w), np.ones(w)
     l_hi, l_lo, l_blind, l_pos, l_neg = np.zeros(w), np.zeros(w), np.zeros(w), np.zeros(w), np.zeros(w)
+    l_leak = np.zeros(w)
     n = np.zeros(w, np.int64)
     shadows = np.zeros(w, np.uint64)
     cos_az, sin_az = np.ones(w), np.zeros(w)
@@ -94,6 +96,7 @@ def advance_pixels(
                     l_sums[j, q, k] = sums[p, q, j]
             t[k], l0[k], s0[k], n[k] = ta, level[p], slope[p], 0
             l_hi[k], l_lo[k], l_blind[k], l_pos[k], l_neg[k] = hi[p], lo[p], blind_until[p], c_pos[p], c_neg[p]
+            l_leak[k] = leak_per_us[p]
             cos_az[k], sin_az[k] = cos_a, sin_a
             h[k] = min(step[p], shadow_room(ta, shadows[k], table, grid_dt, max_dt))
             h_try[k] = next_try(h[k], tb - ta, min_dt)
@@ -107,6 +110,10 @@ def advance_pixels(
             sin1[k] = sin_az[k] * cos_d + cos_az[k] * sin_d
         shade_lanes(t1, cos1, sin1, slots, shadows, specular, ring, table, eps, now, grey)
         log_lanes(grey, l1, exponent, mantissa)
+        if leaky:
+            # the leak: L drifts up against the reference (v2e's leak, as a drift of the signal)
+            for k in range(w):
+                l1[k] += l_leak[k] * t1[k]
         # step control: a step whose change or bend is too large is shortened and tried again
         for k in range(w):
             dt[k] = t1[k] - t[k]
