@@ -9,6 +9,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from pstoolkit.optics.layouts import RING, layout_lights
+from pstoolkit.sim.renderers import OWN
 from pstoolkit.sim.sensor import EventSensor
 from pstoolkit.sim.timing import CaptureTiming
 
@@ -27,7 +28,11 @@ class SimulationConfig(CaptureTiming):
     ``discrete_lights`` must then be K or 0); ``noise`` is the read-noise standard deviation as a
     fraction of saturation, with Poisson shot noise of a full well of 1/noise² electrons (0 = none);
     ``exposure_gain`` (pixel units per irradiance·second) overrides the automatic gain, which
-    ``auto_gain`` (``AUTO_GAINS``) sets from the brightest diffuse or the brightest value."""
+    ``auto_gain`` (``AUTO_GAINS``) sets from the brightest diffuse or the brightest value.
+    ``renderer`` is ``own`` (the built-in engines, which use ``brdf``, ``shadows`` and ``device``) or
+    an independent renderer of the ``renderers`` registry with its ``renderer_options``
+    (``key=value``), which renders a hybrid capture's key images every ``key_step_deg`` of the turn
+    (``pstoolkit.sim.keyed``)."""
 
     scene: str = "sphere"
     scene_options: list[str] = field(default_factory=list)
@@ -41,6 +46,9 @@ class SimulationConfig(CaptureTiming):
     auto_gain: str = AUTO_GAINS[0]
     shadows: bool = True
     device: str = "cpu"
+    renderer: str = OWN
+    renderer_options: list[str] = field(default_factory=list)
+    key_step_deg: float = 2.0
 
     def sensor(self) -> EventSensor:
         """``CaptureTiming.sensor`` with the per-pixel contrast mismatch."""
@@ -62,6 +70,7 @@ class SimulationConfig(CaptureTiming):
             ("--noise", 0 <= self.noise <= 0.5, "must be between 0 and 0.5"),
             ("--bit-depth", self.bit_depth in BIT_DEPTHS, "must be 8, 12 or 16"),
             ("--auto-gain", self.auto_gain in AUTO_GAINS, f"must be {' or '.join(AUTO_GAINS)}"),
+            ("--key-step-deg", 0.1 <= self.key_step_deg <= 30, "must be between 0.1 and 30 degrees"),
         ]
         layout = layout_lights(self.lights)
         if layout is not None:

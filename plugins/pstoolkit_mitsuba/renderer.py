@@ -1,0 +1,140 @@
+"""The ``mitsuba`` renderer: a scene's height field path-traced by Mitsuba 3.
+
+The scene's depth and normals become a triangle mesh (``pstoolkit_mitsuba.heightfield``, shading
+normals the scene's), its materials a Mitsuba BSDF with the albedo map as texture
+(``pstoolkit_mitsuba.materials``); an orthographic camera looks down −z, one frame pixel per pixel
+(the simulator's projection), with a box filter, so a pixel is the mean radiance over its footprint.
+Each light is a Mitsuba emitter — a directional one for a far light, a point light for a near one
+(``position_mm``, ``pixel_pitch_mm``: ``NearRingLight``) — and the path tracer adds what the
+built-in renderer lacks: light reflected from other parts of the surface, up to ``max_depth``
+segments of a path (2: direct light only; 3: one bounce of inter-reflection; …).
+
+Scale: radiance × π, so a Lambertian surface of albedo ρ under a directional light of intensity e
+renders as ρ·e·cos θ, the built-in renderer's scale (``pstoolkit.sim.renderers``).
+
+Every image is drawn with the same sample pattern (Mitsuba's ``seed``, from the capture's seed):
+between two nearby lights the Monte-Carlo noise then changes little, so the events of the key
+images' interpolation come from the light's motion rather than from the noise.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, ClassVar
+
+import numpy as np
+
+from pstoolkit import LightModel, Option, Progress, UserError, no_progress
+from pstoolkit.sim.renderers import Rendering, SceneRenderer
+from pstoolkit.sim.scenes import SceneMaps
+from pstoolkit_mitsuba.heightfield import covered, height_mesh
+from pstoolkit_mitsuba.materials import BSDFS, CONDUCTORS, bsdf_dict
+from pstoolkit_mitsuba.variants import VARIANTS, set_variant
+
+# A light far enough away for the orthographic camera: above every height, in frame pixels.
+CAMERA_HEIGHT_PX = 1e4
+
+
+def _mesh(mi: Any, maps: SceneMaps, bsdf: Any) -> Any:
+    """A Mitsuba mesh of the height field of ``maps`` with ``bsdf``."""
+    mesh = height_mesh(maps)
+    if not len(mesh.faces):
+        raise UserError("the scene's mask holds no 2×2 block of pixels: nothing to render")
+    props = mi.Properties()
+    props["bsdf"] = bsdf
+    shape = mi.Mesh("heightfield", len(mesh.positions), len(mesh.faces), props,
+                    has_vertex_normals=True, has_vertex_texcoords=True)
+    params = mi.traverse(shape)
+    # the parameter types are the variant's arrays (scalar: ArrayXf/ArrayXu, llvm: Float/UInt32)
+    for key, array in (("vertex_positions", mesh.positions), ("vertex_normals", mesh.normals),
+                       ("vertex_texcoords", mesh.texcoords), ("faces", mesh.faces)):
+        params[key] = type(params[key])(array.ravel())
+    params.update()
+    return shape
+
+
+class MitsubaRendering(Rendering):
+    """A scene loaded into Mitsuba with one emitter, whose pose and power each image sets."""
+
+    def __init__(self, maps: SceneMaps, seed: int, options: dict[str, Any]) -> None:
+        mi = set_variant(options["variant"])
+        self._mi = mi
+        self.variant = mi.variant()
+        self.mask = covered(maps.mask)
+        self.normal = np.where(self.mask[..., None], maps.normal, 0.0).astype(np.float32)
+        self._spp = int(options["spp"])
+        # Mitsuba's seed is a 32-bit unsigned integer
+        self._seed = int(seed) % (2**32)
+        h, w = maps.mask.shape
+        bsdf = mi.load_dict(bsdf_dict(mi, maps, options["bsdf"], options["conductor"]))
+        self._scene = mi.load_dict({
+            "type": "scene",
+            "integrator": {"type": "path", "max_depth": int(options["max_depth"]), "hide_emitters": True},
+            "sensor": {
+                "type": "orthographic",
+                "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, CAMERA_HEIGHT_PX], target=[0, 0, 0], up=[0, 1, 0])
+                @ mi.ScalarTransform4f().scale([w / 2.0, h / 2.0, 1.0]),
+                "near_clip": 1.0,
+                "far_clip": 4.0 * CAMERA_HEIGHT_PX,
+                "film": {"type": "hdrfilm", "width": w, "height": h, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+                "sampler": {"type": "independent", "sample_count": self._spp},
+            },
+            "heightfield": _mesh(mi, maps, bsdf),
+            "far": {"type": "directional", "direction": [0.0, 0.0, -1.0], "irradiance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}},
+            "near": {"type": "point", "position": [0.0, 0.0, CAMERA_HEIGHT_PX], "intensity": {"type": "rgb", "value": [0.0, 0.0, 0.0]}},
+        })
+        self._params = self._mi.traverse(self._scene)
+
+    def _set_far(self, direction: np.ndarray, intensity: np.ndarray) -> None:
+        mi = self._mi
+        d = -np.asarray(direction, dtype=np.float64)
+        up = [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0]
+        self._params["far.to_world"] = mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=d.tolist(), up=up)
+        self._params["far.irradiance.value"] = mi.Color3f(*(math.pi * np.asarray(intensity, dtype=np.float64)))
+        self._params["near.intensity.value"] = mi.Color3f(0.0, 0.0, 0.0)
+
+    def _set_near(self, light: Any, t_us: float) -> None:
+        mi = self._mi
+        pitch = float(light.pixel_pitch_mm)
+        position = np.asarray(light.position_mm(np.array([t_us])), dtype=np.float64).reshape(3) / pitch
+        # the model's intensity is e at the distance √(R² + H²) of its ring: e·(R² + H²)/d² in mm
+        reach2 = (float(light.radius_mm) ** 2 + float(light.height_mm) ** 2) / pitch**2
+        self._params["near.position"] = mi.ScalarPoint3f(*position)
+        self._params["near.intensity.value"] = mi.Color3f(*(math.pi * reach2 * np.asarray(light.intensity, dtype=np.float64)))
+        self._params["far.irradiance.value"] = mi.Color3f(0.0, 0.0, 0.0)
+
+    def images(self, light: LightModel, t_us: np.ndarray, progress: Progress = no_progress) -> np.ndarray:
+        t_us = np.asarray(t_us, dtype=np.float64).reshape(-1)
+        h, w = self.mask.shape
+        out = np.empty((len(t_us), h, w, 3), dtype=np.float32)
+        if light.near and not hasattr(light, "position_mm"):
+            raise UserError(f"light model {light.name!r} is a near light without a position (position_mm): cannot place it")
+        far = None if light.near else light.evaluate(t_us)
+        for k, t in enumerate(t_us):
+            if far is None:
+                self._set_near(light, float(t))
+            else:
+                self._set_far(far[0][k], far[1][k])
+            self._params.update()
+            image = self._mi.render(self._scene, spp=self._spp, seed=self._seed)
+            out[k] = np.maximum(np.asarray(image, dtype=np.float32)[..., :3], 0.0)
+            progress((k + 1) / len(t_us), "renders")
+        return out
+
+
+class MitsubaRenderer(SceneRenderer):
+    """Path-traced renders of a scene's height field with Mitsuba 3 (``pip install 'pstoolkit[mitsuba]'``)."""
+
+    name: ClassVar[str] = "mitsuba"
+    summary: ClassVar[str] = "Mitsuba 3 path tracer: inter-reflections, rough plastic, copper or principled BSDF, textured albedo"
+    options: ClassVar[tuple[Option, ...]] = (
+        Option("bsdf", str, BSDFS[0], "Mitsuba BSDF of the surface (albedo map as texture)", choices=BSDFS),
+        Option("conductor", str, CONDUCTORS[0], "metal of roughconductor (Mitsuba's measured spectra)", choices=CONDUCTORS),
+        Option("spp", int, 16, "samples per pixel of each image", minimum=1, maximum=65536),
+        Option("max_depth", int, 4, "longest path, segments: 2 direct light only, 3 one bounce of inter-reflection, …", minimum=2, maximum=64),
+        Option("variant", str, VARIANTS[0], "Mitsuba variant: auto (llvm_ad_rgb when DRJIT_LIBLLVM_PATH works, else scalar_rgb), "
+               "scalar_rgb or llvm_ad_rgb", choices=VARIANTS),
+    )
+
+    def prepare(self, maps: SceneMaps, seed: int, **options: Any) -> MitsubaRendering:
+        return MitsubaRendering(maps, seed, options)
