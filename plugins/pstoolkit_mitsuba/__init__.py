@@ -1,4 +1,5 @@
-"""First-party plugin: the ``mitsuba`` renderer (``pstoolkit simulate SCENE --renderer mitsuba``), path-traced
+"""First-party plugin: the ``mitsuba`` renderer (``pstoolkit simulate SCENE --renderer mitsuba``) and the
+``mesh`` scene (a mesh file, ``--source FILE``), path-traced
 captures through Mitsuba 3 — an independent check of the solvers on images the toolkit's own model
 did not make (``docs/renderers.md``). Needs the extra: ``pip install 'pstoolkit[mitsuba]'``.
 
@@ -25,6 +26,13 @@ def __getattr__(name: str) -> Any:
 
         return getattr(api, name)
     raise AttributeError(f"module 'pstoolkit_mitsuba' has no attribute {name!r}")
+
+
+@hookimpl
+def pstoolkit_register_scenes(registry: Registry) -> None:
+    from pstoolkit_mitsuba.meshscene import MeshScene
+
+    registry.register(MeshScene)
 
 
 @hookimpl

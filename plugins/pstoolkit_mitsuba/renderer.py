@@ -29,28 +29,24 @@ from pstoolkit.sim.renderers import Rendering, SceneRenderer
 from pstoolkit.sim.scenes import SceneMaps
 from pstoolkit_mitsuba.heightfield import covered, height_mesh
 from pstoolkit_mitsuba.materials import BSDFS, CONDUCTORS, bsdf_dict
+from pstoolkit_mitsuba.shapes import orthographic_sensor, planar_texcoords, triangle_mesh
 from pstoolkit_mitsuba.variants import VARIANTS, set_variant
 
-# A light far enough away for the orthographic camera: above every height, in frame pixels.
-CAMERA_HEIGHT_PX = 1e4
+
+def _floats(values: np.ndarray) -> list[float]:
+    """Python floats: the llvm variant's vectors take no numpy scalars."""
+    return [float(v) for v in np.ravel(values)]
 
 
-def _mesh(mi: Any, maps: SceneMaps, bsdf: Any) -> Any:
-    """A Mitsuba mesh of the height field of ``maps`` with ``bsdf``."""
+def _surface(mi: Any, maps: SceneMaps, bsdf: Any) -> tuple[Any, np.ndarray]:
+    """The Mitsuba mesh of ``maps`` — the mesh it was made from, or else its height field — and the
+    mask of the pixels it covers wholly."""
+    h, w = maps.mask.shape
+    if maps.mesh is not None:
+        positions, faces = maps.mesh
+        return triangle_mesh(mi, positions, faces, planar_texcoords(positions, h, w), bsdf=bsdf), maps.mask
     mesh = height_mesh(maps)
-    if not len(mesh.faces):
-        raise UserError("the scene's mask holds no 2×2 block of pixels: nothing to render")
-    props = mi.Properties()
-    props["bsdf"] = bsdf
-    shape = mi.Mesh("heightfield", len(mesh.positions), len(mesh.faces), props,
-                    has_vertex_normals=True, has_vertex_texcoords=True)
-    params = mi.traverse(shape)
-    # the parameter types are the variant's arrays (scalar: ArrayXf/ArrayXu, llvm: Float/UInt32)
-    for key, array in (("vertex_positions", mesh.positions), ("vertex_normals", mesh.normals),
-                       ("vertex_texcoords", mesh.texcoords), ("faces", mesh.faces)):
-        params[key] = type(params[key])(array.ravel())
-    params.update()
-    return shape
+    return triangle_mesh(mi, mesh.positions, mesh.faces, mesh.texcoords, mesh.normals, bsdf), covered(maps.mask)
 
 
 class MitsubaRendering(Rendering):
@@ -60,28 +56,19 @@ class MitsubaRendering(Rendering):
         mi = set_variant(options["variant"])
         self._mi = mi
         self.variant = mi.variant()
-        self.mask = covered(maps.mask)
-        self.normal = np.where(self.mask[..., None], maps.normal, 0.0).astype(np.float32)
         self._spp = int(options["spp"])
         # Mitsuba's seed is a 32-bit unsigned integer
         self._seed = int(seed) % (2**32)
         h, w = maps.mask.shape
-        bsdf = mi.load_dict(bsdf_dict(mi, maps, options["bsdf"], options["conductor"]))
+        surface, self.mask = _surface(mi, maps, mi.load_dict(bsdf_dict(mi, maps, options["bsdf"], options["conductor"])))
+        self.normal = np.where(self.mask[..., None], maps.normal, 0.0).astype(np.float32)
         self._scene = mi.load_dict({
             "type": "scene",
             "integrator": {"type": "path", "max_depth": int(options["max_depth"]), "hide_emitters": True},
-            "sensor": {
-                "type": "orthographic",
-                "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, CAMERA_HEIGHT_PX], target=[0, 0, 0], up=[0, 1, 0])
-                @ mi.ScalarTransform4f().scale([w / 2.0, h / 2.0, 1.0]),
-                "near_clip": 1.0,
-                "far_clip": 4.0 * CAMERA_HEIGHT_PX,
-                "film": {"type": "hdrfilm", "width": w, "height": h, "rfilter": {"type": "box"}, "pixel_format": "rgb"},
-                "sampler": {"type": "independent", "sample_count": self._spp},
-            },
-            "heightfield": _mesh(mi, maps, bsdf),
+            "sensor": orthographic_sensor(mi, h, w, self._spp),
+            "surface": surface,
             "far": {"type": "directional", "direction": [0.0, 0.0, -1.0], "irradiance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}},
-            "near": {"type": "point", "position": [0.0, 0.0, CAMERA_HEIGHT_PX], "intensity": {"type": "rgb", "value": [0.0, 0.0, 0.0]}},
+            "near": {"type": "point", "position": [0.0, 0.0, 1.0], "intensity": {"type": "rgb", "value": [0.0, 0.0, 0.0]}},
         })
         self._params = self._mi.traverse(self._scene)
 
@@ -90,7 +77,7 @@ class MitsubaRendering(Rendering):
         d = -np.asarray(direction, dtype=np.float64)
         up = [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0]
         self._params["far.to_world"] = mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=d.tolist(), up=up)
-        self._params["far.irradiance.value"] = mi.Color3f(*(math.pi * np.asarray(intensity, dtype=np.float64)))
+        self._params["far.irradiance.value"] = mi.Color3f(*_floats(math.pi * np.asarray(intensity, dtype=np.float64)))
         self._params["near.intensity.value"] = mi.Color3f(0.0, 0.0, 0.0)
 
     def _set_near(self, light: Any, t_us: float) -> None:
@@ -99,8 +86,8 @@ class MitsubaRendering(Rendering):
         position = np.asarray(light.position_mm(np.array([t_us])), dtype=np.float64).reshape(3) / pitch
         # the model's intensity is e at the distance √(R² + H²) of its ring: e·(R² + H²)/d² in mm
         reach2 = (float(light.radius_mm) ** 2 + float(light.height_mm) ** 2) / pitch**2
-        self._params["near.position"] = mi.ScalarPoint3f(*position)
-        self._params["near.intensity.value"] = mi.Color3f(*(math.pi * reach2 * np.asarray(light.intensity, dtype=np.float64)))
+        self._params["near.position"] = mi.ScalarPoint3f(*_floats(position))
+        self._params["near.intensity.value"] = mi.Color3f(*_floats(math.pi * reach2 * np.asarray(light.intensity, dtype=np.float64)))
         self._params["far.irradiance.value"] = mi.Color3f(0.0, 0.0, 0.0)
 
     def images(self, light: LightModel, t_us: np.ndarray, progress: Progress = no_progress) -> np.ndarray:

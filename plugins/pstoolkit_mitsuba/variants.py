@@ -25,10 +25,9 @@ PROBE_TIMEOUT_S = 120.0
 _PROBE = """
 import mitsuba as mi
 mi.set_variant("llvm_ad_rgb")
-scene = mi.load_dict({"type": "scene", "shape": {"type": "sphere"}, "light": {"type": "constant"},
+scene = mi.load_dict({"type": "scene", "integrator": {"type": "path"}, "shape": {"type": "sphere"}, "light": {"type": "constant"},
                       "sensor": {"type": "perspective", "film": {"type": "hdrfilm", "width": 4, "height": 4}}})
-image = mi.render(scene, spp=4)
-print(float(mi.TensorXf(image).numpy().mean()))
+print(float(mi.render(scene, spp=4).numpy().mean()))
 """
 
 

@@ -57,7 +57,9 @@ def simulate_command(
         "renders of shiny materials)."
     )),
     shadows: bool = typer.Option(True, "--shadows/--no-shadows", help="Render cast shadows."),
-    source: Path | None = typer.Option(None, "--source", help="Folder of the geometry scene (normal_map.png, depth_gt.npz, mask.png, K.txt)."),
+    source: Path | None = typer.Option(None, "--source", help=(
+        "Folder of the geometry scene (normal_map.png, depth_gt.npz, mask.png, K.txt), or file of the mesh scene (mitsuba plugin)."
+    )),
     assignments: list[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="A scene option (see `pstoolkit plugins`); repeat for more."),
     renderer: str = typer.Option(_DEFAULTS.renderer, "--renderer", help=(
         "own (the built-in engines: --brdf, --shadows, --device) or an independent renderer of a plugin (mitsuba: path "
