@@ -38,57 +38,68 @@ def _floats(values: np.ndarray) -> list[float]:
     return [float(v) for v in np.ravel(values)]
 
 
-def _surface(mi: Any, maps: SceneMaps, bsdf: Any) -> tuple[Any, np.ndarray]:
-    """The Mitsuba mesh of ``maps`` — the mesh it was made from, or else its height field — and the
-    mask of the pixels it covers wholly."""
+def _surface(mi: Any, maps: SceneMaps, bsdf: Any) -> Any:
+    """The Mitsuba mesh of ``maps``: the mesh it was made from, or else its height field."""
     h, w = maps.mask.shape
     if maps.mesh is not None:
         positions, faces = maps.mesh
-        return triangle_mesh(mi, positions, faces, planar_texcoords(positions, h, w), bsdf=bsdf), maps.mask
+        return triangle_mesh(mi, positions, faces, planar_texcoords(positions, h, w), bsdf=bsdf)
     mesh = height_mesh(maps)
-    return triangle_mesh(mi, mesh.positions, mesh.faces, mesh.texcoords, mesh.normals, bsdf), covered(maps.mask)
+    return triangle_mesh(mi, mesh.positions, mesh.faces, mesh.texcoords, mesh.normals, bsdf)
 
 
 class MitsubaRendering(Rendering):
-    """A scene loaded into Mitsuba with one emitter, whose pose and power each image sets."""
+    """A scene loaded into Mitsuba with one emitter, whose pose and power each image sets: a
+    directional one for far lights, a point light for near ones, each scene made on first use (a
+    scene holding both would split its light samples between them, one of them dark)."""
 
     def __init__(self, maps: SceneMaps, seed: int, options: dict[str, Any]) -> None:
-        mi = set_variant(options["variant"])
-        self._mi = mi
-        self.variant = mi.variant()
+        self._mi = set_variant(options["variant"])
+        self.variant = self._mi.variant()
+        self._maps, self._options = maps, options
         self._spp = int(options["spp"])
         # Mitsuba's seed is a 32-bit unsigned integer
         self._seed = int(seed) % (2**32)
-        h, w = maps.mask.shape
-        surface, self.mask = _surface(mi, maps, mi.load_dict(bsdf_dict(mi, maps, options["bsdf"], options["conductor"])))
+        self._scenes: dict[str, tuple[Any, Any]] = {}
+        self.mask = covered(maps.mask) if maps.mesh is None else maps.mask
         self.normal = np.where(self.mask[..., None], maps.normal, 0.0).astype(np.float32)
-        self._scene = mi.load_dict({
-            "type": "scene",
-            "integrator": {"type": "path", "max_depth": int(options["max_depth"]), "hide_emitters": True},
-            "sensor": orthographic_sensor(mi, h, w, self._spp),
-            "surface": surface,
-            "far": {"type": "directional", "direction": [0.0, 0.0, -1.0], "irradiance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}},
-            "near": {"type": "point", "position": [0.0, 0.0, 1.0], "intensity": {"type": "rgb", "value": [0.0, 0.0, 0.0]}},
-        })
-        self._params = self._mi.traverse(self._scene)
 
-    def _set_far(self, direction: np.ndarray, intensity: np.ndarray) -> None:
+    def _scene(self, near: bool) -> tuple[Any, Any]:
+        """(scene, its parameters) with the point light (``near``) or the directional one."""
+        key = "near" if near else "far"
+        if key not in self._scenes:
+            mi, maps, h, w = self._mi, self._maps, *self._maps.mask.shape
+            bsdf = mi.load_dict(bsdf_dict(mi, maps, self._options["bsdf"], self._options["conductor"]))
+            emitter = (
+                {"type": "point", "position": [0.0, 0.0, 1.0], "intensity": {"type": "rgb", "value": [0.0, 0.0, 0.0]}}
+                if near else
+                {"type": "directional", "direction": [0.0, 0.0, -1.0], "irradiance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}}
+            )
+            scene = mi.load_dict({
+                "type": "scene",
+                "integrator": {"type": "path", "max_depth": int(self._options["max_depth"]), "hide_emitters": True},
+                "sensor": orthographic_sensor(mi, h, w, self._spp),
+                "surface": _surface(mi, maps, bsdf),
+                "light": emitter,
+            })
+            self._scenes[key] = (scene, mi.traverse(scene))
+        return self._scenes[key]
+
+    def _set_far(self, params: Any, direction: np.ndarray, intensity: np.ndarray) -> None:
         mi = self._mi
         d = -np.asarray(direction, dtype=np.float64)
         up = [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0]
-        self._params["far.to_world"] = mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=d.tolist(), up=up)
-        self._params["far.irradiance.value"] = mi.Color3f(*_floats(math.pi * np.asarray(intensity, dtype=np.float64)))
-        self._params["near.intensity.value"] = mi.Color3f(0.0, 0.0, 0.0)
+        params["light.to_world"] = mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=_floats(d), up=up)
+        params["light.irradiance.value"] = mi.Color3f(*_floats(math.pi * np.asarray(intensity, dtype=np.float64)))
 
-    def _set_near(self, light: Any, t_us: float) -> None:
+    def _set_near(self, params: Any, light: Any, t_us: float) -> None:
         mi = self._mi
         pitch = float(light.pixel_pitch_mm)
         position = np.asarray(light.position_mm(np.array([t_us])), dtype=np.float64).reshape(3) / pitch
         # the model's intensity is e at the distance √(R² + H²) of its ring: e·(R² + H²)/d² in mm
         reach2 = (float(light.radius_mm) ** 2 + float(light.height_mm) ** 2) / pitch**2
-        self._params["near.position"] = mi.ScalarPoint3f(*_floats(position))
-        self._params["near.intensity.value"] = mi.Color3f(*_floats(math.pi * reach2 * np.asarray(light.intensity, dtype=np.float64)))
-        self._params["far.irradiance.value"] = mi.Color3f(0.0, 0.0, 0.0)
+        params["light.position"] = mi.ScalarPoint3f(*_floats(position))
+        params["light.intensity.value"] = mi.Color3f(*_floats(math.pi * reach2 * np.asarray(light.intensity, dtype=np.float64)))
 
     def images(self, light: LightModel, t_us: np.ndarray, progress: Progress = no_progress) -> np.ndarray:
         t_us = np.asarray(t_us, dtype=np.float64).reshape(-1)
@@ -96,14 +107,15 @@ class MitsubaRendering(Rendering):
         out = np.empty((len(t_us), h, w, 3), dtype=np.float32)
         if light.near and not hasattr(light, "position_mm"):
             raise UserError(f"light model {light.name!r} is a near light without a position (position_mm): cannot place it")
+        scene, params = self._scene(light.near)
         far = None if light.near else light.evaluate(t_us)
         for k, t in enumerate(t_us):
             if far is None:
-                self._set_near(light, float(t))
+                self._set_near(params, light, float(t))
             else:
-                self._set_far(far[0][k], far[1][k])
-            self._params.update()
-            image = self._mi.render(self._scene, spp=self._spp, seed=self._seed)
+                self._set_far(params, far[0][k], far[1][k])
+            params.update()
+            image = self._mi.render(scene, spp=self._spp, seed=self._seed)
             out[k] = np.maximum(np.asarray(image, dtype=np.float32)[..., :3], 0.0)
             progress((k + 1) / len(t_us), "renders")
         return out

@@ -56,7 +56,7 @@ def test_diligent_folder_round_trips_through_the_semi_real_recipe(tmp_path: Path
     # where the plastic's highlights in the middle of the sphere are the error
     assert main(["convert", "diligent", str(folder), "-o", str(tmp_path / "grid.h5"), "-q"]) == 0
     stats = pstoolkit.solve(tmp_path / "grid.h5", "frameps", device="cpu").score.stats
-    assert stats["mae_deg"] < 8.0 and stats["median_deg"] < 5.0
+    assert stats["mae_deg"] < 7.0 and stats["median_deg"] < 4.5
 
 
 def test_direct_capture_validates_and_a_solver_recovers_a_sphere(tmp_path: Path) -> None:
@@ -73,7 +73,7 @@ def test_direct_capture_validates_and_a_solver_recovers_a_sphere(tmp_path: Path)
     # dualres's closed-form start (epochs=0): the rough plastic's highlight ring is the main error
     solution = pstoolkit.solve(out, "dualres", device="cpu", epochs=0)
     error = angular_error_deg(solution.normal, normal, mask)[mask]
-    assert np.median(error) < 7.0 and np.mean(error < 20.0) > 0.85
+    assert np.median(error) < 5.5 and np.mean(error < 20.0) > 0.97
 
 
 def test_inter_reflection_lights_a_concavity() -> None:
@@ -133,3 +133,20 @@ def test_a_mesh_file_is_a_scene_the_renderer_draws(tmp_path: Path, capsys: pytes
                  "-o", str(tmp_path / "x.h5")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "broken.ply" in err and not (tmp_path / "x.h5").exists()
+
+
+def test_a_distant_near_light_renders_as_the_ring_and_noise_is_low() -> None:
+    """A point light on a ring 3·10⁴ pixels away lights a 24-pixel sphere like the directional ring
+    light of the same elevation; and two seeds differ by little (one emitter per scene, so every
+    light sample is of the light)."""
+    maps = scene("sphere", 24, "albedo=white")
+    t_us = np.array([0.0, 250.0])
+    far = pstoolkit.RingLight(elevation_deg=45.0, period_us=1000.0)
+    near = pstoolkit.NearRingLight(radius_mm=1000.0, height_mm=1000.0, pixel_pitch_mm=0.05, period_us=1000.0)
+    first = rendering(maps, spp=16)
+    a, b = first.images(far, t_us), first.images(near, t_us)
+    mask = first.mask
+    assert np.abs(a - b)[:, mask].mean() < 0.01 * a[:, mask].mean()
+    entry = get_registries().renderers.get("mitsuba")
+    other = entry.obj().prepare(maps, 1, **entry.parse_options(["spp=16", "variant=scalar_rgb"])).images(far, t_us)
+    assert np.abs(a - other)[:, mask].mean() < 0.03 * a[:, mask].mean()
