@@ -90,7 +90,13 @@ def test_inter_reflection_lights_a_concavity() -> None:
     groove = (slice(4, -4), slice(5, -5))
     direct = rendering(maps, max_depth=2, spp=16).images(light, t_us)[0][groove].mean()
     bounced = rendering(maps, max_depth=4, spp=16).images(light, t_us)[0][groove].mean()
-    assert bounced > 1.15 * direct
+    assert bounced > 1.12 * direct  # 0.439 against 0.369: +19 %
+
+
+def test_plugins_lists_the_renderer_with_its_flag(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["plugins"]) == 0
+    out = capsys.readouterr().out
+    assert "  renderers:\n    mitsuba  Mitsuba 3 path tracer" in out and "      --render-set spp (int, default 16)" in out
 
 
 def test_bsdf_and_texture_options_take_effect() -> None:
