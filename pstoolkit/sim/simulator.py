@@ -15,7 +15,11 @@ interpolated in between. Other BRDFs (plugins) and other devices take the refere
 whole-frame renders on the frames' midpoint-rule samples (``simulate_events(sample_times_us=…)``),
 each adding to its frame as it feeds the events, with per-pixel refinement (``render_pixels``).
 Both follow the event rule of ``pstoolkit.events.rule``. Memory stays bounded: time is processed in
-blocks.
+blocks. An independent renderer (``config.renderer``, the ``renderers`` registry:
+``pstoolkit.sim.renderers``) is asked for one image per light of a classic capture, or for key images
+every ``key_step_deg`` of a hybrid capture's turn, whose log-linear interpolation gives the frames in
+closed form and the events of the reference engine (``pstoolkit.sim.keyed``); the rest of the
+assembly (truth, gain, quantisation, light model, calibration) is shared.
 
 Frames: exposure (irradiance × seconds) times a gain that puts the brightest diffuse value of any
 frame at ``DIFFUSE_LEVEL`` of saturation, so specular highlights may clip as in an LDR camera
