@@ -28,13 +28,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import exprel
 
 import psfmt
 from pstoolkit import GREY_WEIGHTS, Progress, SampledLight, UserError
-from pstoolkit.events.rule import LOG_EPS, log_irradiance
+from pstoolkit.events.rule import log_irradiance
 from pstoolkit.grid import area_weights, event_shape
-from pstoolkit.sim.esim import Render, simulate_events
+from pstoolkit.sim.esim import simulate_events
+from pstoolkit.sim.keyed import event_render, key_times_us, window_mean
 from pstoolkit.sim.sensor import FRAME_BIT_DEPTHS, FrameSensor
 from pstoolkit.sim.timing import CaptureTiming, append_event_chunks
 from pstoolkit_diligent.folder import ObjectFolder
@@ -104,45 +104,12 @@ def key_lights(obj: ObjectFolder, size: int, progress: Progress) -> KeyLights:
 
 def knot_times_us(period_us: int) -> np.ndarray:
     """(37,) int64: the time of each key light in the first period, then the period's end."""
-    return np.round(np.arange(len(BOUNDARY_LOOP) + 1) * period_us / len(BOUNDARY_LOOP)).astype(np.int64)
-
-
-def window_mean(log_keys: np.ndarray, knots_us: np.ndarray, t0_us: float, t1_us: float) -> np.ndarray:
-    """Mean irradiance exp(L(t)) − ε over [t0_us, t1_us) ⊂ [knots_us[0], knots_us[-1]], L linear in
-    time from ``log_keys[j]`` to ``log_keys[j + 1]`` (the last key wraps to the first)."""
-    log_next = np.roll(log_keys, -1, axis=0)
-    total = np.zeros(log_keys.shape[1:])
-    for j in range(len(log_keys)):
-        s0, s1 = max(t0_us, knots_us[j]), min(t1_us, knots_us[j + 1])
-        if s1 <= s0:
-            continue
-        span = float(knots_us[j + 1] - knots_us[j])
-        slope = log_next[j] - log_keys[j]
-        w0, w1 = (s0 - knots_us[j]) / span, (s1 - knots_us[j]) / span
-        # ∫ exp(a + w·d) dw over [w0, w1] = (w1 − w0)·exp(a + w0·d)·exprel((w1 − w0)·d), stable as d → 0
-        total += span * (w1 - w0) * np.exp(log_keys[j] + w0 * slope) * exprel((w1 - w0) * slope)
-    return total / (t1_us - t0_us) - LOG_EPS
+    return key_times_us(period_us, len(BOUNDARY_LOOP))
 
 
 def ldr(irradiance: np.ndarray, sensor: FrameSensor, rng: np.random.Generator) -> np.ndarray:
     """Pixels of normalised irradiance through ``sensor``: 1.0 is its saturation, brighter clips."""
     return sensor.quantise(irradiance * sensor.signal_range(), rng)
-
-
-def event_render(log_keys: np.ndarray, knots_us: np.ndarray, period_us: int) -> Render:
-    """The render callback of the event generator: irradiance whose log runs linearly between the
-    key logs (M, He, We), periodic in ``period_us``."""
-    log_next = np.roll(log_keys, -1, axis=0)
-    starts = knots_us[:-1].astype(np.float64)
-    spans = np.diff(knots_us).astype(np.float64)
-
-    def render(t_us: np.ndarray) -> np.ndarray:
-        tau = np.mod(np.asarray(t_us, dtype=np.float64), period_us)
-        j = np.clip(np.searchsorted(starts, tau, side="right") - 1, 0, len(starts) - 1)
-        w = ((tau - starts[j]) / spans[j])[:, None, None]
-        return np.maximum(np.exp((1.0 - w) * log_keys[j] + w * log_next[j]) - LOG_EPS, 0.0)
-
-    return render
 
 
 def boundary_light(keys: KeyLights, knots_us: np.ndarray, period_us: int) -> psfmt.LightSpec:

@@ -47,14 +47,19 @@ def _plugin_json(info: PluginInfo, held: Holdings) -> dict[str, Any]:
     }
 
 
+OPTION_FLAGS = {"renderers": "--render-set"}
+"""The flag that sets an entry's options where it is not ``--set`` (``simulate --renderer``'s)."""
+
+
 def _plugin_text(info: PluginInfo, held: Holdings) -> list[str]:
     lines = [f"{info.name} {info.version or '(no version)'}  ({info.module}, {info.source})"]
-    for _, registry, entries in held:
+    for kind, registry, entries in held:
+        flag = OPTION_FLAGS.get(kind, "--set")
         lines.append(f"  {registry.kind}s:")
         width = max(len(e.name) for e in entries)
         for e in entries:
             lines.append(f"    {e.name:<{width}}  {e.summary}")
-            lines.extend(f"      --set {o.describe()}" for o in e.options)
+            lines.extend(f"      {flag} {o.describe()}" for o in e.options)
     if not held:
         lines.append("  (registers no entries)")
     return lines
@@ -66,7 +71,7 @@ def plugins(
     quiet: bool = typer.Option(False, "--quiet", "-q", help=QUIET_HELP),
 ) -> None:
     """List every plugin with its version and what it registered (light models, shadow detectors,
-    BRDFs, solvers, backends, converters, scenes, integrators) with options, and plugins that failed
+    BRDFs, solvers, backends, converters, scenes, integrators, renderers) with options, and plugins that failed
     to load."""
     listing = [(info, _holdings(info.name)) for info in loaded_plugins()]
     failures = load_failures()

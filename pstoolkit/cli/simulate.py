@@ -12,6 +12,7 @@ from pstoolkit.cli.app import app, echo, progress_bar
 from pstoolkit.errors import UserError
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.sim.config import SimulationConfig
+from pstoolkit.sim.renderers import OWN
 from pstoolkit.sim.sensor import SENSOR_PRESETS
 from pstoolkit.solve.base import resolve_device
 
@@ -77,8 +78,20 @@ def simulate_command(
         "renders of shiny materials)."
     )),
     shadows: bool = typer.Option(True, "--shadows/--no-shadows", help="Render cast shadows."),
-    source: Path | None = typer.Option(None, "--source", help="Folder of the geometry scene (normal_map.png, depth_gt.npz, mask.png, K.txt)."),
+    source: Path | None = typer.Option(None, "--source", help=(
+        "Folder of the geometry scene (normal_map.png, depth_gt.npz, mask.png, K.txt), or file of the mesh scene (mitsuba plugin)."
+    )),
     assignments: list[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="A scene option (see `pstoolkit plugins`); repeat for more."),
+    renderer: str = typer.Option(_DEFAULTS.renderer, "--renderer", help=(
+        "own (the built-in engines: --brdf, --shadows, --device) or an independent renderer of a plugin (mitsuba: path "
+        "traced, pip install 'pstoolkit[mitsuba]'; docs/renderers.md)."
+    )),
+    render_assignments: list[str] = typer.Option([], "--render-set", metavar="KEY=VALUE", help=(
+        "An option of the --renderer (mitsuba: bsdf, spp, max_depth, variant; see `pstoolkit plugins`); repeat for more."
+    )),
+    key_step_deg: float = typer.Option(_DEFAULTS.key_step_deg, "--key-step-deg", help=(
+        "An independent renderer's hybrid capture: degrees of the turn between key images, log-linearly interpolated in between."
+    )),
     device: str = typer.Option("auto", "--device", help=(
         "auto (CUDA when available, else cpu), cpu or cuda. On cpu the ggx and lambertian BRDFs render with the compiled "
         "engine and plugin BRDFs with torch; on cuda everything renders with torch."
@@ -90,6 +103,8 @@ def simulate_command(
     events (default), or a classic capture of N instantaneous lights (--discrete-lights N), or of the
     lights of DiLiGenT's grid or a light-table file (--lights grid|FILE)."""
     entry = get_registries().scenes.get(scene)
+    if renderer != OWN:
+        get_registries().renderers.get(renderer)
     scene_options = list(assignments)
     if source is not None:
         if not any(o.name == "source" for o in entry.options):
@@ -131,6 +146,9 @@ def simulate_command(
         auto_gain=auto_gain,
         shadows=shadows,
         device=resolve_device(device),
+        renderer=renderer,
+        renderer_options=list(render_assignments),
+        key_step_deg=key_step_deg,
     )
     from pstoolkit.sim.simulator import simulate  # deferred: the simulator loads torch and numba
 

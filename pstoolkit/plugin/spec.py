@@ -72,6 +72,14 @@ def pstoolkit_register_integrators(registry: Registry) -> None:
 
 
 @hookspec
+def pstoolkit_register_renderers(registry: Registry) -> None:
+    """Register independent renderers (subclasses of ``pstoolkit.sim.renderers.SceneRenderer``) that
+    draw a scene's images under any light (a path tracer, say); each becomes a choice of
+    ``pstoolkit simulate SCENE --renderer NAME``, whose captures are then assembled from their key
+    images (``pstoolkit.sim.keyed``)."""
+
+
+@hookspec
 def pstoolkit_add_commands(app: typer.Typer) -> None:
     """Add commands to the ``pstoolkit`` command line: decorate functions with ``@app.command()``.
     Called once, when the ``pstoolkit`` command starts (``pstoolkit.cli.main``)."""

@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 from pstoolkit.optics.layouts import RING, layout_lights
+from pstoolkit.sim.renderers import OWN
 from pstoolkit.sim.sensor import FRAME_BIT_DEPTHS, FrameSensor
 from pstoolkit.sim.timing import CaptureTiming
 
@@ -26,7 +27,11 @@ class SimulationConfig(CaptureTiming):
     read noise of that fraction of saturation with the shot noise of a full well of 1/noise² electrons,
     over ``full_well_e`` and ``read_noise_e`` (0 = those);
     ``exposure_gain`` (pixel units per irradiance·second) overrides the automatic gain, which
-    ``auto_gain`` (``AUTO_GAINS``) sets from the brightest diffuse or the brightest value."""
+    ``auto_gain`` (``AUTO_GAINS``) sets from the brightest diffuse or the brightest value.
+    ``renderer`` is ``own`` (the built-in engines, which use ``brdf``, ``shadows`` and ``device``) or
+    an independent renderer of the ``renderers`` registry with its ``renderer_options``
+    (``key=value``), which renders a hybrid capture's key images every ``key_step_deg`` of the turn
+    (``pstoolkit.sim.keyed``)."""
 
     scene: str = "sphere"
     scene_options: list[str] = field(default_factory=list)
@@ -38,6 +43,9 @@ class SimulationConfig(CaptureTiming):
     auto_gain: str = AUTO_GAINS[0]
     shadows: bool = True
     device: str = "cpu"
+    renderer: str = OWN
+    renderer_options: list[str] = field(default_factory=list)
+    key_step_deg: float = 2.0
 
     def frame_sensor(self) -> FrameSensor:
         """``CaptureTiming.frame_sensor``, its noise set by ``noise`` when that is given."""
@@ -60,6 +68,7 @@ class SimulationConfig(CaptureTiming):
             ("--elevation-deg", 0 < self.elevation_deg <= 90, "must be in (0, 90] degrees"),
             ("--noise", 0 <= self.noise <= 0.5, "must be between 0 and 0.5"),
             ("--auto-gain", self.auto_gain in AUTO_GAINS, f"must be {' or '.join(AUTO_GAINS)}"),
+            ("--key-step-deg", 0.1 <= self.key_step_deg <= 30, "must be between 0.1 and 30 degrees"),
         ]
         layout = layout_lights(self.lights)
         if layout is not None:

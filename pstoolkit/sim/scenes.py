@@ -40,7 +40,10 @@ class SceneMaps:
     (H, W) float32 (already folded into albedo and F0; kept as ground truth). Outside the mask every
     map is 0. ``self_shadowing`` False declares a surface that cannot cast a shadow on itself (a
     convex one, whose every point below a line of sight to the light faces away from it): the
-    renderer then spends no time on cast shadows."""
+    renderer then spends no time on cast shadows. ``mesh`` (optional) is the surface a scene was made
+    from, ``(positions (N, 3) float32, faces (F, 3) uint32)`` in the camera frame in frame pixels
+    (pixel (u, v) centred at x = u + ½ − W/2, y = H/2 − v − ½; z the height), which a renderer that
+    draws meshes may draw instead of the height field (overhangs, the far side)."""
 
     normal: np.ndarray
     depth: np.ndarray
@@ -50,6 +53,7 @@ class SceneMaps:
     roughness: np.ndarray
     metallic: np.ndarray
     self_shadowing: bool = True
+    mesh: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def height(self) -> int:

@@ -15,7 +15,11 @@ interpolated in between. Other BRDFs (plugins) and other devices take the refere
 whole-frame renders on the frames' midpoint-rule samples (``simulate_events(sample_times_us=…)``),
 each adding to its frame as it feeds the events, with per-pixel refinement (``render_pixels``).
 Both follow the event rule of ``pstoolkit.events.rule``. Memory stays bounded: time is processed in
-blocks.
+blocks. An independent renderer (``config.renderer``, the ``renderers`` registry:
+``pstoolkit.sim.renderers``) is asked for one image per light of a classic capture, or for key images
+every ``key_step_deg`` of a hybrid capture's turn, whose log-linear interpolation gives the frames in
+closed form and the events of the reference engine (``pstoolkit.sim.keyed``); the rest of the
+assembly (truth, gain, quantisation, light model, calibration) is shared.
 
 Frames: exposure (irradiance × seconds) times a gain that puts the brightest diffuse value of any
 frame at ``DIFFUSE_LEVEL`` of the range from black to saturation, so specular highlights may clip as
@@ -44,17 +48,20 @@ import torch
 import psfmt
 import pstoolkit
 from pstoolkit.errors import UserError
-from pstoolkit.grid import event_shape
+from pstoolkit.events.rule import GREY_WEIGHTS, log_irradiance
+from pstoolkit.grid import area_weights, event_shape
 from pstoolkit.optics.brdf import GGX
 from pstoolkit.optics.layouts import layout_light, layout_lights
-from pstoolkit.optics.lights import RingLight, SampledLight
+from pstoolkit.optics.lights import US_PER_S, LightModel, RingLight, SampledLight
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.plugin.options import parse_assignments
 from pstoolkit.sim import ring_engine
 from pstoolkit.sim.config import AUTO_GAINS, BIT_DEPTHS, SimulationConfig  # noqa: F401 -- also importable from here, as before
 from pstoolkit.sim.esim import simulate_events
 from pstoolkit.sim.exposure import exposure_plan, exposure_samples
+from pstoolkit.sim.keyed import event_render, key_times_us, window_mean
 from pstoolkit.sim.render import Renderer
+from pstoolkit.sim.renderers import OWN, Rendering
 from pstoolkit.sim.scenes import SceneMaps
 from pstoolkit.sim.sensor import FrameSensor
 from pstoolkit.sim.timing import (  # noqa: F401 -- also importable from here, as before
@@ -67,6 +74,11 @@ from pstoolkit.sim.timing import (  # noqa: F401 -- also importable from here, a
 from pstoolkit.solve.base import Progress, no_progress
 
 DIFFUSE_LEVEL = 0.8
+DIFFUSE_PERCENTILE = 99.0
+"""An independent renderer's automatic gain (``auto_gain="diffuse"``) puts this percentile of the
+masked frame values at ``DIFFUSE_LEVEL``: the brightest diffuse value, highlights excluded."""
+RENDER_SHARE = 0.8
+"""Share of the progress bar given to an independent renderer's key images; the events take the rest."""
 # Step of the light (degrees of its path) between the cast-shadow sweeps, interpolated in between
 # (``Renderer(shadow_step_us=…)``): one sweep serves all frame and event samples near it.
 SHADOW_STEP_DEG = 1.0
@@ -91,15 +103,32 @@ def build_scene(config: SimulationConfig) -> SceneMaps:
         raise UserError(f"scene {config.scene!r}: {exc}") from None
 
 
+def build_light(config: SimulationConfig) -> LightModel:
+    """The configured ring light, or the lights of a grid or file layout (``SampledLight``)."""
+    layout = layout_lights(config.lights)
+    if layout is not None:
+        return layout_light(*layout)
+    return RingLight(elevation_deg=config.elevation_deg, period_us=config.period_us)
+
+
 def build_renderer(config: SimulationConfig, maps: SceneMaps, brdf: Any) -> Renderer:
     """The scene under the configured ring light, with cast shadows on the simulator's shadow grid, or
     under the lights of a grid or file layout, with cast shadows swept exactly for each of them."""
-    layout = layout_lights(config.lights)
-    if layout is not None:
-        return Renderer(maps, layout_light(*layout), brdf, shadows=config.shadows, device=config.device)
-    light = RingLight(elevation_deg=config.elevation_deg, period_us=config.period_us)
+    light = build_light(config)
+    if isinstance(light, SampledLight):
+        return Renderer(maps, light, brdf, shadows=config.shadows, device=config.device)
     shadow_step_us = config.period_us / exposure_samples(light, 0, config.period_us, SHADOW_STEP_DEG)
     return Renderer(maps, light, brdf, shadows=config.shadows, device=config.device, shadow_step_us=shadow_step_us)
+
+
+def prepare_rendering(config: SimulationConfig, maps: SceneMaps) -> Rendering:
+    """The scene of ``maps`` made ready by the configured independent renderer (its options parsed)."""
+    entry = get_registries().renderers.get(config.renderer)
+    options = entry.parse_options(config.renderer_options)
+    try:
+        return entry.obj().prepare(maps, config.seed, **options)
+    except UserError as exc:
+        raise UserError(f"renderer {config.renderer!r}: {exc}") from None
 
 
 def compiled_blocks(config: SimulationConfig, renderer: Renderer) -> Iterator[ring_engine.Block]:
@@ -157,32 +186,41 @@ def _simulate(config: SimulationConfig, path: str | os.PathLike[str], progress: 
     if not path.parent.is_dir():
         raise UserError(f"{path}: folder {path.parent} does not exist")
     registries = get_registries()
-    brdf = registries.brdfs.get(config.brdf).obj()
-    diffuse = registries.brdfs.get("lambertian").obj()
     maps = build_scene(config)
-    renderer = build_renderer(config, maps, brdf)
+    rendering = None if config.renderer == OWN else prepare_rendering(config, maps)
     noise_rng, _ = (np.random.default_rng(s) for s in np.random.SeedSequence(config.seed).spawn(2))
     n_events = 0
     event_size: tuple[int, int] | None = None
+    # what an independent renderer draws is the truth: its mask of wholly covered pixels and its normals
+    normal, mask = (maps.normal, maps.mask) if rendering is None else (rendering.normal, rendering.mask)
     with psfmt.CaptureWriter(
         path, description=_description(config), creator="pstoolkit", creator_version=pstoolkit.__version__
     ) as writer:
         # first, so the writer's threads compress the maps while the engine is set up
         writer.set_ground_truth(
-            psfmt.GroundTruth(
-                normal=maps.normal, mask=maps.mask, albedo=maps.albedo, depth=maps.depth, materials=maps.materials()
-            )
+            psfmt.GroundTruth(normal=normal, mask=mask, albedo=maps.albedo, depth=maps.depth, materials=maps.materials())
         )
         sensor = config.frame_sensor()
         writer.begin_frames(config.size, config.size, 3, BIT_DEPTHS[sensor.bit_depth], bit_depth=sensor.bit_depth,
                             black_level=sensor.black_level)
-        if config.discrete:
-            n_frames = _write_discrete(config, renderer, diffuse, writer, noise_rng, report)
+        if rendering is not None:
+            light = build_light(config)
+            if config.discrete:
+                n_frames = _write_rendered_discrete(config, rendering, light, writer, noise_rng, report)
+            else:
+                n_events, event_size = _write_rendered_hybrid(config, rendering, light, writer, noise_rng, report)
         else:
-            n_events, event_size = _write_hybrid(config, renderer, diffuse, writer, noise_rng, report)
+            renderer = build_renderer(config, maps, registries.brdfs.get(config.brdf).obj())
+            light = renderer.light
+            diffuse = registries.brdfs.get("lambertian").obj()
+            if config.discrete:
+                n_frames = _write_discrete(config, renderer, diffuse, writer, noise_rng, report)
+            else:
+                n_events, event_size = _write_hybrid(config, renderer, diffuse, writer, noise_rng, report)
+        if not config.discrete:
             n_frames = config.frames * config.periods
             writer.set_calibration(config.calibration())
-        writer.set_lights(renderer.light.to_spec())
+        writer.set_lights(light.to_spec())
     return SimulationSummary(path, n_frames, n_events, event_size, time.perf_counter() - started)
 
 
@@ -254,7 +292,6 @@ def _write_hybrid(
     """Events and long exposures tiling each period, in one pass over time."""
     brdfs = _gain_brdfs(config, renderer, diffuse)
     event_size = event_shape(config.size, config.size, config.event_scale)
-    period = config.period_us
     bounds = config.exposure_bounds_us()
     if ring_engine.supported(renderer):
         n_events, exposures = _write_compiled(config, renderer, event_size, writer, report, brdfs)
@@ -262,16 +299,26 @@ def _write_hybrid(
         sums = _FrameSums(config, renderer, brdfs, bounds)
         n_events = _write_events(config, renderer, event_size, writer, report, sums)
         exposures = sums.exposures()
+    gain = config.exposure_gain or _auto_gain(max(float(e[-1].max()) for e in exposures), config.frame_sensor())
+    _append_windows(config, [e[0] for e in exposures], gain, writer, rng)
+    return n_events, event_size
+
+
+def _append_windows(
+    config: SimulationConfig, exposures: list[np.ndarray], gain: float, writer: psfmt.CaptureWriter, rng: np.random.Generator
+) -> None:
+    """The long exposures (H, W, 3) of the first period's windows as frames of every period, through
+    the frame sensor."""
     sensor = config.frame_sensor()
-    gain = config.exposure_gain or _auto_gain(max(float(e[-1].max()) for e in exposures), sensor)
+    period = config.period_us
+    bounds = config.exposure_bounds_us()
     for p in range(config.periods):
         for k, exposure in enumerate(exposures):
             writer.append_frames(
-                sensor.quantise(gain * exposure[0], rng),
+                sensor.quantise(gain * exposure, rng),
                 t_start_us=[p * period + bounds[k]],
                 t_end_us=[p * period + bounds[k + 1]],
             )
-    return n_events, event_size
 
 
 def _write_compiled(
@@ -299,6 +346,14 @@ def _write_compiled(
     return count, exposures
 
 
+def _discrete_times(config: SimulationConfig, light: LightModel) -> np.ndarray:
+    """The times of a classic capture's lights: each light of a grid or file layout (at its sample
+    time), or ``discrete_lights`` times evenly spaced over the first period of the ring."""
+    if isinstance(light, SampledLight):
+        return light.times_us
+    return np.arange(config.discrete_lights, dtype=np.float64) * config.period_us / config.discrete_lights
+
+
 def _write_discrete(
     config: SimulationConfig,
     renderer: Renderer,
@@ -309,10 +364,7 @@ def _write_discrete(
 ) -> int:
     """One frame per instantaneous light: each light of a grid or file layout (at its sample time),
     or ``discrete_lights`` ring lights evenly spaced over the first period. Returns the frame count."""
-    if isinstance(renderer.light, SampledLight):
-        t_us = renderer.light.times_us
-    else:
-        t_us = np.arange(config.discrete_lights, dtype=np.float64) * config.period_us / config.discrete_lights
+    t_us = _discrete_times(config, renderer.light)
     shaded = renderer.shade(t_us, _gain_brdfs(config, renderer, diffuse))
     images = renderer.scatter(shaded[0]).cpu().numpy()
     report(1.0, "frames")
@@ -354,3 +406,64 @@ def _write_events(
     return append_event_chunks(writer, event_size, ((c, float(c.t[-1])) for c in chunks), config.duration_us, report)
 
 
+
+
+def _rendered_gain(config: SimulationConfig, values: np.ndarray, mask: np.ndarray) -> float:
+    """The gain of an independent renderer's frames (``values`` (N, H, W, 3)): ``--exposure-gain``, or
+    the automatic gain set by the brightest value (``peak``) or, as the renderer cannot tell the
+    diffuse part apart, by the ``DIFFUSE_PERCENTILE``-th percentile of the masked values."""
+    if config.exposure_gain is not None:
+        return config.exposure_gain
+    inside = values[:, mask] if mask.any() else values
+    peak = float(inside.max()) if config.auto_gain == "peak" else float(np.percentile(inside, DIFFUSE_PERCENTILE))
+    return _auto_gain(peak, config.frame_sensor())
+
+
+def _write_rendered_discrete(
+    config: SimulationConfig, rendering: Rendering, light: LightModel, writer: psfmt.CaptureWriter,
+    rng: np.random.Generator, report: Progress,
+) -> int:
+    """A classic capture of an independent renderer: one rendered frame per instantaneous light.
+    Returns the frame count."""
+    t_us = _discrete_times(config, light)
+    images = rendering.images(light, t_us, report)
+    gain = _rendered_gain(config, images, rendering.mask)
+    direction, intensity = light.evaluate(t_us)
+    writer.append_frames(
+        config.frame_sensor().quantise(gain * images, rng), light_direction=direction, light_intensity=intensity
+    )
+    return len(t_us)
+
+
+def _write_rendered_hybrid(
+    config: SimulationConfig, rendering: Rendering, light: LightModel, writer: psfmt.CaptureWriter,
+    rng: np.random.Generator, report: Progress,
+) -> tuple[int, tuple[int, int]]:
+    """A hybrid capture of an independent renderer: key images every ``key_step_deg`` of the first
+    turn, then the long exposures in closed form and the events of ESIM over the log-linear
+    interpolation between keys (``pstoolkit.sim.keyed``), periodic over all periods."""
+    period = config.period_us
+    knots = key_times_us(period, int(np.ceil(360.0 / config.key_step_deg - 1e-9)))
+    images = rendering.images(light, knots[:-1].astype(np.float64), lambda f, m: report(RENDER_SHARE * f, m))
+    log_rgb = log_irradiance(images.astype(np.float64))
+    bounds = config.exposure_bounds_us()
+    exposures = [
+        window_mean(log_rgb, knots, bounds[k], bounds[k + 1]) * ((bounds[k + 1] - bounds[k]) / US_PER_S)
+        for k in range(config.frames)
+    ]
+    _append_windows(config, exposures, _rendered_gain(config, np.stack(exposures), rendering.mask), writer, rng)
+    del log_rgb
+    height, width = event_shape(config.size, config.size, config.event_scale)
+    av = area_weights(height, config.size, config.event_scale)
+    au = area_weights(width, config.size, config.event_scale)
+    grey = images.astype(np.float64) @ np.asarray(GREY_WEIGHTS)
+    log_keys = log_irradiance(av @ grey @ au.T)
+    chunks = simulate_events(
+        event_render(log_keys, knots, period), 0, config.duration_us, width=width, height=height,
+        sensor=config.sensor(), min_dt_us=config.min_step_us,
+    )
+    count = append_event_chunks(
+        writer, (height, width), ((c, float(c.t[-1])) for c in chunks), config.duration_us,
+        lambda f, m: report(RENDER_SHARE + (1.0 - RENDER_SHARE) * f, m),
+    )
+    return count, (height, width)

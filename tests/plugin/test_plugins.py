@@ -55,6 +55,7 @@ def solver_plugin(solver: str, *, option: bool = False) -> str:
 
 ALL_HOOKS = """
     from pstoolkit import BRDF, Converter, LightBackend, LightModel, ShadowDetector, Solver, hookimpl
+    from pstoolkit.sim.renderers import SceneRenderer
     from pstoolkit.sim.scenes import Scene
     from pstoolkit.surface import Integrator
 
@@ -93,6 +94,10 @@ ALL_HOOKS = """
         registry.register(Integrator, name="fake-integrator", summary="an integrator")
 
     @hookimpl
+    def pstoolkit_register_renderers(registry):
+        registry.register(SceneRenderer, name="fake-renderer", summary="a renderer")
+
+    @hookimpl
     def pstoolkit_add_commands(app):
         @app.command()
         def fake_hello(name: str = "world") -> None:
@@ -128,6 +133,7 @@ def test_every_register_hook_fills_its_own_registry(fresh: pytest.MonkeyPatch, t
         "converters": "fake-converter",
         "scenes": "fake-scene",
         "integrators": "fake-integrator",
+        "renderers": "fake-renderer",
     }
     assert {kind: registry.names() for kind, registry in registries.items()} == {k: [v] for k, v in expected.items()}
     assert all(e.plugin == "all" for _, registry in registries.items() for e in registry)
