@@ -1,5 +1,5 @@
 """Registries: the named light models, shadow detectors, BRDFs, solvers, backends, converters,
-scenes and normal integrators that plugins provide, each with a one-line summary and typed options."""
+scenes, normal integrators and light calibrations that plugins provide, each with a one-line summary and typed options."""
 
 from __future__ import annotations
 
@@ -182,6 +182,7 @@ class Registries:
     converters: Registry = field(default_factory=lambda: Registry("converter", "pstoolkit.io.converter:Converter"))
     scenes: Registry = field(default_factory=lambda: Registry("scene", "pstoolkit.sim.scenes:Scene"))
     integrators: Registry = field(default_factory=lambda: Registry("integrator", "pstoolkit.surface.base:Integrator"))
+    light_calibrations: Registry = field(default_factory=lambda: Registry("light calibration", "pstoolkit.hardware.lightcal:LightCalibration"))
 
     def items(self) -> list[tuple[str, Registry]]:
         """(field name, registry) pairs in declaration order."""

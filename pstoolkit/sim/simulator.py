@@ -124,8 +124,10 @@ def quantise(exposure: np.ndarray, gain: float, bit_depth: int, noise: float, rn
     return np.clip(np.rint(value), 0.0, saturation).astype(BIT_DEPTHS[bit_depth])
 
 
-def _auto_gain(peak: float, bit_depth: int) -> float:
-    """The gain that puts ``peak`` (the brightest value the gain is set by) at ``DIFFUSE_LEVEL``."""
+def _auto_gain(peak: float, bit_depth: int, overall_peak: float = 0.0) -> float:
+    """The gain that puts ``peak`` (the brightest value the gain is set by) at ``DIFFUSE_LEVEL``; a
+    scene with no diffuse part (``peak`` 0: a chrome sphere) is set by ``overall_peak`` instead."""
+    peak = peak if peak > 0 else overall_peak
     if not peak > 0:
         raise UserError("the scene receives no light (every frame is black); check --elevation-deg or --lights")
     return DIFFUSE_LEVEL * float(2**bit_depth - 1) / peak
@@ -270,7 +272,9 @@ def _write_hybrid(
         sums = _FrameSums(config, renderer, brdfs, bounds)
         n_events = _write_events(config, renderer, event_size, writer, report, sums)
         exposures = sums.exposures()
-    gain = config.exposure_gain or _auto_gain(max(float(e[-1].max()) for e in exposures), config.bit_depth)
+    gain = config.exposure_gain or _auto_gain(
+        max(float(e[-1].max()) for e in exposures), config.bit_depth, max(float(e[0].max()) for e in exposures)
+    )
     for p in range(config.periods):
         for k, exposure in enumerate(exposures):
             writer.append_frames(
@@ -323,7 +327,7 @@ def _write_discrete(
     shaded = renderer.shade(t_us, _gain_brdfs(config, renderer, diffuse))
     images = renderer.scatter(shaded[0]).cpu().numpy()
     report(1.0, "frames")
-    gain = config.exposure_gain or _auto_gain(float(shaded[-1].max()), config.bit_depth)
+    gain = config.exposure_gain or _auto_gain(float(shaded[-1].max()), config.bit_depth, float(shaded[0].max()))
     direction, intensity = renderer.light.evaluate(t_us)
     writer.append_frames(
         quantise(images, gain, config.bit_depth, config.noise, rng),

@@ -54,7 +54,7 @@ def solver_plugin(solver: str, *, option: bool = False) -> str:
 
 
 ALL_HOOKS = """
-    from pstoolkit import BRDF, Converter, LightBackend, LightModel, ShadowDetector, Solver, hookimpl
+    from pstoolkit import BRDF, Converter, LightBackend, LightCalibration, LightModel, ShadowDetector, Solver, hookimpl
     from pstoolkit.sim.scenes import Scene
     from pstoolkit.surface import Integrator
 
@@ -93,6 +93,10 @@ ALL_HOOKS = """
         registry.register(Integrator, name="fake-integrator", summary="an integrator")
 
     @hookimpl
+    def pstoolkit_register_light_calibrations(registry):
+        registry.register(LightCalibration, name="fake-calibration", summary="a light calibration")
+
+    @hookimpl
     def pstoolkit_add_commands(app):
         @app.command()
         def fake_hello(name: str = "world") -> None:
@@ -128,6 +132,7 @@ def test_every_register_hook_fills_its_own_registry(fresh: pytest.MonkeyPatch, t
         "converters": "fake-converter",
         "scenes": "fake-scene",
         "integrators": "fake-integrator",
+        "light_calibrations": "fake-calibration",
     }
     assert {kind: registry.names() for kind, registry in registries.items()} == {k: [v] for k, v in expected.items()}
     assert all(e.plugin == "all" for _, registry in registries.items() for e in registry)

@@ -158,7 +158,7 @@ def test_peak_auto_gain_keeps_highlights_below_saturation(tmp_path: Path) -> Non
         (["sphere", "--event-scale", "2"], "--event-scale 2.0 must be in (0, 1]"),
         (["sphere", "--bit-depth", "10"], "--bit-depth 10 must be 8, 12 or 16"),
         (["sphere", "--size", "33"], "is not a whole number of event pixels"),
-        (["cube"], "unknown scene 'cube' (known: blobs, geometry, relief, sphere)"),
+        (["cube"], "unknown scene 'cube' (known: blobs, chrome-sphere, geometry, relief, sphere)"),
         (["sphere", "--set", "bogus=1"], "scene 'sphere' has no option 'bogus'"),
         (["sphere", "--brdf", "phong"], "unknown BRDF 'phong'"),
         (["sphere", "--source", "."], "--source: scene 'sphere' takes no source folder"),
