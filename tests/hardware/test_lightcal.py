@@ -21,7 +21,7 @@ from pstoolkit.plugin import manager as plugins
 from pstoolkit.plugin.manager import get_registries, load_failures
 from pstoolkit.sim.config import SimulationConfig
 from pstoolkit.sim.simulator import simulate
-from pstoolkit.testing import fake_distribution
+from pstoolkit.testing import chrome_sphere_pinhole, fake_distribution
 
 
 @pytest.fixture(scope="module")
@@ -105,46 +105,20 @@ def test_intensities_from_a_matte_sphere(tmp_path: Path, capsys: pytest.CaptureF
     assert angles_deg(np.array(report["lights"]["params"]["directions"]), directions / np.linalg.norm(directions, axis=1, keepdims=True)).max() < 0.5
 
 
-def render_perspective(
-    k: np.ndarray, centre: np.ndarray, radius: float, light: np.ndarray, size: int, lobe_deg: float | None = 3.0
-) -> np.ndarray:
-    """A chrome sphere's highlight through a pinhole camera, 4×4 samples a pixel: ray-sphere hit,
-    normal, half vector, a Gaussian lobe of ``lobe_deg`` around it (None: 1 wherever the sphere is)."""
-    offsets = (np.arange(4) + 0.5) / 4 - 0.5
-    v, u = np.mgrid[0:size, 0:size].astype(np.float64)
-    image = np.zeros((size, size))
-    for du in offsets:
-        for dv in offsets:
-            x = (u + du - k[0, 2]) / k[0, 0]
-            y = -(v + dv - k[1, 2]) / k[1, 1]
-            d = np.stack([x, y, -np.ones_like(x)], axis=-1)
-            d /= np.linalg.norm(d, axis=-1, keepdims=True)
-            b = d @ centre
-            disc = b * b - centre @ centre + radius * radius
-            t = b - np.sqrt(np.clip(disc, 0, None))
-            n = (t[..., None] * d - centre) / radius
-            h = light - d
-            h /= np.linalg.norm(h, axis=-1, keepdims=True)
-            angle = np.arccos(np.clip(np.sum(n * h, axis=-1), -1, 1))
-            lobe = 1.0 if lobe_deg is None else np.exp(-0.5 * (angle / np.radians(lobe_deg)) ** 2)
-            image += np.where(disc > 0, lobe, 0.0)
-    return image / 16
-
-
 def test_a_pinhole_camera_through_the_intrinsics() -> None:
     size = 96
     k = np.array([[120.0, 0.0, 47.5], [0.0, 120.0, 47.5], [0.0, 0.0, 1.0]])
     centre, radius = np.array([12.0, -6.0, -100.0]), 25.0  # off the axis: the outline is no circle about the centre
     # the outline from the sphere's mask, 4×4 samples a pixel
-    coverage = render_perspective(k, centre, radius, np.array([0.0, 0.0, 1.0]), size, lobe_deg=None)
+    coverage = chrome_sphere_pinhole(k, centre, radius, np.array([0.0, 0.0, 1.0]), size, lobe_deg=None)
     circle, outline = circle_from_mask(coverage > 0.5, "mask")
     sphere = SphereView.build(circle, k, outline)
     errors = []
     for light in ([0.3, 0.4, 0.866], [-0.5, 0.1, 0.86], [0.1, -0.6, 0.79]):
         light = np.array(light) / np.linalg.norm(light)
-        found = highlight_direction(render_perspective(k, centre, radius, light, size), sphere, 0.5)
+        found = highlight_direction(chrome_sphere_pinhole(k, centre, radius, light, size), sphere, 0.5)
         errors.append(float(angles_deg(found[None], light[None])[0]))
-        orthographic = highlight_direction(render_perspective(k, centre, radius, light, size), SphereView.build(circle), 0.5)
+        orthographic = highlight_direction(chrome_sphere_pinhole(k, centre, radius, light, size), SphereView.build(circle), 0.5)
         assert float(angles_deg(orthographic[None], light[None])[0]) > 1.0  # the intrinsics matter here
     assert max(errors) < 0.5, errors
 
