@@ -15,7 +15,8 @@ Rows (``kind``):
   residual and parameters.
 - ``dualres``: the ``blobs`` scene at ``--dualres-size`` (default preset) solved by dualres with its
   true light model and with the ring calibrated from the events row at the largest size and the
-  smallest refractory period: MAE of each, and their difference.
+  smallest refractory period (its period replaced by the capture's, as ``--store`` does): MAE of
+  each, and their difference.
 
 Prints the table and writes ``benchmarks/results/lightcal.json`` (``--out``).
 
@@ -39,6 +40,7 @@ import psfmt
 from pstoolkit.cli import main as cli
 from pstoolkit.evaluation.scoring import score
 from pstoolkit.hardware.highlight import highlight_direction
+from pstoolkit.hardware.lightcal import keep_period
 from pstoolkit.hardware.ringfit import angles_deg
 from pstoolkit.hardware.sphere import SphereView, circle_from_mask
 from pstoolkit.hardware.sphere_events import SphereEvents
@@ -128,7 +130,8 @@ def dualres_rows(data: Path, size: int, calibrated: psfmt.LightSpec) -> list[dic
     with psfmt.read(path) as capture:
         for case, lights in (("true lights", capture.lights), ("calibrated lights", calibrated)):
             start = time.perf_counter()
-            result, _ = run_solver(entry, replace(capture, lights=lights), options)
+            # the rig's period pulses time the frames: the stored model keeps their period (as --store does)
+            result, _ = run_solver(entry, replace(capture, lights=keep_period(lights, capture.lights)), options)
             stats = score(result.normal, capture.ground_truth).stats
             rows.append({"kind": "dualres", "case": case, "size": size, "mae_deg": stats["mae_deg"],
                          "median_deg": stats["median_deg"], "seconds": time.perf_counter() - start})

@@ -90,13 +90,33 @@ def write_light_folder(out: Path, fit: LightFit, report: dict[str, Any]) -> None
         _write_text(folder / "calibration.json", json.dumps(report, indent=2) + "\n")
 
 
+PERIOD_TOLERANCE = 0.01
+"""A fitted period within this fraction of a capture's own gives way to it (``keep_period``)."""
+
+
+def keep_period(spec: psfmt.LightSpec, current: psfmt.LightSpec | None) -> psfmt.LightSpec:
+    """``spec`` with the period of ``current`` (a capture's light model) when both state one and they
+    agree within ``PERIOD_TOLERANCE``: a capture's frames are timed by the light's own period pulses,
+    and a fitted period (good to about 0.1 %) must not contradict them."""
+    if current is None or "period_us" not in spec.params or "period_us" not in current.params:
+        return spec
+    try:
+        fitted, own = float(spec.params["period_us"]), float(current.params["period_us"])
+    except (TypeError, ValueError):
+        return spec
+    if not (own > 0 and abs(fitted / own - 1.0) <= PERIOD_TOLERANCE):
+        return spec
+    return psfmt.LightSpec(spec.model, {**spec.params, "period_us": own})
+
+
 def store_lights(path: str | os.PathLike[str], fit: LightFit) -> None:
     """Set the light model of the capture at ``path`` to ``fit.spec``, rewriting it atomically
-    (everything else kept). A classic capture whose frames carry one light each, as many as the fit
-    measured, gets the measured directions and intensities on its frames too."""
+    (everything else kept); the capture's own period is kept where it agrees (``keep_period``). A
+    classic capture whose frames carry one light each, as many as the fit measured, gets the
+    measured directions and intensities on its frames too."""
     capture = psfmt.read(path)
     try:
-        capture.lights = fit.spec
+        capture.lights = keep_period(fit.spec, capture.lights)
         frames = capture.frames
         if frames is not None and frames.light_direction is not None and frames.count == len(fit.directions):
             frames.light_direction = np.asarray(fit.directions, dtype=np.float64)

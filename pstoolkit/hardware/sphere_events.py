@@ -37,6 +37,7 @@ WINDOWS_PER_TURN = 180
 TOP_PERCENTILE = 99.0
 """The rise the track threshold is a fraction of (a percentile, so that a hot pixel does not set it)."""
 MAX_WINDOWS = 1 << 20
+MAX_SENSOR_PIXELS = 1 << 26
 MODELS = ("ring", "near-ring")
 
 
@@ -83,6 +84,8 @@ def pixel_peaks(
         t1 = t0 + max(int(np.ceil(turn_us)), 1)
         chunk = events.window(t0, t1)
         t0 = t1
+        if len(chunk) and (int(chunk.x.max()) >= width or int(chunk.y.max()) >= events.height):
+            raise UserError(f"an event at ({int(chunk.x.max())}, {int(chunk.y.max())}) lies beyond the {width}×{events.height} sensor")
         where = pixel_index[chunk.y.astype(np.int64) * width + chunk.x]
         on = where >= 0
         if not on.any():
@@ -160,6 +163,8 @@ class SphereEvents(LightCalibration):
         """Times (N,) and light directions (N, 3) of the highlight, one per window with enough events."""
 
         he, we = events.height, events.width
+        if he * we > MAX_SENSOR_PIXELS:
+            raise UserError(f"the event sensor's {we}×{he} pixels are more than the {MAX_SENSOR_PIXELS:,} calibration takes")
         ve, ue = np.mgrid[0:he, 0:we]
         frame_uv = apply_affine(affine, np.stack([ue.ravel(), ve.ravel()], axis=1).astype(np.float64))
         c = sphere.circle

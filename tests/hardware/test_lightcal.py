@@ -137,6 +137,13 @@ def test_the_ring_from_the_events_of_a_turn(tmp_path: Path, capsys: pytest.Captu
     t = np.linspace(0.0, truth.period_us, 90, endpoint=False)
     assert angles_deg(fitted.evaluate(t)[0], truth.evaluate(t)[0]).max() < 0.5
     assert abs(fitted.period_us / truth.period_us - 1.0) < 0.005
+    # stored into a capture, the model keeps the capture's own period (its frames are timed by it)
+    target = tmp_path / "scene.h5"
+    shutil.copy(path, target)
+    assert main(["calibrate", "lights", str(path), "--store", str(target), "-q"]) == 0
+    with psfmt.read(target) as capture:
+        stored = RingLight.from_spec(capture.lights)
+    assert stored.period_us == truth.period_us and stored.elevation_deg == pytest.approx(fitted.elevation_deg)
 
 
 def test_the_near_ring_fit_tells_radius_and_height_apart() -> None:
