@@ -19,7 +19,8 @@ blocks.
 
 Frames: exposure (irradiance × seconds) times a gain that puts the brightest diffuse value of any
 frame at ``DIFFUSE_LEVEL`` of saturation, so specular highlights may clip as in an LDR camera
-(``auto_gain="peak"`` puts the brightest value of all there instead, so nothing clips); optional
+(``auto_gain="peak"`` puts the brightest value of all there instead, so nothing clips, as does a
+scene with no diffuse part, ``chrome-sphere``); optional
 shot and read noise; quantised to 8, 12 or 16 bits. The same configuration and seed give the same data.
 
     config = SimulationConfig(scene="blobs", size=128, seed=0)

@@ -52,6 +52,8 @@ def test_frames_of_a_capture_give_the_grid_within_half_a_degree(chrome_grid: Pat
     assert (report["method"], report["measured"], report["camera"]) == ("sphere-frames", 96, "orthographic")
     with psfmt.read(chrome_grid) as capture:
         truth = np.asarray(capture.frames.light_direction)
+        # no diffuse part: the automatic gain puts the brightest highlight at 80 % of saturation
+        assert capture.frames.as_float().max() == pytest.approx(0.8, abs=0.01)
     measured = np.loadtxt(out / "light_directions.txt")
     error = angles_deg(measured, truth)
     assert error.max() < 0.5 and error.mean() < 0.3
