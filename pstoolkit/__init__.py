@@ -10,7 +10,7 @@ rule and the EventPS relation), ``sim`` (scenes, renderer, event engines, the si
 A plugin imports what it needs from here: ``hookimpl`` to mark its hook functions, ``Option`` for
 typed options, ``Registry`` for the registries its hooks receive, ``Solver``/``SolverResult`` and
 ``Progress`` for solvers, ``Converter`` for dataset converters, ``LightBackend`` and ``CameraSource``
-for hardware, ``LightModel`` and the built-in light models, ``BRDF``/``FitParam`` for reflectance
+for hardware, ``LightCalibration``/``LightFit`` for light calibrations, ``LightModel`` and the built-in light models, ``BRDF``/``FitParam`` for reflectance
 models, ``ShadowDetector`` and its evidence and mask types for shadow detectors, ``UserError`` for
 one-line errors, and the units and constants (``US_PER_S``, ``GREY_WEIGHTS``). Importing the
 package loads neither torch nor numba: ``BRDF`` and ``FitParam`` (torch) load on first use.
@@ -31,6 +31,7 @@ from pstoolkit._shared import aliases as _aliases
 from pstoolkit.errors import UserError
 from pstoolkit.events.rule import GREY_WEIGHTS
 from pstoolkit.hardware.backend import CameraSource, LightBackend
+from pstoolkit.hardware.lightcal import LightCalibration, LightFit
 from pstoolkit.io.converter import Converter
 from pstoolkit.optics.lights import US_PER_S, LightModel, NearRingLight, RingLight, SampledLight, build_light_model
 from pstoolkit.plugin.manager import get_registries, hookimpl
@@ -78,7 +79,8 @@ def __getattr__(name: str) -> Any:
 
 
 __all__ = [
-    "BRDF", "GREY_WEIGHTS", "US_PER_S", "CameraSource", "Converter", "FitParam", "LightBackend", "LightModel",
+    "BRDF", "GREY_WEIGHTS", "US_PER_S", "CameraSource", "Converter", "FitParam", "LightBackend",
+    "LightCalibration", "LightFit", "LightModel",
     "NearRingLight", "Option", "Progress", "Registry", "RingLight", "SampledLight", "ShadowDetector", "ShadowEvidence",
     "ShadowIntervals", "ShadowMask", "Solution", "Solver", "SolverResult", "UserError", "__version__", "build_light_model",
     "get_registries", "hookimpl", "no_progress", "solve",

@@ -141,3 +141,32 @@ def sphere_capture(path: Path, size: int = 48, lights: int = 8, albedo: float = 
     )
     psfmt.write(capture, path)
     return path
+
+
+def chrome_sphere_pinhole(
+    k: np.ndarray, centre: np.ndarray, radius: float, light: np.ndarray, size: int, lobe_deg: float | None = 3.0
+) -> np.ndarray:
+    """A size×size image of a chrome sphere's highlight through a pinhole camera ``k`` (3, 3) (the
+    conventions of ``psfmt.camera``): sphere ``centre`` (3,) and ``radius`` in mm, unit ``light``
+    (3,) towards a distant light; 4×4 samples a pixel, each the ray's hit on the sphere, its normal
+    and a Gaussian lobe of ``lobe_deg`` around the half vector (None: 1 wherever the ray hits, the
+    sphere's coverage). A target for light calibrations independent of their own geometry."""
+    offsets = (np.arange(4) + 0.5) / 4 - 0.5
+    v, u = np.mgrid[0:size, 0:size].astype(np.float64)
+    image = np.zeros((size, size))
+    for du in offsets:
+        for dv in offsets:
+            x = (u + du - k[0, 2]) / k[0, 0]
+            y = -(v + dv - k[1, 2]) / k[1, 1]
+            d = np.stack([x, y, -np.ones_like(x)], axis=-1)
+            d /= np.linalg.norm(d, axis=-1, keepdims=True)
+            b = d @ centre
+            disc = b * b - centre @ centre + radius * radius
+            t = b - np.sqrt(np.clip(disc, 0, None))
+            n = (t[..., None] * d - centre) / radius
+            h = light - d
+            h /= np.linalg.norm(h, axis=-1, keepdims=True)
+            angle = np.arccos(np.clip(np.sum(n * h, axis=-1), -1, 1))
+            lobe = 1.0 if lobe_deg is None else np.exp(-0.5 * (angle / np.radians(lobe_deg)) ** 2)
+            image += np.where(disc > 0, lobe, 0.0)
+    return image / 16

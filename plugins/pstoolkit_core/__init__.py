@@ -1,5 +1,5 @@
-"""First-party plugin that registers pstoolkit's built-in light models, shadow detectors, BRDFs, scenes
-and normal integrators.
+"""First-party plugin that registers pstoolkit's built-in light models, shadow detectors, BRDFs, scenes,
+normal integrators and light calibrations.
 
 It is found through the ``pstoolkit`` entry-point group and uses the same hooks as a third-party
 plugin. Imports sit inside the hooks, so a module that fails to import spoils only its own registry
@@ -54,3 +54,12 @@ def pstoolkit_register_integrators(registry: Registry) -> None:
 
     for integrator in (PoissonIntegrator, BiNIIntegrator):
         registry.register(integrator)
+
+
+@hookimpl
+def pstoolkit_register_light_calibrations(registry: Registry) -> None:
+    from pstoolkit.hardware.sphere_events import SphereEvents
+    from pstoolkit.hardware.sphere_frames import SphereFrames
+
+    for calibration in (SphereFrames, SphereEvents):
+        registry.register(calibration)

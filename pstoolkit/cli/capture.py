@@ -73,7 +73,7 @@ def _stored_affine(path: Path) -> psfmt.Calibration:
         raise UserError(f"--calibration {path}: does not exist")
     with psfmt.read(path) as capture:
         if capture.calibration.event_to_frame is None:
-            raise UserError(f"--calibration {path}: holds no event_to_frame affine (run `pstoolkit calibrate {path}` first)")
+            raise UserError(f"--calibration {path}: holds no event_to_frame affine (run `pstoolkit calibrate affine {path}` first)")
         return capture.calibration
 
 

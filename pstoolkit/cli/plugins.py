@@ -71,7 +71,7 @@ def plugins(
     quiet: bool = typer.Option(False, "--quiet", "-q", help=QUIET_HELP),
 ) -> None:
     """List every plugin with its version and what it registered (light models, shadow detectors,
-    BRDFs, solvers, backends, converters, scenes, integrators, renderers) with options, and plugins that failed
+    BRDFs, solvers, backends, converters, scenes, integrators, renderers, light calibrations) with options, and plugins that failed
     to load."""
     listing = [(info, _holdings(info.name)) for info in loaded_plugins()]
     failures = load_failures()

@@ -21,7 +21,7 @@ _DEFAULTS = SimulationConfig()
 
 @app.command("simulate")
 def simulate_command(
-    scene: str = typer.Argument(..., help="A registered scene: sphere, blobs, relief, geometry or a plugin's."),
+    scene: str = typer.Argument(..., help="A registered scene: sphere, chrome-sphere, blobs, relief, geometry or a plugin's."),
     out: Path = typer.Option(..., "-o", "--out", help="The capture file to write (HDF5)."),
     size: int = typer.Option(_DEFAULTS.size, "--size", help="Frame width and height in pixels."),
     seed: int = typer.Option(_DEFAULTS.seed, "--seed", help="Seed of every random choice; the same seed writes the same data."),

@@ -1,5 +1,6 @@
 """Registries: the named light models, shadow detectors, BRDFs, solvers, backends, converters,
-scenes, normal integrators and independent renderers that plugins provide, each with a one-line summary and typed options."""
+scenes, normal integrators, independent renderers and light calibrations that plugins provide, each with a
+one-line summary and typed options."""
 
 from __future__ import annotations
 
@@ -183,6 +184,7 @@ class Registries:
     scenes: Registry = field(default_factory=lambda: Registry("scene", "pstoolkit.sim.scenes:Scene"))
     integrators: Registry = field(default_factory=lambda: Registry("integrator", "pstoolkit.surface.base:Integrator"))
     renderers: Registry = field(default_factory=lambda: Registry("renderer", "pstoolkit.sim.renderers:SceneRenderer"))
+    light_calibrations: Registry = field(default_factory=lambda: Registry("light calibration", "pstoolkit.hardware.lightcal:LightCalibration"))
 
     def items(self) -> list[tuple[str, Registry]]:
         """(field name, registry) pairs in declaration order."""

@@ -80,6 +80,13 @@ def pstoolkit_register_renderers(registry: Registry) -> None:
 
 
 @hookspec
+def pstoolkit_register_light_calibrations(registry: Registry) -> None:
+    """Register light calibrations (subclasses of ``pstoolkit.hardware.lightcal.LightCalibration``):
+    ways to measure a rig's light model from a recording of a target (a chrome sphere …); each
+    becomes a choice of ``pstoolkit calibrate lights SOURCE --method NAME``."""
+
+
+@hookspec
 def pstoolkit_add_commands(app: typer.Typer) -> None:
     """Add commands to the ``pstoolkit`` command line: decorate functions with ``@app.command()``.
     Called once, when the ``pstoolkit`` command starts (``pstoolkit.cli.main``)."""

@@ -200,6 +200,20 @@ class Sphere(Scene):
         return assemble(normal, radius_px * z, mask, materials, self_shadowing=False)
 
 
+class ChromeSphere(Sphere):
+    """A polished metal sphere, the target that rigs calibrate their lights with: ``sphere`` with a
+    low-roughness GGX lobe and no diffuse part (metallic 1), so each light shows as one small
+    highlight at its mirror point (``pstoolkit calibrate lights``). Having no diffuse part, its frames
+    take their automatic gain from the highlights' peak."""
+
+    name: ClassVar[str] = "chrome-sphere"
+    summary: ClassVar[str] = "mirror-like metal sphere (low-roughness GGX, no diffuse part) for light calibration"
+    options: ClassVar[tuple[Option, ...]] = (
+        Option("radius", float, 0.9, "radius as a fraction of half the frame width", minimum=0.05, maximum=1.0),
+        *material_options(albedo="white", f0=DIELECTRIC_F0, roughness=0.25, metallic=1.0),
+    )
+
+
 class Blobs(Scene):
     """Smooth Gaussian bumps of random height and width on a flat base that fills the frame: a
     non-convex surface whose steep bumps cast long shadows onto the base and onto each other."""
@@ -351,4 +365,4 @@ def crop_resize(
     return n, np.where(small_mask, h, 0.0), small_mask
 
 
-SCENES: tuple[type[Scene], ...] = (Sphere, Blobs, Relief, Geometry)
+SCENES: tuple[type[Scene], ...] = (Sphere, ChromeSphere, Blobs, Relief, Geometry)

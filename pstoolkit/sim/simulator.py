@@ -24,8 +24,9 @@ assembly (truth, gain, quantisation, light model, calibration) is shared.
 Frames: exposure (irradiance × seconds) times a gain that puts the brightest diffuse value of any
 frame at ``DIFFUSE_LEVEL`` of the range from black to saturation, so specular highlights may clip as
 in an LDR camera (``auto_gain="peak"`` puts the brightest value of all there instead, so nothing
-clips); then the frame sensor (``pstoolkit.sim.sensor.FrameSensor``): black level, optional shot and
-read noise, quantised to 8, 10, 12 or 16 bits. The same configuration and seed give the same data.
+clips, as does a scene with no diffuse part, ``chrome-sphere``); then the frame sensor
+(``pstoolkit.sim.sensor.FrameSensor``): black level, optional shot and read noise, quantised to 8, 10,
+12 or 16 bits. The same configuration and seed give the same data.
 
     config = SimulationConfig(scene="blobs", size=128, seed=0)
     summary = simulate(config, "blobs.h5", progress=lambda fraction, message: ...)
@@ -143,9 +144,11 @@ def compiled_blocks(config: SimulationConfig, renderer: Renderer) -> Iterator[ri
     )
 
 
-def _auto_gain(peak: float, sensor: FrameSensor) -> float:
+def _auto_gain(peak: float, sensor: FrameSensor, overall_peak: float = 0.0) -> float:
     """The gain that puts ``peak`` (the brightest value the gain is set by) at ``DIFFUSE_LEVEL`` of the
-    sensor's range above black."""
+    sensor's range above black; a scene with no diffuse part (``peak`` 0: a chrome sphere) is set by
+    ``overall_peak`` instead."""
+    peak = peak if peak > 0 else overall_peak
     if not peak > 0:
         raise UserError("the scene receives no light (every frame is black); check --elevation-deg or --lights")
     return DIFFUSE_LEVEL * sensor.signal_range() / peak
@@ -299,7 +302,9 @@ def _write_hybrid(
         sums = _FrameSums(config, renderer, brdfs, bounds)
         n_events = _write_events(config, renderer, event_size, writer, report, sums)
         exposures = sums.exposures()
-    gain = config.exposure_gain or _auto_gain(max(float(e[-1].max()) for e in exposures), config.frame_sensor())
+    gain = config.exposure_gain or _auto_gain(
+        max(float(e[-1].max()) for e in exposures), config.frame_sensor(), max(float(e[0].max()) for e in exposures)
+    )
     _append_windows(config, [e[0] for e in exposures], gain, writer, rng)
     return n_events, event_size
 
@@ -369,7 +374,7 @@ def _write_discrete(
     images = renderer.scatter(shaded[0]).cpu().numpy()
     report(1.0, "frames")
     sensor = config.frame_sensor()
-    gain = config.exposure_gain or _auto_gain(float(shaded[-1].max()), sensor)
+    gain = config.exposure_gain or _auto_gain(float(shaded[-1].max()), sensor, float(shaded[0].max()))
     direction, intensity = renderer.light.evaluate(t_us)
     writer.append_frames(
         sensor.quantise(gain * images, rng),

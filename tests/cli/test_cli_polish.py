@@ -27,7 +27,10 @@ from pstoolkit.cli import _commands, main
 from pstoolkit.cli import app as cli_app
 from pstoolkit.cli.app import progress_bar
 
-REPORTING = ["batch", "calibrate", "capture", "convert", "eval", "export", "info", "integrate", "plugins", "report", "run", "simulate", "validate"]
+REPORTING = [
+    "batch", "calibrate affine", "calibrate lights", "capture",
+    "convert", "eval", "export", "info", "integrate", "plugins", "report", "run", "simulate", "validate",
+]
 """Every command that reports something (``view`` serves a page until Ctrl-C: it reports nothing)."""
 
 
@@ -40,8 +43,13 @@ def fake_terminal(clock: list[float] | None = None) -> tuple[Console, io.StringI
 
 
 def command_names() -> list[str]:
+    """Every leaf command, a group's as "group sub" (``calibrate affine``)."""
     _commands()
-    return sorted(typer.main.get_command(cli_app.app).commands)  # type: ignore[attr-defined]
+    names = []
+    for name, command in typer.main.get_command(cli_app.app).commands.items():  # type: ignore[attr-defined]
+        subcommands = getattr(command, "commands", None)
+        names += [f"{name} {sub}" for sub in subcommands] if subcommands else [name]
+    return sorted(names)
 
 
 def run_cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
@@ -108,7 +116,7 @@ def test_every_command_takes_quiet_and_json_where_it_reports(capsys: pytest.Capt
     names = command_names()
     assert set(REPORTING) | {"view"} == set(names)
     for name in names:
-        code, out, _ = run_cli(capsys, name, "--help")
+        code, out, _ = run_cli(capsys, *name.split(), "--help")
         assert code == 0
         assert "-q, --quiet" in out, name
         assert ("--json" in out) == (name in REPORTING), name
@@ -181,7 +189,7 @@ def test_calibrate_json(hybrid: Path, tmp_path: Path, capsys: pytest.CaptureFixt
     frame = 2.0 * event + 0.5
     pairs = tmp_path / "pairs.txt"
     np.savetxt(pairs, np.hstack([event, frame]))
-    d = json_of(capsys, "calibrate", str(hybrid), "--pairs", str(pairs), "--no-store", "--json")
+    d = json_of(capsys, "calibrate", "affine", str(hybrid), "--pairs", str(pairs), "--no-store", "--json")
     np.testing.assert_allclose(d["affine"], [[2.0, 0.0, 0.5], [0.0, 2.0, 0.5]], atol=1e-9)
     assert d["rms_px"] < 1e-9 and d["max_px"] < 1e-9
     assert (d["pairs"], d["from"], d["stored_in"]) == (4, "pairs file", [])
@@ -224,7 +232,7 @@ PLACEHOLDER = re.compile(r"\{[A-Za-z_][\w-]*\}|<(?:list\[)?(?:str|int|float|bool
 def help_pages(capsys: pytest.CaptureFixture[str]) -> dict[str, str]:
     pages = {"pstoolkit": run_cli(capsys, "--help")[1]}
     for name in command_names():
-        code, out, err = run_cli(capsys, name, "--help")
+        code, out, err = run_cli(capsys, *name.split(), "--help")
         assert code == 0, err
         pages[name] = out
     pages["convert raw"] = run_cli(capsys, "convert", "raw", "--help")[1]

@@ -64,7 +64,7 @@ def test_manual_pairs_and_their_errors() -> None:
 def test_calibrate_command_stores_the_affine_atomically(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     target = led_target(tmp_path / "target.h5")
     other = led_target(tmp_path / "scene.h5", seed=1)
-    assert main(["calibrate", str(target), "--apply-to", str(other)]) == 0
+    assert main(["calibrate", "affine", str(target), "--apply-to", str(other)]) == 0
     line = capsys.readouterr().out.strip()
     assert line.startswith("event→frame affine from 25 LED pairs (26 frame blobs, 26 event blobs): reprojection error RMS 0.0")
     assert line.endswith(f"stored in {target}, {other}")
@@ -80,7 +80,7 @@ def test_calibrate_command_with_manual_pairs(tmp_path: Path, capsys: pytest.Capt
     event = np.array([[1.0, 1.0], [10.0, 2.0], [4.0, 9.0]])
     pairs = tmp_path / "pairs.txt"
     pairs.write_text("# u_e v_e u_f v_f\n" + "\n".join(" ".join(f"{x:.9f}" for x in row) for row in np.hstack([event, apply_affine(TRUE_AFFINE, event)])))
-    assert main(["calibrate", str(target), "--pairs", str(pairs), "--no-store"]) == 0
+    assert main(["calibrate", "affine", str(target), "--pairs", str(pairs), "--no-store"]) == 0
     assert "from 3 manual pairs" in capsys.readouterr().out
     with psfmt.read(target) as capture:
         assert capture.calibration.event_to_frame is None
@@ -91,10 +91,10 @@ def test_calibrate_command_errors(tmp_path: Path, capsys: pytest.CaptureFixture[
     bad = tmp_path / "pairs.txt"
     bad.write_text("1 2 3\n")
     cases = [
-        (["calibrate", str(tmp_path / "none.h5")], f"{tmp_path / 'none.h5'}: does not exist"),
-        (["calibrate", str(target), "--pairs", str(bad)], f"{bad}: expected lines of 'u_event v_event u_frame v_frame', got 3 column(s)"),
-        (["calibrate", str(target), "--max-error-px", "0.001"], "reprojection error RMS"),
-        (["calibrate", str(target), "--frame", "5"], "--frame 5: the capture has 2 frames"),
+        (["calibrate", "affine", str(tmp_path / "none.h5")], f"{tmp_path / 'none.h5'}: does not exist"),
+        (["calibrate", "affine", str(target), "--pairs", str(bad)], f"{bad}: expected lines of 'u_event v_event u_frame v_frame', got 3 column(s)"),
+        (["calibrate", "affine", str(target), "--max-error-px", "0.001"], "reprojection error RMS"),
+        (["calibrate", "affine", str(target), "--frame", "5"], "--frame 5: the capture has 2 frames"),
     ]
     for argv, message in cases:
         assert main(argv) == 2

@@ -180,7 +180,7 @@ def test_bad_input_is_one_line(recording: Path, tmp_path: Path, capsys: pytest.C
 
 def test_the_affine_from_calibrate_is_stored_with_the_capture(recording: Path, tmp_path: Path) -> None:
     target = led_target(tmp_path / "target.h5")
-    assert main(["calibrate", str(target)]) == 0
+    assert main(["calibrate", "affine", str(target)]) == 0
     out = tmp_path / "out.h5"
     assert capture(recording, out, f"ringlightsim://{tmp_path.name}", "--calibration", str(target), "--source-set", "speed=0") == 0
     with psfmt.read(out) as got, psfmt.read(target) as calibrated:

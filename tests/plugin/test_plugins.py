@@ -54,7 +54,7 @@ def solver_plugin(solver: str, *, option: bool = False) -> str:
 
 
 ALL_HOOKS = """
-    from pstoolkit import BRDF, Converter, LightBackend, LightModel, ShadowDetector, Solver, hookimpl
+    from pstoolkit import BRDF, Converter, LightBackend, LightCalibration, LightModel, ShadowDetector, Solver, hookimpl
     from pstoolkit.sim.renderers import SceneRenderer
     from pstoolkit.sim.scenes import Scene
     from pstoolkit.surface import Integrator
@@ -98,6 +98,10 @@ ALL_HOOKS = """
         registry.register(SceneRenderer, name="fake-renderer", summary="a renderer")
 
     @hookimpl
+    def pstoolkit_register_light_calibrations(registry):
+        registry.register(LightCalibration, name="fake-calibration", summary="a light calibration")
+
+    @hookimpl
     def pstoolkit_add_commands(app):
         @app.command()
         def fake_hello(name: str = "world") -> None:
@@ -134,6 +138,7 @@ def test_every_register_hook_fills_its_own_registry(fresh: pytest.MonkeyPatch, t
         "scenes": "fake-scene",
         "integrators": "fake-integrator",
         "renderers": "fake-renderer",
+        "light_calibrations": "fake-calibration",
     }
     assert {kind: registry.names() for kind, registry in registries.items()} == {k: [v] for k, v in expected.items()}
     assert all(e.plugin == "all" for _, registry in registries.items() for e in registry)
