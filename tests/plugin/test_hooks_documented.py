@@ -17,7 +17,7 @@ HOOKS = sorted(name for name, obj in vars(hookspecs).items() if inspect.isfuncti
 
 
 def test_the_hooks_are_found() -> None:
-    assert len(HOOKS) == 10 and "pstoolkit_register_solvers" in HOOKS and "pstoolkit_add_commands" in HOOKS
+    assert len(HOOKS) == 11 and "pstoolkit_register_solvers" in HOOKS and "pstoolkit_add_commands" in HOOKS
 
 
 @pytest.mark.parametrize("hook", HOOKS)
