@@ -34,10 +34,10 @@ PAIR_BLOCK = 256
 def _event_pass(normal: np.ndarray, albedo: np.ndarray, f0: np.ndarray, roughness: np.ndarray, taps: np.ndarray,
                 pairs: np.ndarray, weight_now: np.ndarray, weight_ref: np.ndarray, light_now: np.ndarray,
                 light_ref: np.ndarray, grey_now: np.ndarray, grey_ref: np.ndarray, target: np.ndarray, weight: np.ndarray,
-                view: np.ndarray, eps: float, scale: float, gradient: bool, loss: np.ndarray,
+                view: np.ndarray, eps: float, huber: float, scale: float, gradient: bool, loss: np.ndarray,
                 contribution: np.ndarray) -> None:
-    """Per pair b (event pair ``pairs[b]``): ``loss[b]`` its weighted squared log residual times
-    ``scale``, and (``gradient``) ``contribution[b, f]`` the derivatives of that with respect to tap
+    """Per pair b (event pair ``pairs[b]``): ``loss[b]`` its weighted ``robust_square`` of the log
+    residual (``huber`` δ, 0: the square) times ``scale``, and (``gradient``) ``contribution[b, f]`` the derivatives of that with respect to tap
     f's normal (0–2), albedo (3–5), F0 (6–8) and roughness (9).
 
     ``normal``, ``albedo``, ``f0`` (P, 3) float32, ``roughness`` (P,), ``taps`` (B, F) pixel indices;
@@ -90,12 +90,14 @@ def _event_pass(normal: np.ndarray, albedo: np.ndarray, f0: np.ndarray, roughnes
                     parts[t, f, 5] = w * fre * er
                 sums[t] = total
             residual = math.log(sums[0] + eps) - math.log(sums[1] + eps) - target[e]
-            loss[b] = scale * weight[e] * residual * residual
+            # the Huber form of losses.robust_square: the square within δ, its tangent beyond
+            clipped = residual if huber <= 0.0 or abs(residual) <= huber else math.copysign(huber, residual)
+            loss[b] = scale * weight[e] * clipped * (np.float32(2.0) * residual - clipped)
             if not gradient:
                 continue
             # d loss / d grey now and at the reference
-            d_now = np.float32(2.0) * scale * weight[e] * residual / (sums[0] + eps)
-            d_ref = -np.float32(2.0) * scale * weight[e] * residual / (sums[1] + eps)
+            d_now = np.float32(2.0) * scale * weight[e] * clipped / (sums[0] + eps)
+            d_ref = -np.float32(2.0) * scale * weight[e] * clipped / (sums[1] + eps)
             for f in range(fan):
                 for x in range(3):
                     contribution[b, f, x] = d_now * parts[0, f, x] + d_ref * parts[1, f, x]
@@ -119,7 +121,7 @@ def _add_taps(contribution: np.ndarray, taps: np.ndarray, out: np.ndarray) -> No
 class _FusedEventLoss(torch.autograd.Function):
     @staticmethod
     def forward(ctx, normal: Tensor, albedo: Tensor, f0: Tensor, roughness: Tensor, taps: Tensor, pairs: Tensor,
-                events: tuple[Tensor, ...], view: Tensor, eps: float) -> Tensor:
+                events: tuple[Tensor, ...], view: Tensor, eps: float, huber: float) -> Tensor:
         count, fan = taps.shape
         gradient = any(ctx.needs_input_grad[:4])
         taps_np = taps.contiguous().numpy()
@@ -127,7 +129,7 @@ class _FusedEventLoss(torch.autograd.Function):
         contribution = np.empty((count, fan, 10) if gradient else (0, 0, 10), dtype=np.float32)
         shading = (float32_array(x) for x in (normal, albedo, f0, roughness.reshape(-1)))
         _event_pass(*shading, taps_np, pairs.contiguous().numpy(), *(float32_array(x) for x in events),
-                    view.detach().double().numpy(), float(eps), 1.0 / max(count, 1), gradient, loss, contribution)
+                    view.detach().double().numpy(), float(eps), float(huber), 1.0 / max(count, 1), gradient, loss, contribution)
         if gradient:
             out = np.zeros((normal.shape[0], 10), dtype=np.float32)
             _add_taps(contribution, taps_np, out)
@@ -139,11 +141,11 @@ class _FusedEventLoss(torch.autograd.Function):
         g = ctx.grads * grad
         need = ctx.needs_input_grad
         parts = (g[:, 0:3], g[:, 3:6], g[:, 6:9], g[:, 9:10])
-        return (*(part if wanted else None for part, wanted in zip(parts, need[:4])), *(None,) * 5)
+        return (*(part if wanted else None for part, wanted in zip(parts, need[:4])), *(None,) * 6)
 
 
 def fused_event_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], taps: Tensor, events: EventTerms, pairs: Tensor,
-                     view: Tensor, eps: float) -> Tensor:
+                     view: Tensor, eps: float, huber: float = 0.0) -> Tensor:
     """``event_loss`` of ``superpixel_grey`` now and at the reference time over the event ``pairs``, in
     one compiled pass, with the gradient with respect to ``normal`` and the maps; only where
     ``frame_kernel.supports(model, normal)``.
@@ -167,13 +169,15 @@ def fused_event_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], t
         (3,) unit direction to the camera.
     eps
         ε of the log, in irradiance units.
+    huber
+        δ of ``losses.robust_square`` in log units (0: the plain square).
 
     Returns
     -------
     Tensor
-        The scalar Σ w·(ln((Ĩ_k + ε)/(Ĩ_ref + ε)) − target)² / B, differentiable.
+        The scalar Σ w·ρ_δ(ln((Ĩ_k + ε)/(Ĩ_ref + ε)) − target) / B, differentiable.
     """
     albedo, f0, roughness = ggx_maps(model, normal, maps)
     terms = (events.tap_weight_now, events.tap_weight_ref, events.light_now, events.light_ref, events.grey_now, events.grey_ref,
              events.target, events.weight)
-    return _FusedEventLoss.apply(normal, albedo, f0, roughness, taps, pairs, terms, view, eps)
+    return _FusedEventLoss.apply(normal, albedo, f0, roughness, taps, pairs, terms, view, eps, huber)

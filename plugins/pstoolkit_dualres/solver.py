@@ -105,6 +105,9 @@ class DualRes(Solver):
         Option("material_lr", float, -1.0, "learning rate of the smooth materials (−1 = the preset's)", minimum=-1.0),
         Option("frame_weight", float, 1.0, "λ_f, weight of the frame loss (eq. 24)", minimum=0.0),
         Option("event_weight", float, -1.0, "λ_e, weight of the event loss (eq. 25) (−1 = the preset's: fast 8, paper 0.05)", minimum=-1.0),
+        Option("event_huber", float, 0.0,
+               "Huber δ of the event residual, log units: residuals beyond it pull linearly (0 = the paper's square)",
+               minimum=0.0),
         Option("tv_weight", float, -1.0, "λ_tv, weight of the TV warm-up (−1 = the preset's)", minimum=-1.0),
         Option("tv_fraction", float, -1.0, "share of each stage's epochs over which the TV term fades to zero (−1 = the preset's)",
                minimum=-1.0, maximum=1.0),
@@ -226,7 +229,8 @@ class DualRes(Solver):
     def _stage(preset: Preset, options: dict[str, Any], epochs: int, seed: int) -> StageConfig:
         return StageConfig(
             epochs=epochs, lr=preset.lr, material_lr=preset.material_lr, frame_weight=options["frame_weight"],
-            event_weight=preset.event_weight, tv_weight=preset.tv_weight, tv_fraction=preset.tv_fraction,
+            event_weight=preset.event_weight, event_huber=options["event_huber"], tv_weight=preset.tv_weight,
+            tv_fraction=preset.tv_fraction,
             event_batch=options["event_batch"], batch_pixels=preset.batch_pixels, tile=8, seed=seed,
         )
 

@@ -53,6 +53,7 @@ class StageConfig:
     material_lr: float
     frame_weight: float
     event_weight: float
+    event_huber: float
     tv_weight: float
     tv_fraction: float
     event_batch: int
@@ -318,7 +319,7 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
     parts = {"frame": float(lf.detach())}
     e = batch.events
     if e.numel() and config.event_weight > 0:
-        le = pair_event_loss(model, normal, maps, batch.event_taps, problem.events, e, view)
+        le = pair_event_loss(model, normal, maps, batch.event_taps, problem.events, e, view, config.event_huber)
         total = total + config.event_weight * le
         parts["event"] = float(le.detach())
     if tv_share > 0 and config.tv_weight > 0:
@@ -329,18 +330,19 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
 
 
 def pair_event_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], taps: Tensor, events: EventTerms, pairs: Tensor,
-                    view: Tensor) -> Tensor:
+                    view: Tensor, huber: float = 0.0) -> Tensor:
     """The event term of eq. 25 over the event ``pairs`` (indices into ``events``) whose super pixels
     cover the frame pixels ``taps`` (E, F) of ``normal`` (P, 3) and ``maps``: one compiled pass
     (``event_kernel``) for the built-in GGX and Lambertian on the CPU, else ``superpixel_grey`` now and
-    at the reference time through ``event_loss``. The scalar loss, differentiable."""
+    at the reference time through ``event_loss``; ``huber`` its δ (0: the square). The scalar loss,
+    differentiable."""
     if supports(model, normal):
-        return fused_event_loss(model, normal, maps, taps, events, pairs, view, LOG_EPS)
+        return fused_event_loss(model, normal, maps, taps, events, pairs, view, LOG_EPS, huber)
     grey = superpixel_grey(model, normal, maps, taps, events.tap_weight_now[pairs], events.light_now[pairs],
                            events.grey_now[pairs], view)
     grey_ref = superpixel_grey(model, normal, maps, taps, events.tap_weight_ref[pairs], events.light_ref[pairs],
                                events.grey_ref[pairs], view)
-    return event_loss(grey, grey_ref, events.target[pairs], events.weight[pairs], LOG_EPS)
+    return event_loss(grey, grey_ref, events.target[pairs], events.weight[pairs], LOG_EPS, huber)
 
 
 def _event_sample(problem: Problem, config: StageConfig, generator: torch.Generator) -> Tensor:

@@ -25,7 +25,7 @@ from pstoolkit_dualres.fields import NeuralField, PyramidField, collapse, decomp
 from pstoolkit_dualres.forward_model import frame_prediction_grid, superpixel_grey
 from pstoolkit_dualres.frame_kernel import supports
 from pstoolkit_dualres.gather import gather_sum
-from pstoolkit_dualres.losses import event_loss, frame_loss
+from pstoolkit_dualres.losses import event_loss, frame_loss, robust_square
 from pstoolkit_dualres.preprocess import Preprocessed, PreprocessOptions, preprocess
 from pstoolkit_dualres.problem import Problem, build_problem
 from pstoolkit_dualres.reflectance import FitModel
@@ -41,7 +41,7 @@ from pstoolkit_dualres.train import (
     train,
 )
 
-STAGE = StageConfig(epochs=1, lr=1e-3, material_lr=1e-3, frame_weight=1.0, event_weight=0.05, tv_weight=0.02,
+STAGE = StageConfig(epochs=1, lr=1e-3, material_lr=1e-3, frame_weight=1.0, event_weight=0.05, event_huber=0.0, tv_weight=0.02,
                     tv_fraction=0.3, event_batch=0, batch_pixels=256, tile=8, seed=0)
 
 
@@ -177,7 +177,7 @@ def test_a_coordinate_mlp_fits_a_sphere_by_mini_batches(tmp_path: Path) -> None:
     # the paper's network at a quarter of its width (its shape is tested in test_dualres.py), so the
     # test stays fast; the full width converges the same way (benchmarks/dualres.py)
     field = NeuralField(problem.geometry.coords, model.raw_init("pixel"), model.raw_init("smooth"), width=64, material_width=32)
-    config = StageConfig(epochs=40, lr=3e-3, material_lr=3e-3, frame_weight=1.0, event_weight=0.05, tv_weight=0.02,
+    config = StageConfig(epochs=40, lr=3e-3, material_lr=3e-3, frame_weight=1.0, event_weight=0.05, event_huber=0.0, tv_weight=0.02,
                          tv_fraction=0.3, event_batch=0, batch_pixels=64, tile=8, seed=0)
     history = train(problem, field, model, config, no_progress)
     assert history[-1]["steps"] == 10
@@ -260,12 +260,14 @@ def test_the_compiled_frame_term_is_the_rendered_one(brdf: object, lit: bool) ->
     _assert_same_term((fused, fused_grads), (rendered, rendered_grads), atol_share=1e-6)
 
 
+@pytest.mark.parametrize("huber", [0.0, 0.6], ids=["square", "huber"])
 @pytest.mark.parametrize("brdf", [GGX(), Lambertian()], ids=["ggx", "lambertian"])
-def test_the_compiled_event_term_is_the_rendered_one(brdf: object) -> None:
+def test_the_compiled_event_term_is_the_rendered_one(brdf: object, huber: float) -> None:
     """For the built-in GGX and Lambertian ``pair_event_loss`` runs one compiled pass with its own
     derivatives (``event_kernel``); value and gradients are torch's autograd of ``superpixel_grey``
     now and at the reference through ``event_loss`` — taps below the horizon, padded taps of weight
-    0, pixels shared by many pairs and a subset of the pairs included (float32 rounding)."""
+    0, pixels shared by many pairs and a subset of the pairs included (float32 rounding) — with the
+    plain square and with a Huber δ that many of the residuals exceed."""
     generator = torch.Generator().manual_seed(1)
     p, count, fan = 600, 3000, 4
     model, raw, *_ = _frame_case(brdf, p, 1)
@@ -291,11 +293,14 @@ def test_the_compiled_event_term_is_the_rendered_one(brdf: object) -> None:
         e = pairs
         grey = superpixel_grey(model, n, m, taps[e], events.tap_weight_now[e], events.light_now[e], events.grey_now[e], view)
         grey_ref = superpixel_grey(model, n, m, taps[e], events.tap_weight_ref[e], events.light_ref[e], events.grey_ref[e], view)
-        return event_loss(grey, grey_ref, events.target[e], events.weight[e], LOG_EPS)
+        residual = torch.log(grey + LOG_EPS) - torch.log(grey_ref + LOG_EPS) - events.target[e]
+        if huber > 0:
+            assert 0.1 < float((residual.abs() > huber).float().mean()) < 0.9
+        return event_loss(grey, grey_ref, events.target[e], events.weight[e], LOG_EPS, huber)
 
     case = (model, raw)
     expected, expected_grads = _frame_term(case, rendered)
-    got, got_grads = _frame_term(case, lambda n, m: pair_event_loss(model, n, m, taps[pairs], events, pairs, view))
+    got, got_grads = _frame_term(case, lambda n, m: pair_event_loss(model, n, m, taps[pairs], events, pairs, view, huber))
     _assert_same_term((got, got_grads), (expected, expected_grads), atol_share=1e-5)
 
 
@@ -315,6 +320,16 @@ def test_on_a_gpu_the_frame_term_takes_large_chunks_with_the_same_value_and_grad
         on_gpu = _frame_term(gpu_case, lambda n, m, size=size: grid_frame_loss(model, n, m, *moved[:3], moved[3], frames, *moved[4:],
                                                                              chunk=size))
         _assert_same_term((on_gpu[0].cpu(), [g.cpu() for g in on_gpu[1]]), on_cpu, atol_share=1e-5)
+
+
+def test_the_huber_event_loss_is_the_square_within_delta_and_linear_beyond() -> None:
+    """``robust_square``: r² for |r| ≤ δ, 2δ|r| − δ² beyond (continuous with a continuous slope), and
+    the square itself for δ = 0."""
+    r = torch.tensor([-1.0, -0.2, -0.05, 0.0, 0.05, 0.2, 1.0])
+    assert torch.allclose(robust_square(r, 0.0), r * r)
+    expected = torch.tensor([0.36, 0.04, 0.0025, 0.0, 0.0025, 0.04, 0.36])
+    assert torch.allclose(robust_square(r, 0.2), expected)
+    assert torch.allclose(robust_square(torch.tensor([0.2 + 1e-4]), 0.2), torch.tensor([0.04 + 0.4e-4]), atol=1e-7)
 
 
 def test_gathered_sums_and_their_gradient_are_those_of_indexing() -> None:
