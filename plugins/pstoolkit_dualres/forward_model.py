@@ -3,6 +3,10 @@ through a fitted BRDF (``reflectance.FitModel``); frames as Σ Ĩ·Δt per (fram
 per-pixel importance samples of preprocessing (``frame_prediction``) or on a time grid shared by all
 pixels (``frame_prediction_grid``) — and the grey irradiance of event super pixels as the weighted
 sum of the frame pixels under them (``superpixel_grey``).
+
+A model with indirect light adds to each frame value ρ_d·b·∫e dt over the frame's window (``energy``,
+``FitModel.indirect_light``): light from the rest of the object, which a cast shadow of the direct
+light does not take away.
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ def _take(maps: Maps, index: Tensor) -> Maps:
 
 
 def frame_prediction(model: FitModel, normal: Tensor, maps: Maps, sample_pixel: Tensor, sample_group: Tensor,
-                     light: Tensor, weight: Tensor, view: Tensor, groups: int) -> Tensor:
+                     light: Tensor, weight: Tensor, view: Tensor, groups: int, energy: Tensor | None = None) -> Tensor:
     """Frame values Σ_samples f_r·[n·l]₊·(e·m_c·Δt) at per-pixel importance samples (eq. 21–22).
 
     Parameters
@@ -43,6 +47,8 @@ def frame_prediction(model: FitModel, normal: Tensor, maps: Maps, sample_pixel: 
         (3,) unit direction to the camera.
     groups
         Number of output rows (frames·P).
+    energy
+        (K, 3) each frame's light energy, for a model with indirect light.
 
     Returns
     -------
@@ -51,11 +57,22 @@ def frame_prediction(model: FitModel, normal: Tensor, maps: Maps, sample_pixel: 
     """
     shaded = model.shade(normal[sample_pixel], light, view, _take(maps, sample_pixel))
     out = torch.zeros((groups, 3), dtype=shaded.dtype, device=shaded.device)
-    return out.index_add_(0, sample_group, shaded * weight)
+    out = out.index_add_(0, sample_group, shaded * weight)
+    return _with_indirect(model, maps, out, energy)
+
+
+def _with_indirect(model: FitModel, maps: Maps, frames_p: Tensor, energy: Tensor | None) -> Tensor:
+    """``frames_p`` (K·P, 3) plus ρ_d·b·energy_k of a model with indirect light (unchanged without)."""
+    indirect = model.indirect_light(maps)
+    if indirect is None:
+        return frames_p
+    assert energy is not None, "a model with indirect light needs the frames' energy"
+    k = energy.shape[0]
+    return frames_p + (energy[:, None, :] * indirect[None]).reshape(k * indirect.shape[0], 3)
 
 
 def frame_prediction_grid(model: FitModel, normal: Tensor, maps: Maps, light: Tensor, weight: Tensor,
-                          visible: Tensor | None, view: Tensor, frames: int) -> Tensor:
+                          visible: Tensor | None, view: Tensor, frames: int, energy: Tensor | None = None) -> Tensor:
     """Frame values on a time grid shared by all pixels. Broadcasting (P, 1) pixels against (1, S)
     samples needs no gather or scatter.
 
@@ -77,6 +94,8 @@ def frame_prediction_grid(model: FitModel, normal: Tensor, maps: Maps, light: Te
         (3,) unit direction to the camera.
     frames
         Number of frames K; must divide S.
+    energy
+        (K, 3) each frame's light energy, for a model with indirect light.
 
     Returns
     -------
@@ -87,7 +106,8 @@ def frame_prediction_grid(model: FitModel, normal: Tensor, maps: Maps, light: Te
     shaded = model.shade(normal[:, None, :], light[None], view, {k: v[:, None, :] for k, v in maps.items()}) * weight
     if visible is not None:
         shaded = shaded * visible.T[..., None]
-    return shaded.reshape(p, frames, s // frames, 3).sum(dim=2).transpose(0, 1).reshape(frames * p, 3)
+    direct = shaded.reshape(p, frames, s // frames, 3).sum(dim=2).transpose(0, 1).reshape(frames * p, 3)
+    return _with_indirect(model, maps, direct, energy)
 
 
 def superpixel_grey(model: FitModel, normal: Tensor, maps: Maps, tap_pixel: Tensor, tap_weight: Tensor,

@@ -39,6 +39,9 @@ SCALE_PERCENTILE = 95.0
 # A super pixel counts as inside the frame when this little of its area is outside (float sums of
 # the footprint's shares).
 INSIDE_TOLERANCE = 1e-6
+# Midpoints per frame window of the light energy indirect light is reflected under (the intensity
+# changes slowly along a turn: 64 points integrate it to far below a frame's quantisation).
+ENERGY_SAMPLES = 64
 
 
 def _like(array: np.ndarray, reference: Tensor) -> Tensor:
@@ -83,7 +86,9 @@ class FrameTerms:
       intensity × Δt (s) × albedo scale × lit (0 or 1 under the mask).
 
     ``measured`` (K·P, 3) frame values in units of saturation and ``saturated`` (K·P,) bool, rows in
-    frame-major order; ``exposure_s`` the K frames' summed exposure time. ``source`` holds the numpy
+    frame-major order; ``exposure_s`` the K frames' summed exposure time; ``energy`` (K, 3) each
+    frame's ∫ e dt × albedo scale over its window, no mask applied (what indirect light is reflected
+    under). ``source`` holds the numpy
     copies the mask is applied from: ``shared_t``/``shared_dt_us`` (K·S,) µs, or ``sample_t`` (M,) µs,
     ``sample_dt_s`` (M,) s and ``sample_weight`` (M, 3) without the mask."""
 
@@ -98,6 +103,7 @@ class FrameTerms:
     sample_weight: Tensor
     measured: Tensor
     saturated: Tensor
+    energy: Tensor
     source: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
     def apply_mask(self, shadows: ShadowMask, pixels: np.ndarray) -> np.ndarray:
@@ -282,13 +288,15 @@ def build_problem(pre: Preprocessed, view: np.ndarray, *, device: str, frame_sam
         s_weight = s_int * (s_dt * scale)[:, None]
         frame_source.update(sample_pixel=s_pos, sample_t=s_t, sample_dt_s=s_dt, sample_weight=s_weight)
 
+    e_t = np.stack([sample_times(t_start[j], t_end[j], ENERGY_SAMPLES) for j in range(k)])
+    energy = light.evaluate(e_t.ravel())[1].reshape(k, ENERGY_SAMPLES, 3).mean(axis=1) * ((t_end - t_start) / US_PER_S * scale)[:, None]
     measured = np.asarray(pre.frames, dtype=np.float32).reshape(k, h * w, -1)[:, pixels].reshape(k * p, -1)
     saturated = np.asarray(pre.saturated, dtype=bool).reshape(k, h * w)[:, pixels].reshape(k * p)
     frames = FrameTerms(
         count=k, exposure_s=exposure_s, shared_light=shared_light, shared_weight=shared_weight, shared_visible=None,
         sample_pixel=tensor(s_pos, torch.int64), sample_group=tensor(s_frame * p + s_pos, torch.int64),
         sample_light=tensor(s_dir), sample_weight=tensor(s_weight),
-        measured=tensor(measured), saturated=tensor(saturated, torch.bool), source=frame_source,
+        measured=tensor(measured), saturated=tensor(saturated, torch.bool), energy=tensor(energy), source=frame_source,
     )
 
     # Event pairs (eq. 25) with the frame pixels under their super pixel; a super pixel that sees

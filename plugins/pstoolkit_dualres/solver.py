@@ -108,6 +108,11 @@ class DualRes(Solver):
         Option("event_huber", float, 0.0,
                "Huber δ of the event residual, log units: residuals beyond it pull linearly (0 = the paper's square)",
                minimum=0.0),
+        Option("indirect", bool, False,
+               "fit an indirect-light map b (smooth, ≥ 0): light from other parts of the object that the diffuse albedo "
+               "reflects and no cast shadow removes (inter-reflection in concavities, a room's ambient light)"),
+        Option("indirect_sparsity", float, 0.05, "weight of the L1 penalty that keeps b at 0 where the direct light "
+               "explains the frames", minimum=0.0),
         Option("tv_weight", float, -1.0, "λ_tv, weight of the TV warm-up (−1 = the preset's)", minimum=-1.0),
         Option("tv_fraction", float, -1.0, "share of each stage's epochs over which the TV term fades to zero (−1 = the preset's)",
                minimum=-1.0, maximum=1.0),
@@ -176,7 +181,7 @@ class DualRes(Solver):
         brdf: BRDF = registries.brdfs.get(options["brdf"]).obj()
         if not getattr(brdf, "fit", ()):
             raise UserError(f"dualres: BRDF {options['brdf']!r} declares no fit parameters (BRDF.fit) to estimate")
-        model = FitModel(brdf).to(self.device)
+        model = FitModel(brdf, indirect=options["indirect"]).to(self.device)
         started = time.perf_counter()
         clock = Stopwatch()
         progress(0.0, "preprocessing")
@@ -229,7 +234,8 @@ class DualRes(Solver):
     def _stage(preset: Preset, options: dict[str, Any], epochs: int, seed: int) -> StageConfig:
         return StageConfig(
             epochs=epochs, lr=preset.lr, material_lr=preset.material_lr, frame_weight=options["frame_weight"],
-            event_weight=preset.event_weight, event_huber=options["event_huber"], tv_weight=preset.tv_weight,
+            event_weight=preset.event_weight, event_huber=options["event_huber"],
+            indirect_sparsity=options["indirect_sparsity"], tv_weight=preset.tv_weight,
             tv_fraction=preset.tv_fraction,
             event_batch=options["event_batch"], batch_pixels=preset.batch_pixels, tile=8, seed=seed,
         )

@@ -41,7 +41,7 @@ from pstoolkit_dualres.train import (
     train,
 )
 
-STAGE = StageConfig(epochs=1, lr=1e-3, material_lr=1e-3, frame_weight=1.0, event_weight=0.05, event_huber=0.0, tv_weight=0.02,
+STAGE = StageConfig(epochs=1, lr=1e-3, material_lr=1e-3, frame_weight=1.0, event_weight=0.05, event_huber=0.0, indirect_sparsity=0.0, tv_weight=0.02,
                     tv_fraction=0.3, event_batch=0, batch_pixels=256, tile=8, seed=0)
 
 
@@ -177,7 +177,7 @@ def test_a_coordinate_mlp_fits_a_sphere_by_mini_batches(tmp_path: Path) -> None:
     # the paper's network at a quarter of its width (its shape is tested in test_dualres.py), so the
     # test stays fast; the full width converges the same way (benchmarks/dualres.py)
     field = NeuralField(problem.geometry.coords, model.raw_init("pixel"), model.raw_init("smooth"), width=64, material_width=32)
-    config = StageConfig(epochs=40, lr=3e-3, material_lr=3e-3, frame_weight=1.0, event_weight=0.05, event_huber=0.0, tv_weight=0.02,
+    config = StageConfig(epochs=40, lr=3e-3, material_lr=3e-3, frame_weight=1.0, event_weight=0.05, event_huber=0.0, indirect_sparsity=0.0, tv_weight=0.02,
                          tv_fraction=0.3, event_batch=0, batch_pixels=64, tile=8, seed=0)
     history = train(problem, field, model, config, no_progress)
     assert history[-1]["steps"] == 10
@@ -205,10 +205,10 @@ def test_shadow_intervals_of_a_frame_mask_reach_problem_pixels(blobs: tuple[psfm
     np.testing.assert_allclose(lit, [[1.0] * 8, [0.0] * 8, [1.0] * 8], atol=1e-9)
 
 
-def _frame_case(brdf: object, p: int, seed: int) -> tuple:
+def _frame_case(brdf: object, p: int, seed: int, indirect: bool = False) -> tuple:
     generator = torch.Generator().manual_seed(seed)
     frames, per_frame = 3, 4
-    model = FitModel(brdf)
+    model = FitModel(brdf, indirect=indirect)
     raw_normal = torch.randn(p, 3, generator=generator) * 0.3 + torch.tensor([0.0, 0.0, 1.0])
     pixel_raw = torch.randn(p, model.pixel_channels, generator=generator) * 0.2
     smooth_raw = torch.randn(p, model.smooth_channels, generator=generator) * 0.5
@@ -245,19 +245,25 @@ def _assert_same_term(got: tuple[torch.Tensor, list], expected: tuple[torch.Tens
 
 @pytest.mark.parametrize("brdf", [GGX(), Lambertian()], ids=["ggx", "lambertian"])
 @pytest.mark.parametrize("lit", [True, False], ids=["mask", "no-mask"])
-def test_the_compiled_frame_term_is_the_rendered_one(brdf: object, lit: bool) -> None:
+@pytest.mark.parametrize("indirect", [False, True], ids=["direct", "indirect"])
+def test_the_compiled_frame_term_is_the_rendered_one(brdf: object, lit: bool, indirect: bool) -> None:
     """For the built-in GGX and Lambertian ``grid_frame_loss`` runs one compiled pass with its own
     derivatives (``frame_kernel``); value and gradients are torch's autograd of the BRDF's ``shade``
-    through ``frame_prediction_grid`` (float32 rounding)."""
-    case = _frame_case(brdf, 2000, 0)
+    through ``frame_prediction_grid`` (float32 rounding), with and without the indirect-light map."""
+    case = _frame_case(brdf, 2000, 0, indirect)
     model, _, light, weight, visible, view, frames, measured, saturated = case
     visible = visible if lit else None
+    energy = torch.tensor([[0.9, 1.0, 1.1], [0.5, 0.6, 0.7], [1.2, 1.0, 0.8]])
     assert supports(model, torch.zeros(1, 3))
     rendered, rendered_grads = _frame_term(case, lambda n, m: frame_loss(
-        frame_prediction_grid(model, n, m, light, weight, visible, view, frames), measured, saturated))
+        frame_prediction_grid(model, n, m, light, weight, visible, view, frames, energy), measured, saturated))
     fused, fused_grads = _frame_term(case, lambda n, m: grid_frame_loss(
-        model, n, m, light, weight, visible, view, frames, measured, saturated))
+        model, n, m, light, weight, visible, view, frames, measured, saturated, energy=energy))
     _assert_same_term((fused, fused_grads), (rendered, rendered_grads), atol_share=1e-6)
+    if indirect:
+        # the indirect map is there and takes part: its gradient is not zero
+        assert model.smooth_channels == FitModel(brdf).smooth_channels + 1
+        assert float(rendered_grads[2][:, -1].abs().max()) > 0
 
 
 @pytest.mark.parametrize("huber", [0.0, 0.6], ids=["square", "huber"])
