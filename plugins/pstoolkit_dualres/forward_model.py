@@ -111,9 +111,9 @@ def frame_prediction_grid(model: FitModel, normal: Tensor, maps: Maps, light: Te
 
 
 def superpixel_grey(model: FitModel, normal: Tensor, maps: Maps, tap_pixel: Tensor, tap_weight: Tensor,
-                    light: Tensor, grey_intensity: Tensor, view: Tensor) -> Tensor:
+                    light: Tensor, grey_intensity: Tensor, view: Tensor, tap_area: Tensor | None = None) -> Tensor:
     """Grey irradiance of event super pixels: Σ_taps weight × grey(f_r·[n·l]₊·e) over the frame pixels
-    under each, at one light per row.
+    under each, at one light per row; with indirect light plus Σ_taps area × grey(ρ_d·b·e).
 
     Parameters
     ----------
@@ -133,6 +133,8 @@ def superpixel_grey(model: FitModel, normal: Tensor, maps: Maps, tap_pixel: Tens
         (E, 3) e_c times the Rec. 601 weight of channel c.
     view
         (3,) unit direction to the camera.
+    tap_area
+        (E, F) each tap's area share without the mask, for a model with indirect light.
 
     Returns
     -------
@@ -142,5 +144,11 @@ def superpixel_grey(model: FitModel, normal: Tensor, maps: Maps, tap_pixel: Tens
     e, f = tap_pixel.shape
     flat = tap_pixel.reshape(-1)
     l = light[:, None, :].expand(e, f, 3).reshape(-1, 3)
-    shaded = model.shade(normal[flat], l, view, _take(maps, flat)).reshape(e, f, 3)
-    return torch.sum(torch.sum(shaded * grey_intensity[:, None, :], dim=-1) * tap_weight, dim=-1)
+    taken = _take(maps, flat)
+    shaded = model.shade(normal[flat], l, view, taken).reshape(e, f, 3)
+    grey = torch.sum(torch.sum(shaded * grey_intensity[:, None, :], dim=-1) * tap_weight, dim=-1)
+    indirect = model.indirect_light(taken)
+    if indirect is None:
+        return grey
+    assert tap_area is not None, "a model with indirect light needs the taps' areas"
+    return grey + torch.sum(torch.sum(indirect.reshape(e, f, 3) * grey_intensity[:, None, :], dim=-1) * tap_area, dim=-1)

@@ -128,7 +128,8 @@ class EventTerms:
     pixel. ``taps`` (E, F) int64 positions among the P masked pixels (0 on a tap outside the mask,
     whose weight is 0); ``tap_weight_now``/``tap_weight_ref`` (E, F) each tap's area share, 0 where
     the mask shadows it at the pair's later (``t_us``) or earlier (``t_ref_us``) time; ``light_now``/
-    ``light_ref`` (E, 3) unit light directions and ``grey_now``/``grey_ref`` (E, 3) RGB intensity ×
+    ``light_ref`` (E, 3) unit light directions, ``tap_area`` (E, F) each tap's area share without the
+    mask (what indirect light reaches), ``grey_now``/``grey_ref`` (E, 3) RGB intensity ×
     Rec. 601 weight at those times; ``target`` (E,) the log-irradiance step between them and
     ``weight`` (E,) its confidence ≥ 0; ``usable`` (U,) int64 the pairs the loss may draw under the
     current mask. ``source`` holds the numpy copies the mask is applied from: ``frame_taps`` (E, F)
@@ -140,6 +141,7 @@ class EventTerms:
     tap_weight_ref: Tensor
     light_now: Tensor
     light_ref: Tensor
+    tap_area: Tensor
     grey_now: Tensor
     grey_ref: Tensor
     target: Tensor
@@ -314,7 +316,7 @@ def build_problem(pre: Preprocessed, view: np.ndarray, *, device: str, frame_sam
     grey_w = np.asarray(GREY_WEIGHTS)
     events = EventTerms(
         taps=tensor(np.maximum(taps, 0), torch.int64), tap_weight_now=tensor(area), tap_weight_ref=tensor(area),
-        light_now=tensor(dir_ev), light_ref=tensor(dir_ref),
+        light_now=tensor(dir_ev), light_ref=tensor(dir_ref), tap_area=tensor(area),
         grey_now=tensor(int_ev * grey_w), grey_ref=tensor(int_ref * grey_w),
         target=tensor(pairs.target), weight=tensor(pairs.weight),
         usable=torch.as_tensor(np.flatnonzero(usable), dtype=torch.int64, device=device),

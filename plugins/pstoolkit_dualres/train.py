@@ -347,10 +347,11 @@ def pair_event_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], ta
     differentiable."""
     if supports(model, normal):
         return fused_event_loss(model, normal, maps, taps, events, pairs, view, LOG_EPS, huber)
+    area = events.tap_area[pairs] if model.indirect else None
     grey = superpixel_grey(model, normal, maps, taps, events.tap_weight_now[pairs], events.light_now[pairs],
-                           events.grey_now[pairs], view)
+                           events.grey_now[pairs], view, area)
     grey_ref = superpixel_grey(model, normal, maps, taps, events.tap_weight_ref[pairs], events.light_ref[pairs],
-                               events.grey_ref[pairs], view)
+                               events.grey_ref[pairs], view, area)
     return event_loss(grey, grey_ref, events.target[pairs], events.weight[pairs], LOG_EPS, huber)
 
 

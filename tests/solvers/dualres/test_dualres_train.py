@@ -266,17 +266,18 @@ def test_the_compiled_frame_term_is_the_rendered_one(brdf: object, lit: bool, in
         assert float(rendered_grads[2][:, -1].abs().max()) > 0
 
 
-@pytest.mark.parametrize("huber", [0.0, 0.6], ids=["square", "huber"])
+@pytest.mark.parametrize(("huber", "indirect"), [(0.0, False), (0.6, False), (0.0, True)], ids=["square", "huber", "indirect"])
 @pytest.mark.parametrize("brdf", [GGX(), Lambertian()], ids=["ggx", "lambertian"])
-def test_the_compiled_event_term_is_the_rendered_one(brdf: object, huber: float) -> None:
+def test_the_compiled_event_term_is_the_rendered_one(brdf: object, huber: float, indirect: bool) -> None:
     """For the built-in GGX and Lambertian ``pair_event_loss`` runs one compiled pass with its own
     derivatives (``event_kernel``); value and gradients are torch's autograd of ``superpixel_grey``
     now and at the reference through ``event_loss`` — taps below the horizon, padded taps of weight
     0, pixels shared by many pairs and a subset of the pairs included (float32 rounding) — with the
-    plain square and with a Huber δ that many of the residuals exceed."""
+    plain square, with a Huber δ that many of the residuals exceed, and with the indirect-light map
+    (which reaches a tap's whole area, shadowed or not)."""
     generator = torch.Generator().manual_seed(1)
     p, count, fan = 600, 3000, 4
-    model, raw, *_ = _frame_case(brdf, p, 1)
+    model, raw, *_ = _frame_case(brdf, p, 1, indirect)
     view = torch.tensor([0.0, 0.0, 1.0])
 
     def directions() -> torch.Tensor:
@@ -290,15 +291,17 @@ def test_the_compiled_event_term_is_the_rendered_one(brdf: object, huber: float)
         tap_weight_ref=area * (torch.rand(count, fan, generator=generator) > 0.2),
         light_now=directions(), light_ref=directions(),
         grey_now=torch.rand(count, 3, generator=generator), grey_ref=torch.rand(count, 3, generator=generator),
-        target=0.3 * torch.randn(count, generator=generator), weight=torch.rand(count, generator=generator),
+        target=0.3 * torch.randn(count, generator=generator), weight=torch.rand(count, generator=generator), tap_area=area,
     )
     pairs = torch.randperm(count, generator=generator)[:2500]
     assert supports(model, torch.zeros(1, 3))
 
     def rendered(n: torch.Tensor, m: dict) -> torch.Tensor:
         e = pairs
-        grey = superpixel_grey(model, n, m, taps[e], events.tap_weight_now[e], events.light_now[e], events.grey_now[e], view)
-        grey_ref = superpixel_grey(model, n, m, taps[e], events.tap_weight_ref[e], events.light_ref[e], events.grey_ref[e], view)
+        area_e = events.tap_area[e] if indirect else None
+        grey = superpixel_grey(model, n, m, taps[e], events.tap_weight_now[e], events.light_now[e], events.grey_now[e], view, area_e)
+        grey_ref = superpixel_grey(model, n, m, taps[e], events.tap_weight_ref[e], events.light_ref[e], events.grey_ref[e], view,
+                                   area_e)
         residual = torch.log(grey + LOG_EPS) - torch.log(grey_ref + LOG_EPS) - events.target[e]
         if huber > 0:
             assert 0.1 < float((residual.abs() > huber).float().mean()) < 0.9
