@@ -134,7 +134,8 @@ class EventTerms:
     ``weight`` (E,) its confidence ≥ 0; ``usable`` (U,) int64 the pairs the loss may draw under the
     current mask. ``source`` holds the numpy copies the mask is applied from: ``frame_taps`` (E, F)
     flat frame indices, ``area`` (E, F), ``t_us``/``t_ref_us`` (E,) µs and ``usable`` (E,) bool
-    without a mask."""
+    without a mask, and ``pixel`` (E,) each pair's event pixel with ``weight`` (E,) its confidence
+    before any ``apply_gate``."""
 
     taps: Tensor
     tap_weight_now: Tensor
@@ -166,6 +167,16 @@ class EventTerms:
         self.tap_weight_now = _like(weight_now, self.target)
         self.tap_weight_ref = _like(weight_ref, self.target)
         self.usable = torch.as_tensor(np.flatnonzero(usable), dtype=torch.int64, device=self.target.device)
+
+    @property
+    def pixel(self) -> np.ndarray:
+        """(E,) int64 the event pixel of each pair."""
+        return self.source["pixel"]
+
+    def apply_gate(self, pixel_weight: np.ndarray) -> None:
+        """Weigh each pair's confidence by its event pixel's entry of ``pixel_weight`` (He·We,)
+        (``consistency.event_gate``), from the confidences the pairs were built with."""
+        self.weight = _like(self.source["weight"] * pixel_weight[self.pixel], self.weight)
 
 
 @dataclass
@@ -320,7 +331,8 @@ def build_problem(pre: Preprocessed, view: np.ndarray, *, device: str, frame_sam
         grey_now=tensor(int_ev * grey_w), grey_ref=tensor(int_ref * grey_w),
         target=tensor(pairs.target), weight=tensor(pairs.weight),
         usable=torch.as_tensor(np.flatnonzero(usable), dtype=torch.int64, device=device),
-        source={"frame_taps": frame_taps, "area": area, "t_us": pairs.t_us, "t_ref_us": pairs.t_ref_us, "usable": usable},
+        source={"frame_taps": frame_taps, "area": area, "t_us": pairs.t_us, "t_ref_us": pairs.t_ref_us, "usable": usable,
+                "pixel": np.asarray(pairs.pixel, dtype=np.int64), "weight": np.asarray(pairs.weight, dtype=np.float64)},
     )
 
     v, u = np.divmod(pixels, w)
