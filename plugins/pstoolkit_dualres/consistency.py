@@ -7,8 +7,10 @@ its pairs have residuals no normal can remove, and with the term's weight they d
 normal wherever they point, through a fit the frames alone had right. Between stages the solver
 therefore measures each event pixel's robust residual scale (the root of the median squared log
 residual of its pairs under the current fit) against the capture's typical one (the median of those
-scales) and keeps its pairs' full weight up to ``kappa`` times the typical scale, beyond which the
-weight falls as (κ·typical / scale)² — the pixel-level counterpart of Cauchy-style reweighting.
+scales) and keeps its pairs' full weight up to ``kappa`` times the typical scale — and at least up to
+half the smaller contrast threshold, the residual an event's own quantisation leaves, so that a fit
+that explains nearly everything does not gate its rim for residuals no sensor resolves — beyond which
+the weight falls as (bound / scale)²: the pixel-level counterpart of Cauchy-style reweighting.
 The frame pixels under a pixel whose weight fell below one half restart from the closed form of
 their frames, as the pixels a new shadow mask covers do.
 """
@@ -69,10 +71,12 @@ def pair_residuals(problem: Problem, field: nn.Module, model: FitModel, pairs: t
     return out
 
 
-def event_gate(problem: Problem, field: nn.Module, model: FitModel, n_event_pixels: int, kappa: float) -> Gate:
-    """The weight of each event pixel's pairs (module docstring) under the current fit: 1 up to
-    ``kappa`` times the typical residual scale, (κ·typical / scale)² beyond; ``restart`` where it fell
-    below one half. Pixels with fewer than MIN_PAIRS usable pairs keep weight 1."""
+def event_gate(problem: Problem, field: nn.Module, model: FitModel, n_event_pixels: int, kappa: float,
+               floor: float) -> Gate:
+    """The weight of each event pixel's pairs (module docstring) under the current fit: 1 up to the
+    bound max(``kappa`` × the typical residual scale, ``floor``) (log units), (bound / scale)² beyond;
+    ``restart`` where it fell below one half. Pixels with fewer than MIN_PAIRS usable pairs keep
+    weight 1."""
     events = problem.events
     usable = events.usable
     pixel = events.pixel[usable.cpu().numpy()]
@@ -87,7 +91,8 @@ def event_gate(problem: Problem, field: nn.Module, model: FitModel, n_event_pixe
     measured = ~np.isnan(scale)
     typical = float(np.median(scale[measured])) if measured.any() else 0.0
     weight = np.ones(n_event_pixels)
-    if typical > 0:
-        over = measured & (scale > kappa * typical)
-        weight[over] = (kappa * typical / scale[over]) ** 2
+    bound = max(kappa * typical, floor)
+    if bound > 0:
+        over = measured & (scale > bound)
+        weight[over] = (bound / scale[over]) ** 2
     return Gate(weight=weight, scale=scale, typical=typical, restart=weight < 0.5)

@@ -40,6 +40,9 @@ from pstoolkit_dualres.reflectance import FitModel
 from pstoolkit_dualres.tiling import plan
 from pstoolkit_dualres.train import StageConfig, train
 
+# The event gate's bound is at least this share of the smaller contrast threshold: the residual an
+# event's own quantisation leaves (consistency.event_gate).
+GATE_FLOOR = 0.5
 # Share of the progress bar given to preprocessing.
 PREPROCESS_SHARE = 0.1
 
@@ -114,8 +117,8 @@ class DualRes(Solver):
                minimum=0.0),
         Option("event_gate", float, 0.0,
                "κ of the event pixels' consistency gate between stages: a pixel whose events the fit leaves with a residual "
-               "scale above κ times the typical one weighs (κ·typical/scale)², its frame pixels restart from the closed form "
-               "below one half (0 = off)", minimum=0.0),
+               "scale above κ times the typical one (and above half the contrast threshold) weighs (bound/scale)², its frame "
+               "pixels restart from the closed form below one half (0 = off)", minimum=0.0),
         Option("indirect", bool, False,
                "fit an indirect-light map b (smooth, ≥ 0): light from other parts of the object that the diffuse albedo "
                "reflects and no cast shadow removes (inter-reflection in concavities, a room's ambient light)"),
@@ -220,7 +223,8 @@ class DualRes(Solver):
                         clock.lap(f"redetect_{stage}")
                         record.update(shadow_intervals=len(shadows), cast_shadow_share=problem.diagnostics["cast_shadow_share"])
                     if gated:
-                        gate = event_gate(problem, field, model, pre.event_height * pre.event_width, options["event_gate"])
+                        gate = event_gate(problem, field, model, pre.event_height * pre.event_width, options["event_gate"],
+                                          GATE_FLOOR * min(pre.contrast_pos, pre.contrast_neg))
                         problem.events.apply_gate(gate.weight)
                         self._restart(pre, problem, field, model, shadows, self._gated_pixels(problem, gate.restart))
                         clock.lap(f"gate_{stage}")
