@@ -3,6 +3,10 @@ through a fitted BRDF (``reflectance.FitModel``); frames as Σ Ĩ·Δt per (fram
 per-pixel importance samples of preprocessing (``frame_prediction``) or on a time grid shared by all
 pixels (``frame_prediction_grid``) — and the grey irradiance of event super pixels as the weighted
 sum of the frame pixels under them (``superpixel_grey``).
+
+A model with indirect light adds to each frame value ρ_d·b·∫e dt over the frame's window (``energy``,
+``FitModel.indirect_light``): light from the rest of the object, which a cast shadow of the direct
+light does not take away.
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ def _take(maps: Maps, index: Tensor) -> Maps:
 
 
 def frame_prediction(model: FitModel, normal: Tensor, maps: Maps, sample_pixel: Tensor, sample_group: Tensor,
-                     light: Tensor, weight: Tensor, view: Tensor, groups: int) -> Tensor:
+                     light: Tensor, weight: Tensor, view: Tensor, groups: int, energy: Tensor | None = None) -> Tensor:
     """Frame values Σ_samples f_r·[n·l]₊·(e·m_c·Δt) at per-pixel importance samples (eq. 21–22).
 
     Parameters
@@ -43,6 +47,8 @@ def frame_prediction(model: FitModel, normal: Tensor, maps: Maps, sample_pixel: 
         (3,) unit direction to the camera.
     groups
         Number of output rows (frames·P).
+    energy
+        (K, 3) each frame's light energy, for a model with indirect light.
 
     Returns
     -------
@@ -51,11 +57,22 @@ def frame_prediction(model: FitModel, normal: Tensor, maps: Maps, sample_pixel: 
     """
     shaded = model.shade(normal[sample_pixel], light, view, _take(maps, sample_pixel))
     out = torch.zeros((groups, 3), dtype=shaded.dtype, device=shaded.device)
-    return out.index_add_(0, sample_group, shaded * weight)
+    out = out.index_add_(0, sample_group, shaded * weight)
+    return _with_indirect(model, maps, out, energy)
+
+
+def _with_indirect(model: FitModel, maps: Maps, frames_p: Tensor, energy: Tensor | None) -> Tensor:
+    """``frames_p`` (K·P, 3) plus ρ_d·b·energy_k of a model with indirect light (unchanged without)."""
+    indirect = model.indirect_light(maps)
+    if indirect is None:
+        return frames_p
+    assert energy is not None, "a model with indirect light needs the frames' energy"
+    k = energy.shape[0]
+    return frames_p + (energy[:, None, :] * indirect[None]).reshape(k * indirect.shape[0], 3)
 
 
 def frame_prediction_grid(model: FitModel, normal: Tensor, maps: Maps, light: Tensor, weight: Tensor,
-                          visible: Tensor | None, view: Tensor, frames: int) -> Tensor:
+                          visible: Tensor | None, view: Tensor, frames: int, energy: Tensor | None = None) -> Tensor:
     """Frame values on a time grid shared by all pixels. Broadcasting (P, 1) pixels against (1, S)
     samples needs no gather or scatter.
 
@@ -77,6 +94,8 @@ def frame_prediction_grid(model: FitModel, normal: Tensor, maps: Maps, light: Te
         (3,) unit direction to the camera.
     frames
         Number of frames K; must divide S.
+    energy
+        (K, 3) each frame's light energy, for a model with indirect light.
 
     Returns
     -------
@@ -87,13 +106,14 @@ def frame_prediction_grid(model: FitModel, normal: Tensor, maps: Maps, light: Te
     shaded = model.shade(normal[:, None, :], light[None], view, {k: v[:, None, :] for k, v in maps.items()}) * weight
     if visible is not None:
         shaded = shaded * visible.T[..., None]
-    return shaded.reshape(p, frames, s // frames, 3).sum(dim=2).transpose(0, 1).reshape(frames * p, 3)
+    direct = shaded.reshape(p, frames, s // frames, 3).sum(dim=2).transpose(0, 1).reshape(frames * p, 3)
+    return _with_indirect(model, maps, direct, energy)
 
 
 def superpixel_grey(model: FitModel, normal: Tensor, maps: Maps, tap_pixel: Tensor, tap_weight: Tensor,
-                    light: Tensor, grey_intensity: Tensor, view: Tensor) -> Tensor:
+                    light: Tensor, grey_intensity: Tensor, view: Tensor, tap_area: Tensor | None = None) -> Tensor:
     """Grey irradiance of event super pixels: Σ_taps weight × grey(f_r·[n·l]₊·e) over the frame pixels
-    under each, at one light per row.
+    under each, at one light per row; with indirect light plus Σ_taps area × grey(ρ_d·b·e).
 
     Parameters
     ----------
@@ -113,6 +133,8 @@ def superpixel_grey(model: FitModel, normal: Tensor, maps: Maps, tap_pixel: Tens
         (E, 3) e_c times the Rec. 601 weight of channel c.
     view
         (3,) unit direction to the camera.
+    tap_area
+        (E, F) each tap's area share without the mask, for a model with indirect light.
 
     Returns
     -------
@@ -122,5 +144,11 @@ def superpixel_grey(model: FitModel, normal: Tensor, maps: Maps, tap_pixel: Tens
     e, f = tap_pixel.shape
     flat = tap_pixel.reshape(-1)
     l = light[:, None, :].expand(e, f, 3).reshape(-1, 3)
-    shaded = model.shade(normal[flat], l, view, _take(maps, flat)).reshape(e, f, 3)
-    return torch.sum(torch.sum(shaded * grey_intensity[:, None, :], dim=-1) * tap_weight, dim=-1)
+    taken = _take(maps, flat)
+    shaded = model.shade(normal[flat], l, view, taken).reshape(e, f, 3)
+    grey = torch.sum(torch.sum(shaded * grey_intensity[:, None, :], dim=-1) * tap_weight, dim=-1)
+    indirect = model.indirect_light(taken)
+    if indirect is None:
+        return grey
+    assert tap_area is not None, "a model with indirect light needs the taps' areas"
+    return grey + torch.sum(torch.sum(indirect.reshape(e, f, 3) * grey_intensity[:, None, :], dim=-1) * tap_area, dim=-1)

@@ -26,7 +26,7 @@ from numba import prange
 from torch import Tensor
 
 from pstoolkit.optics.brdf import GGX, HALF_EPS, MIN_ROUGHNESS, Lambertian
-from pstoolkit_dualres.reflectance import FitModel
+from pstoolkit_dualres.reflectance import INDIRECT, FitModel
 
 INV_PI = 1.0 / math.pi
 # Pixels a thread takes at once: the innermost loop's length (128 measured fastest at 512² pixels).
@@ -91,20 +91,23 @@ def ggx_specular(nx: float, ny: float, nz: float, nl: float, lx: float, ly: floa
 # run to run on one machine (the determinism test failed about one process in three).
 @numba.njit(cache=True, parallel=True, nogil=True, error_model="numpy", fastmath={"contract"})
 def _frame_pass(normal: np.ndarray, albedo: np.ndarray, f0: np.ndarray, roughness: np.ndarray, light: np.ndarray,
-                weight: np.ndarray, visible: np.ndarray, view: np.ndarray,
+                weight: np.ndarray, visible: np.ndarray, view: np.ndarray, indirect: np.ndarray, energy: np.ndarray,
                 frames: int, measured: np.ndarray, saturated: np.ndarray, gradient: bool, loss: np.ndarray,
                 grads: np.ndarray) -> None:
     """Per pixel i: ``loss[i]`` the summed residual of its K·3 frame values, and (``gradient``)
     ``grads[:, i]`` the derivatives of that sum with respect to its normal (rows 0–2), albedo (3–5),
-    F0 (6–8) and roughness (9).
+    F0 (6–8), roughness (9) and indirect light (10).
 
     ``normal``, ``albedo``, ``f0`` (3, P) float32, ``roughness`` (P,), ``light`` (K·S, 3) unit light
     directions, ``weight`` (K·S, 3), ``visible`` (K·S, P) or (0, 0) when all is lit, ``view`` (3,)
-    float64, ``measured`` (K, P, 3), ``saturated`` (K, P). Pixels go in blocks of BLOCK, the innermost
+    float64, ``indirect`` (P,) the indirect light b or (0,) without one, ``energy`` (K, 3) each frame's
+    Σ weight without the mask (what b is reflected under: Ã_kc += ρ_c·b·energy_kc), ``measured``
+    (K, P, 3), ``saturated`` (K, P). Pixels go in blocks of BLOCK, the innermost
     loop over a block's pixels, so the compiler vectorises it; the sums live in a (27, BLOCK) scratch."""
     p = normal.shape[1]
     per = light.shape[0] // frames
     shadows = visible.shape[0] > 0
+    ambient = indirect.shape[0] > 0
     vx, vy, vz = np.float32(view[0]), np.float32(view[1]), np.float32(view[2])
     zero, one = np.float32(0.0), np.float32(1.0)
     for block in prange((p + BLOCK - 1) // BLOCK):
@@ -113,7 +116,7 @@ def _frame_pass(normal: np.ndarray, albedo: np.ndarray, f0: np.ndarray, roughnes
         # per pixel: ``ggx_pixel``'s α², k, b, n·v, r and its two clamp flags
         own = np.empty((7, BLOCK), dtype=np.float32)
         sums = np.empty((27, BLOCK), dtype=np.float32)
-        out = np.zeros((11, BLOCK), dtype=np.float32)
+        out = np.zeros((12, BLOCK), dtype=np.float32)
         for j in range(n):
             i = i0 + j
             terms = ggx_pixel(normal[0, i], normal[1, i], normal[2, i], roughness[i], vx, vy, vz)
@@ -167,25 +170,29 @@ def _frame_pass(normal: np.ndarray, albedo: np.ndarray, f0: np.ndarray, roughnes
             for c in range(3):
                 for j in range(n):
                     i = i0 + j
-                    pred = albedo[c, i] * sums[c, j] + f0[c, i] * sums[3 + c, j]
+                    # the light the diffuse albedo reflects: the direct sum and the indirect b·energy
+                    diffuse = sums[c, j] + (indirect[i] * energy[fk, c] if ambient else zero)
+                    pred = albedo[c, i] * diffuse + f0[c, i] * sums[3 + c, j]
                     if saturated[fk, i]:
                         residual = one - pred
                         g = -one if residual > zero else zero
-                        out[10, j] += max(residual, zero)
+                        out[11, j] += max(residual, zero)
                     else:
                         residual = pred - measured[fk, i, c]
                         g = one if residual > zero else (-one if residual < zero else zero)
-                        out[10, j] += abs(residual)
+                        out[11, j] += abs(residual)
                     if gradient:
-                        out[3 + c, j] += g * sums[c, j]
+                        out[3 + c, j] += g * diffuse
+                        if ambient:
+                            out[10, j] += g * albedo[c, i] * energy[fk, c]
                         out[6 + c, j] += g * sums[3 + c, j]
                         for x in range(3):
                             out[x, j] += g * (albedo[c, i] * sums[6 + 3 * c + x, j] + f0[c, i] * sums[15 + 3 * c + x, j])
                         out[9, j] += g * f0[c, i] * sums[24 + c, j]
         for j in range(n):
-            loss[i0 + j] = out[10, j]
+            loss[i0 + j] = out[11, j]
         if gradient:
-            for x in range(10):
+            for x in range(11):
                 for j in range(n):
                     grads[x, i0 + j] = out[x, j]
 
@@ -212,15 +219,17 @@ def float32_array(x: Tensor) -> np.ndarray:
 
 class _FusedFrameLoss(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, normal: Tensor, albedo: Tensor, f0: Tensor, roughness: Tensor, light: Tensor, weight: Tensor,
-                visible: Tensor, view: Tensor, frames: int, measured: Tensor, saturated: Tensor) -> Tensor:
+    def forward(ctx, normal: Tensor, albedo: Tensor, f0: Tensor, roughness: Tensor, indirect: Tensor, light: Tensor,
+                weight: Tensor, visible: Tensor, view: Tensor, energy: Tensor, frames: int, measured: Tensor,
+                saturated: Tensor) -> Tensor:
         p = normal.shape[0]
-        gradient = any(ctx.needs_input_grad[:4])
+        gradient = any(ctx.needs_input_grad[:5])
         loss = np.empty(p, dtype=np.float32)
-        grads = np.empty((10, p if gradient else 0), dtype=np.float32)
+        grads = np.empty((11, p if gradient else 0), dtype=np.float32)
         shading = (float32_array(x) for x in (normal.T, albedo.T, f0.T, roughness.reshape(-1), light, weight, visible))
-        _frame_pass(*shading, view.detach().double().numpy(), frames, float32_array(measured).reshape(frames, p, 3),
-                    saturated.reshape(frames, p).contiguous().numpy(), gradient, loss, grads)
+        _frame_pass(*shading, view.detach().double().numpy(), float32_array(indirect.reshape(-1)), float32_array(energy),
+                    frames, float32_array(measured).reshape(frames, p, 3), saturated.reshape(frames, p).contiguous().numpy(),
+                    gradient, loss, grads)
         count = frames * p * 3
         if gradient:
             ctx.grads = torch.from_numpy(grads)
@@ -231,12 +240,13 @@ class _FusedFrameLoss(torch.autograd.Function):
     def backward(ctx, grad: Tensor):
         g = ctx.grads * (grad / max(ctx.count, 1))
         need = ctx.needs_input_grad
-        parts = (g[0:3].T, g[3:6].T, g[6:9].T, g[9:10].T)
-        return (*(part if wanted else None for part, wanted in zip(parts, need[:4])), *(None,) * 7)
+        parts = (g[0:3].T, g[3:6].T, g[6:9].T, g[9:10].T, g[10:11].T)
+        return (*(part if wanted else None for part, wanted in zip(parts, need[:5])), *(None,) * 8)
 
 
 def fused_frame_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], light: Tensor, weight: Tensor,
-                     visible: Tensor | None, view: Tensor, frames: int, measured: Tensor, saturated: Tensor) -> Tensor:
+                     visible: Tensor | None, view: Tensor, frames: int, measured: Tensor, saturated: Tensor,
+                     energy: Tensor | None = None) -> Tensor:
     """``frame_loss(frame_prediction_grid(...), measured, saturated)`` in one compiled pass, with the
     gradient with respect to ``normal`` and the maps; only where ``supports(model, normal)``.
 
@@ -258,6 +268,9 @@ def fused_frame_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], l
         K; divides K·S.
     measured, saturated
         (K·P, 3) frame values and (K·P,) clipped flags, rows frame·P + pixel.
+    energy
+        (K, 3) each frame's light energy (``FrameTerms.energy``), under which a model with
+        ``indirect`` reflects its indirect map; needed then.
 
     Returns
     -------
@@ -266,4 +279,10 @@ def fused_frame_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], l
     """
     albedo, f0, roughness = ggx_maps(model, normal, maps)
     lit = visible if visible is not None else normal.new_zeros((0, 0))
-    return _FusedFrameLoss.apply(normal, albedo, f0, roughness, light, weight, lit, view, frames, measured, saturated)
+    if model.indirect:
+        assert energy is not None, "a model with indirect light needs the frames' energy"
+        indirect = maps[INDIRECT.name]
+    else:
+        indirect, energy = normal.new_zeros((0, 1)), normal.new_zeros((frames, 3))
+    return _FusedFrameLoss.apply(normal, albedo, f0, roughness, indirect, light, weight, lit, view, energy, frames, measured,
+                                 saturated)

@@ -4,7 +4,10 @@
   (``saturated``) only says the truth was at least 1: it is penalised only while the rendering stays
   below 1, so highlights that clip do not pull the fit down.
 - Events (eq. 25): weighted squared residual of the log ratio of the rendered grey irradiance at an
-  event and at its reference time against the fired contrast: ln((Ĩ_k + ε)/(Ĩ_ref + ε)) − ln α − p·C.
+  event and at its reference time against the fired contrast: ln((Ĩ_k + ε)/(Ĩ_ref + ε)) − ln α − p·C;
+  with a Huber δ (``robust_square``) a residual beyond δ counts linearly, so the pairs the model cannot
+  explain — noise events, a threshold off its nominal value, light reflected from other parts of the
+  object — pull the fit with a bounded force instead of one that grows with their residual.
 - Total variation (eq. 26, the warm-up term of LL22a): mean L1 difference of neighbouring pixels.
 """
 
@@ -22,10 +25,20 @@ def frame_loss(predicted: Tensor, measured: Tensor, saturated: Tensor) -> Tensor
     return residual.mean()
 
 
-def event_loss(grey_t: Tensor, grey_ref: Tensor, target: Tensor, weight: Tensor, eps: float) -> Tensor:
-    """Σ w·(ln((Ĩ_k + ε)/(Ĩ_ref + ε)) − target)² / N_e with ``target`` = ln α + p·C per event pair."""
+def robust_square(residual: Tensor, huber: float) -> Tensor:
+    """r² within ``huber`` δ (all of it for δ ≤ 0), 2δ|r| − δ² beyond: Huber's loss times two, so that
+    within δ it is the plain square of eq. 25."""
+    if huber <= 0:
+        return residual * residual
+    clipped = residual.clamp(-huber, huber)
+    return clipped * (2.0 * residual - clipped)
+
+
+def event_loss(grey_t: Tensor, grey_ref: Tensor, target: Tensor, weight: Tensor, eps: float, huber: float = 0.0) -> Tensor:
+    """Σ w·ρ_δ(ln((Ĩ_k + ε)/(Ĩ_ref + ε)) − target) / N_e with ``target`` = ln α + p·C per event pair and
+    ρ_δ = ``robust_square`` (δ = ``huber``, log units)."""
     residual = torch.log(grey_t + eps) - torch.log(grey_ref + eps) - target
-    return torch.sum(weight * residual * residual) / max(int(target.numel()), 1)
+    return torch.sum(weight * robust_square(residual, huber)) / max(int(target.numel()), 1)
 
 
 def tv_loss(values: Tensor, pairs: Tensor) -> Tensor:

@@ -39,6 +39,9 @@ SCALE_PERCENTILE = 95.0
 # A super pixel counts as inside the frame when this little of its area is outside (float sums of
 # the footprint's shares).
 INSIDE_TOLERANCE = 1e-6
+# Midpoints per frame window of the light energy indirect light is reflected under (the intensity
+# changes slowly along a turn: 64 points integrate it to far below a frame's quantisation).
+ENERGY_SAMPLES = 64
 
 
 def _like(array: np.ndarray, reference: Tensor) -> Tensor:
@@ -83,7 +86,9 @@ class FrameTerms:
       intensity × Δt (s) × albedo scale × lit (0 or 1 under the mask).
 
     ``measured`` (K·P, 3) frame values in units of saturation and ``saturated`` (K·P,) bool, rows in
-    frame-major order; ``exposure_s`` the K frames' summed exposure time. ``source`` holds the numpy
+    frame-major order; ``exposure_s`` the K frames' summed exposure time; ``energy`` (K, 3) each
+    frame's ∫ e dt × albedo scale over its window, no mask applied (what indirect light is reflected
+    under). ``source`` holds the numpy
     copies the mask is applied from: ``shared_t``/``shared_dt_us`` (K·S,) µs, or ``sample_t`` (M,) µs,
     ``sample_dt_s`` (M,) s and ``sample_weight`` (M, 3) without the mask."""
 
@@ -98,6 +103,7 @@ class FrameTerms:
     sample_weight: Tensor
     measured: Tensor
     saturated: Tensor
+    energy: Tensor
     source: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
     def apply_mask(self, shadows: ShadowMask, pixels: np.ndarray) -> np.ndarray:
@@ -122,18 +128,21 @@ class EventTerms:
     pixel. ``taps`` (E, F) int64 positions among the P masked pixels (0 on a tap outside the mask,
     whose weight is 0); ``tap_weight_now``/``tap_weight_ref`` (E, F) each tap's area share, 0 where
     the mask shadows it at the pair's later (``t_us``) or earlier (``t_ref_us``) time; ``light_now``/
-    ``light_ref`` (E, 3) unit light directions and ``grey_now``/``grey_ref`` (E, 3) RGB intensity ×
+    ``light_ref`` (E, 3) unit light directions, ``tap_area`` (E, F) each tap's area share without the
+    mask (what indirect light reaches), ``grey_now``/``grey_ref`` (E, 3) RGB intensity ×
     Rec. 601 weight at those times; ``target`` (E,) the log-irradiance step between them and
     ``weight`` (E,) its confidence ≥ 0; ``usable`` (U,) int64 the pairs the loss may draw under the
     current mask. ``source`` holds the numpy copies the mask is applied from: ``frame_taps`` (E, F)
     flat frame indices, ``area`` (E, F), ``t_us``/``t_ref_us`` (E,) µs and ``usable`` (E,) bool
-    without a mask."""
+    without a mask, and ``pixel`` (E,) each pair's event pixel with ``weight`` (E,) its confidence
+    before any ``apply_gate``."""
 
     taps: Tensor
     tap_weight_now: Tensor
     tap_weight_ref: Tensor
     light_now: Tensor
     light_ref: Tensor
+    tap_area: Tensor
     grey_now: Tensor
     grey_ref: Tensor
     target: Tensor
@@ -158,6 +167,16 @@ class EventTerms:
         self.tap_weight_now = _like(weight_now, self.target)
         self.tap_weight_ref = _like(weight_ref, self.target)
         self.usable = torch.as_tensor(np.flatnonzero(usable), dtype=torch.int64, device=self.target.device)
+
+    @property
+    def pixel(self) -> np.ndarray:
+        """(E,) int64 the event pixel of each pair."""
+        return self.source["pixel"]
+
+    def apply_gate(self, pixel_weight: np.ndarray) -> None:
+        """Weigh each pair's confidence by its event pixel's entry of ``pixel_weight`` (He·We,)
+        (``consistency.event_gate``), from the confidences the pairs were built with."""
+        self.weight = _like(self.source["weight"] * pixel_weight[self.pixel], self.weight)
 
 
 @dataclass
@@ -282,13 +301,15 @@ def build_problem(pre: Preprocessed, view: np.ndarray, *, device: str, frame_sam
         s_weight = s_int * (s_dt * scale)[:, None]
         frame_source.update(sample_pixel=s_pos, sample_t=s_t, sample_dt_s=s_dt, sample_weight=s_weight)
 
+    e_t = np.stack([sample_times(t_start[j], t_end[j], ENERGY_SAMPLES) for j in range(k)])
+    energy = light.evaluate(e_t.ravel())[1].reshape(k, ENERGY_SAMPLES, 3).mean(axis=1) * ((t_end - t_start) / US_PER_S * scale)[:, None]
     measured = np.asarray(pre.frames, dtype=np.float32).reshape(k, h * w, -1)[:, pixels].reshape(k * p, -1)
     saturated = np.asarray(pre.saturated, dtype=bool).reshape(k, h * w)[:, pixels].reshape(k * p)
     frames = FrameTerms(
         count=k, exposure_s=exposure_s, shared_light=shared_light, shared_weight=shared_weight, shared_visible=None,
         sample_pixel=tensor(s_pos, torch.int64), sample_group=tensor(s_frame * p + s_pos, torch.int64),
         sample_light=tensor(s_dir), sample_weight=tensor(s_weight),
-        measured=tensor(measured), saturated=tensor(saturated, torch.bool), source=frame_source,
+        measured=tensor(measured), saturated=tensor(saturated, torch.bool), energy=tensor(energy), source=frame_source,
     )
 
     # Event pairs (eq. 25) with the frame pixels under their super pixel; a super pixel that sees
@@ -306,11 +327,12 @@ def build_problem(pre: Preprocessed, view: np.ndarray, *, device: str, frame_sam
     grey_w = np.asarray(GREY_WEIGHTS)
     events = EventTerms(
         taps=tensor(np.maximum(taps, 0), torch.int64), tap_weight_now=tensor(area), tap_weight_ref=tensor(area),
-        light_now=tensor(dir_ev), light_ref=tensor(dir_ref),
+        light_now=tensor(dir_ev), light_ref=tensor(dir_ref), tap_area=tensor(area),
         grey_now=tensor(int_ev * grey_w), grey_ref=tensor(int_ref * grey_w),
         target=tensor(pairs.target), weight=tensor(pairs.weight),
         usable=torch.as_tensor(np.flatnonzero(usable), dtype=torch.int64, device=device),
-        source={"frame_taps": frame_taps, "area": area, "t_us": pairs.t_us, "t_ref_us": pairs.t_ref_us, "usable": usable},
+        source={"frame_taps": frame_taps, "area": area, "t_us": pairs.t_us, "t_ref_us": pairs.t_ref_us, "usable": usable,
+                "pixel": np.asarray(pairs.pixel, dtype=np.int64), "weight": np.asarray(pairs.weight, dtype=np.float64)},
     )
 
     v, u = np.divmod(pixels, w)

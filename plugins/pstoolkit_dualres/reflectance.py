@@ -6,6 +6,11 @@ roughness …, the low-frequency unknowns the events constrain); a field (``fiel
 channels for each group and ``FitModel.maps`` maps them into their bounds: low + (high − low)·σ(raw)
 for a bounded map, low + exp(raw) for one bounded below only. Radiometric maps are in units of the
 capture's albedo scale (``problem.Problem.albedo_scale``), so every raw value stays O(1).
+
+With ``indirect`` the model adds one smooth map of its own, ``INDIRECT``: light that reaches a pixel
+from other parts of the object (inter-reflection) or the room, per unit of the light's intensity and
+constant over a turn, which the pixel's diffuse albedo reflects like the direct light but which no
+cast shadow removes (``forward_model``). It is not the BRDF's: ``shade`` never sees it.
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from pstoolkit import BRDF, FitParam
+from pstoolkit import BRDF, FitParam, UserError
 
 
 def raw_value(param: FitParam, value: float) -> float:
@@ -32,18 +37,28 @@ def activate(param: FitParam, raw: Tensor) -> Tensor:
     return param.low + (param.high - param.low) * torch.sigmoid(raw)
 
 
-class FitModel:
-    """``brdf`` with its maps split into ``pixel`` and ``smooth`` parameters (in ``fit`` order)."""
+INDIRECT = FitParam("indirect", 1, 0.0, None, 1e-3, radiometric=False, smooth=True)
+"""The indirect irradiance b: per unit of the light's intensity, in the units of n·l (a surface facing
+the light gets 1 from it directly), ≥ 0, starting almost at 0."""
 
-    def __init__(self, brdf: BRDF) -> None:
+
+class FitModel:
+    """``brdf`` with its maps split into ``pixel`` and ``smooth`` parameters (in ``fit`` order), and
+    with ``indirect`` the ``INDIRECT`` map last among the smooth ones. UserError for ``indirect`` with
+    a BRDF that has no RGB diffuse albedo to reflect it."""
+
+    def __init__(self, brdf: BRDF, indirect: bool = False) -> None:
         self.brdf = brdf
         self.pixel = tuple(p for p in brdf.fit if not p.smooth)
-        self.smooth = tuple(p for p in brdf.fit if p.smooth)
+        self.smooth = tuple(p for p in brdf.fit if p.smooth) + ((INDIRECT,) if indirect else ())
+        self.indirect = indirect
         self.pixel_channels = sum(p.channels for p in self.pixel)
         self.smooth_channels = sum(p.channels for p in self.smooth)
         diffuse = [p for p in self.pixel if p.radiometric and p.channels == 3]
         # the closed-form start gives an RGB albedo: it starts the first RGB reflectance per pixel
         self.diffuse = diffuse[0].name if diffuse else None
+        if indirect and self.diffuse is None:
+            raise UserError(f"dualres: BRDF {brdf.name!r} has no RGB diffuse albedo to reflect the indirect light (indirect=true)")
 
     @property
     def name(self) -> str:
@@ -88,5 +103,12 @@ class FitModel:
         return out
 
     def shade(self, n: Tensor, l: Tensor, v: Tensor, maps: dict[str, Tensor]) -> Tensor:
-        """f_r·[n·l]₊ (..., 3) through the BRDF."""
-        return self.brdf.shade(n, l, v, **maps)
+        """f_r·[n·l]₊ (..., 3) through the BRDF (the indirect map left out)."""
+        return self.brdf.shade(n, l, v, **{name: value for name, value in maps.items() if name != INDIRECT.name})
+
+    def indirect_light(self, maps: dict[str, Tensor]) -> Tensor | None:
+        """(..., 3) the radiance ρ_d·b the indirect light gives per unit of light intensity, or None
+        without ``indirect``."""
+        if not self.indirect:
+            return None
+        return maps[self.diffuse] * maps[INDIRECT.name]

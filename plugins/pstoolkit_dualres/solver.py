@@ -4,8 +4,10 @@ Pipeline: ``preprocess`` → the shadow detector of the registry (``--set shadow
 ``problem.build_problem`` with its mask → Adam on the frame, event and TV losses (eq. 24–26,
 ``train``) in stages: a detector that uses the surface (``geometry``, ``fused``) runs again on the
 fitted normals between stages (``presets.Preset.detect_at``), the mask is applied to the frames and
-events, and the pixels it puts in shadow restart from the closed form under it. The reflectance
-model is a BRDF of the registry (``--set brdf=NAME``, ``reflectance.FitModel``).
+events, and the pixels it puts in shadow restart from the closed form under it; with ``event_gate``
+κ the event pixels whose pairs the fit cannot explain weigh less from then on and their frame pixels
+restart too (``consistency``). The reflectance model is a BRDF of the registry (``--set
+brdf=NAME``, ``reflectance.FitModel``), with ``indirect`` an indirect-light map beside it.
 
 Outputs: ``normal``; the BRDF's maps (``albedo``, ``f0``, ``roughness`` for ``ggx``; radiometric ones
 in frame units per unit light per second, the exposure gain folded in), the maps they imply in other
@@ -29,6 +31,7 @@ import psfmt
 from pstoolkit import BRDF, Option, Progress, ShadowDetector, ShadowMask, Solver, SolverResult, UserError, get_registries
 from pstoolkit.plugin.options import format_assignments
 from pstoolkit.solve.tiled import solve_tiles
+from pstoolkit_dualres.consistency import event_gate
 from pstoolkit_dualres.fields import NeuralField, PyramidField
 from pstoolkit_dualres.preprocess import SCALE_RULES, Preprocessed, PreprocessOptions, preprocess
 from pstoolkit_dualres.presets import OVERRIDES, PRESETS, Preset, resolve
@@ -37,6 +40,9 @@ from pstoolkit_dualres.reflectance import FitModel
 from pstoolkit_dualres.tiling import plan
 from pstoolkit_dualres.train import StageConfig, train
 
+# The event gate's bound is at least this share of the smaller contrast threshold: the residual an
+# event's own quantisation leaves (consistency.event_gate).
+GATE_FLOOR = 0.5
 # Share of the progress bar given to preprocessing.
 PREPROCESS_SHARE = 0.1
 
@@ -83,9 +89,10 @@ def build_field(preset: Preset, problem: Problem, model: FitModel) -> nn.Module:
     )
 
 
-def _stage_bounds(preset: Preset, detector: ShadowDetector) -> list[int]:
-    """Epochs at which the stages start, then the last epoch."""
-    cuts = sorted({int(round(share * preset.epochs)) for share in preset.detect_at}) if detector.uses_surface else []
+def _stage_bounds(preset: Preset, detector: ShadowDetector, gated: bool) -> list[int]:
+    """Epochs at which the stages start, then the last epoch: at the preset's ``detect_at`` when the
+    detector uses the surface or the events are gated (``consistency``), else one stage."""
+    cuts = sorted({int(round(share * preset.epochs)) for share in preset.detect_at}) if detector.uses_surface or gated else []
     return [0, *[c for c in cuts if 0 < c < preset.epochs], preset.epochs]
 
 
@@ -105,6 +112,18 @@ class DualRes(Solver):
         Option("material_lr", float, -1.0, "learning rate of the smooth materials (−1 = the preset's)", minimum=-1.0),
         Option("frame_weight", float, 1.0, "λ_f, weight of the frame loss (eq. 24)", minimum=0.0),
         Option("event_weight", float, -1.0, "λ_e, weight of the event loss (eq. 25) (−1 = the preset's: fast 8, paper 0.05)", minimum=-1.0),
+        Option("event_huber", float, 0.0,
+               "Huber δ of the event residual, log units: residuals beyond it pull linearly (0 = the paper's square)",
+               minimum=0.0),
+        Option("event_gate", float, 0.0,
+               "κ of the event pixels' consistency gate between stages: a pixel whose events the fit leaves with a residual "
+               "scale above κ times the typical one (and above half the contrast threshold) weighs (bound/scale)², its frame "
+               "pixels restart from the closed form below one half (0 = off)", minimum=0.0),
+        Option("indirect", bool, False,
+               "fit an indirect-light map b (smooth, ≥ 0): light from other parts of the object that the diffuse albedo "
+               "reflects and no cast shadow removes (inter-reflection in concavities, a room's ambient light)"),
+        Option("indirect_sparsity", float, 0.05, "weight of the L1 penalty that keeps b at 0 where the direct light "
+               "explains the frames", minimum=0.0),
         Option("tv_weight", float, -1.0, "λ_tv, weight of the TV warm-up (−1 = the preset's)", minimum=-1.0),
         Option("tv_fraction", float, -1.0, "share of each stage's epochs over which the TV term fades to zero (−1 = the preset's)",
                minimum=-1.0, maximum=1.0),
@@ -173,7 +192,7 @@ class DualRes(Solver):
         brdf: BRDF = registries.brdfs.get(options["brdf"]).obj()
         if not getattr(brdf, "fit", ()):
             raise UserError(f"dualres: BRDF {options['brdf']!r} declares no fit parameters (BRDF.fit) to estimate")
-        model = FitModel(brdf).to(self.device)
+        model = FitModel(brdf, indirect=options["indirect"]).to(self.device)
         started = time.perf_counter()
         clock = Stopwatch()
         progress(0.0, "preprocessing")
@@ -189,7 +208,8 @@ class DualRes(Solver):
         problem.apply_mask(shadows)
         clock.lap("problem")
         seconds_pre = time.perf_counter() - started
-        bounds = _stage_bounds(preset, detector)
+        gated = options["event_gate"] > 0
+        bounds = _stage_bounds(preset, detector, gated)
         stages: list[dict[str, Any]] = [{"epoch": 0, "shadow_intervals": len(shadows), "cast_shadow_share": problem.diagnostics["cast_shadow_share"]}]
         history: list[dict[str, float]] = []
         with deterministic(warn_only=str(self.device) != "cpu"):
@@ -197,10 +217,19 @@ class DualRes(Solver):
             clock.lap("field")
             for stage, (first, last) in enumerate(zip(bounds[:-1], bounds[1:])):
                 if stage > 0:
-                    shadows = self._detect_again(detector, detector_options, pre, problem, field, model)
-                    clock.lap(f"redetect_{stage}")
-                    stages.append({"epoch": first, "shadow_intervals": len(shadows),
-                                   "cast_shadow_share": problem.diagnostics["cast_shadow_share"]})
+                    record: dict[str, Any] = {"epoch": first}
+                    if detector.uses_surface:
+                        shadows = self._detect_again(detector, detector_options, pre, problem, field, model)
+                        clock.lap(f"redetect_{stage}")
+                        record.update(shadow_intervals=len(shadows), cast_shadow_share=problem.diagnostics["cast_shadow_share"])
+                    if gated:
+                        gate = event_gate(problem, field, model, pre.event_height * pre.event_width, options["event_gate"],
+                                          GATE_FLOOR * min(pre.contrast_pos, pre.contrast_neg))
+                        problem.events.apply_gate(gate.weight)
+                        self._restart(pre, problem, field, model, shadows, self._gated_pixels(problem, gate.restart))
+                        clock.lap(f"gate_{stage}")
+                        record.update(gate.record())
+                    stages.append(record)
                 config = self._stage(preset, options, last - first, options["seed"] + stage)
 
                 def report(fraction: float, message: str, first: int = first, last: int = last) -> None:
@@ -226,7 +255,9 @@ class DualRes(Solver):
     def _stage(preset: Preset, options: dict[str, Any], epochs: int, seed: int) -> StageConfig:
         return StageConfig(
             epochs=epochs, lr=preset.lr, material_lr=preset.material_lr, frame_weight=options["frame_weight"],
-            event_weight=preset.event_weight, tv_weight=preset.tv_weight, tv_fraction=preset.tv_fraction,
+            event_weight=preset.event_weight, event_huber=options["event_huber"],
+            indirect_sparsity=options["indirect_sparsity"], tv_weight=preset.tv_weight,
+            tv_fraction=preset.tv_fraction,
             event_batch=options["event_batch"], batch_pixels=preset.batch_pixels, tile=8, seed=seed,
         )
 
@@ -242,16 +273,33 @@ class DualRes(Solver):
         full[pixels] = normal
         shadows = detector.detect(pre.evidence.with_normal(full.reshape(h, w, 3)), detector_options)
         problem.apply_mask(shadows)
-        if isinstance(field, PyramidField) and len(shadows):
-            shadowed = np.flatnonzero(shadows.coverage()[pixels] > 0)
-            only = np.zeros(h * w, dtype=bool)
-            only[pixels[shadowed]] = True
-            init = pre.closed_form(shadows, only.reshape(h, w))
-            n, albedo = start_values(init.normal, init.albedo, pixels[shadowed], problem.albedo_scale)
-            index = torch.as_tensor(shadowed, dtype=torch.int64, device=problem.device)
-            field.reset(index, torch.as_tensor(n, dtype=problem.dtype, device=problem.device),
-                        model.pixel_raw_from(torch.as_tensor(albedo, dtype=problem.dtype, device=problem.device)))
+        if len(shadows):
+            DualRes._restart(pre, problem, field, model, shadows, np.flatnonzero(shadows.coverage()[pixels] > 0))
         return shadows
+
+    @staticmethod
+    def _restart(pre: Preprocessed, problem: Problem, field: nn.Module, model: FitModel, shadows: ShadowMask,
+                 positions: np.ndarray) -> None:
+        """Restart the masked pixels at ``positions`` (among the P) of a pyramid field from the closed
+        form under ``shadows`` (a network cannot restart single pixels: left as is)."""
+        if not isinstance(field, PyramidField) or positions.size == 0:
+            return
+        h, w, pixels = problem.geometry.height, problem.geometry.width, problem.geometry.pixels
+        only = np.zeros(h * w, dtype=bool)
+        only[pixels[positions]] = True
+        init = pre.closed_form(shadows, only.reshape(h, w))
+        n, albedo = start_values(init.normal, init.albedo, pixels[positions], problem.albedo_scale)
+        index = torch.as_tensor(positions, dtype=torch.int64, device=problem.device)
+        field.reset(index, torch.as_tensor(n, dtype=problem.dtype, device=problem.device),
+                    model.pixel_raw_from(torch.as_tensor(albedo, dtype=problem.dtype, device=problem.device)))
+
+    @staticmethod
+    def _gated_pixels(problem: Problem, restart: np.ndarray) -> np.ndarray:
+        """Positions among the P masked frame pixels that read the event pixels ``restart`` (He·We,)
+        bool for at least half of their bilinear weight."""
+        index, weight = problem.geometry.grid_taps
+        share = np.sum(restart[index.cpu().numpy()] * weight.cpu().numpy(), axis=1)
+        return np.flatnonzero(share >= 0.5)
 
     @staticmethod
     def _result(problem: Problem, model: FitModel, normal: np.ndarray, maps: dict[str, np.ndarray],

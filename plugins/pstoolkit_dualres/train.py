@@ -23,7 +23,7 @@ from pstoolkit_dualres.forward_model import frame_prediction, frame_prediction_g
 from pstoolkit_dualres.frame_kernel import fused_frame_loss, supports
 from pstoolkit_dualres.losses import event_loss, frame_loss, tv_loss
 from pstoolkit_dualres.problem import EventTerms, Problem
-from pstoolkit_dualres.reflectance import FitModel
+from pstoolkit_dualres.reflectance import INDIRECT, FitModel
 
 # Final learning rate of a stage as a share of its first: an exponential decay over its epochs.
 LR_DECAY = 0.1
@@ -53,6 +53,8 @@ class StageConfig:
     material_lr: float
     frame_weight: float
     event_weight: float
+    event_huber: float
+    indirect_sparsity: float
     tv_weight: float
     tv_fraction: float
     event_batch: int
@@ -195,7 +197,7 @@ def frame_chunk(normal: Tensor, samples: int) -> int:
 
 def grid_frame_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], light: Tensor, weight: Tensor,
                     visible: Tensor | None, view: Tensor, frames: int, measured: Tensor, saturated: Tensor,
-                    chunk: int | None = None) -> Tensor:
+                    chunk: int | None = None, energy: Tensor | None = None) -> Tensor:
     """``frame_loss`` of ``frame_prediction_grid`` over all P pixels: for the built-in GGX and
     Lambertian on the CPU in one compiled pass with its own derivatives (``frame_kernel``), for any
     other BRDF through torch with its graph held one chunk of ``chunk`` pixels at a time.
@@ -223,6 +225,8 @@ def grid_frame_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], li
         (K·P, 3) frame values and (K·P,) clipped flags, rows frame·P + pixel.
     chunk
         Pixels per chunk (default ``frame_chunk``).
+    energy
+        (K, 3) each frame's light energy (``FrameTerms.energy``), for a model with indirect light.
 
     Returns
     -------
@@ -230,11 +234,11 @@ def grid_frame_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], li
         The scalar mean |Ã − A| of ``frame_loss`` (equal up to float rounding of the chunked sum).
     """
     if supports(model, normal):
-        return fused_frame_loss(model, normal, maps, light, weight, visible, view, frames, measured, saturated)
+        return fused_frame_loss(model, normal, maps, light, weight, visible, view, frames, measured, saturated, energy)
     p = normal.shape[0]
     chunk = frame_chunk(normal, light.shape[0]) if chunk is None else chunk
     if p <= chunk:
-        predicted = frame_prediction_grid(model, normal, maps, light, weight, visible, view, frames)
+        predicted = frame_prediction_grid(model, normal, maps, light, weight, visible, view, frames, energy)
         return frame_loss(predicted, measured, saturated)
     names = list(maps)
     inputs = [normal, *(maps[name] for name in names)]
@@ -247,7 +251,7 @@ def grid_frame_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], li
         # leaves of the chunk's own rows: a slice of a whole-P leaf would backward into a (P, C) buffer per chunk
         leaves = [x[part].detach().requires_grad_(differentiate and x.requires_grad) for x in inputs]
         predicted = frame_prediction_grid(model, leaves[0], dict(zip(names, leaves[1:])), light, weight,
-                                          None if visible is None else visible[:, part], view, frames)
+                                          None if visible is None else visible[:, part], view, frames, energy)
         rows = measured_k[:, part].reshape(predicted.shape)
         # frame_loss is a mean: each chunk weighs by its share of the values
         loss = frame_loss(predicted, rows, saturated_k[:, part].reshape(-1)) * (predicted.shape[0] / (frames * p))
@@ -288,7 +292,8 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
     total : Tensor
         The scalar loss, differentiable.
     parts : dict
-        The parts as floats: "frame", and "event" and "tv" when they apply.
+        The parts as floats: "frame", and "event", "tv" and "indirect" (the mean indirect light) when
+        they apply.
     """
     normal, pixel_raw, smooth_raw = field(batch.pixels)
     maps = model.maps(pixel_raw, smooth_raw)
@@ -303,22 +308,27 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
         if batch.frame_rows is not None:
             measured, saturated = measured[batch.frame_rows], saturated[batch.frame_rows]
         lf = grid_frame_loss(model, own_normal, own_maps, frames.shared_light, frames.shared_weight, visible, view,
-                             frames.count, measured, saturated)
+                             frames.count, measured, saturated, energy=frames.energy)
     else:
         light, weight = frames.sample_light, frames.sample_weight
         if batch.samples is not None:
             light, weight = light[batch.samples], weight[batch.samples]
         predicted = frame_prediction(model, own_normal, own_maps, batch.sample_pixel, batch.sample_group, light, weight,
-                                     view, frames.count * own_normal.shape[0])
+                                     view, frames.count * own_normal.shape[0], energy=frames.energy)
         measured, saturated = frames.measured, frames.saturated
         if batch.frame_rows is not None:
             measured, saturated = measured[batch.frame_rows], saturated[batch.frame_rows]
         lf = frame_loss(predicted, measured, saturated)
     total = config.frame_weight * lf + field.penalty()
     parts = {"frame": float(lf.detach())}
+    if model.indirect:
+        # L1: the indirect light stays 0 where the direct light explains the frames
+        li = maps[INDIRECT.name].mean()
+        total = total + config.indirect_sparsity * li
+        parts["indirect"] = float(li.detach())
     e = batch.events
     if e.numel() and config.event_weight > 0:
-        le = pair_event_loss(model, normal, maps, batch.event_taps, problem.events, e, view)
+        le = pair_event_loss(model, normal, maps, batch.event_taps, problem.events, e, view, config.event_huber)
         total = total + config.event_weight * le
         parts["event"] = float(le.detach())
     if tv_share > 0 and config.tv_weight > 0:
@@ -329,18 +339,20 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
 
 
 def pair_event_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], taps: Tensor, events: EventTerms, pairs: Tensor,
-                    view: Tensor) -> Tensor:
+                    view: Tensor, huber: float = 0.0) -> Tensor:
     """The event term of eq. 25 over the event ``pairs`` (indices into ``events``) whose super pixels
     cover the frame pixels ``taps`` (E, F) of ``normal`` (P, 3) and ``maps``: one compiled pass
     (``event_kernel``) for the built-in GGX and Lambertian on the CPU, else ``superpixel_grey`` now and
-    at the reference time through ``event_loss``. The scalar loss, differentiable."""
+    at the reference time through ``event_loss``; ``huber`` its δ (0: the square). The scalar loss,
+    differentiable."""
     if supports(model, normal):
-        return fused_event_loss(model, normal, maps, taps, events, pairs, view, LOG_EPS)
+        return fused_event_loss(model, normal, maps, taps, events, pairs, view, LOG_EPS, huber)
+    area = events.tap_area[pairs] if model.indirect else None
     grey = superpixel_grey(model, normal, maps, taps, events.tap_weight_now[pairs], events.light_now[pairs],
-                           events.grey_now[pairs], view)
+                           events.grey_now[pairs], view, area)
     grey_ref = superpixel_grey(model, normal, maps, taps, events.tap_weight_ref[pairs], events.light_ref[pairs],
-                               events.grey_ref[pairs], view)
-    return event_loss(grey, grey_ref, events.target[pairs], events.weight[pairs], LOG_EPS)
+                               events.grey_ref[pairs], view, area)
+    return event_loss(grey, grey_ref, events.target[pairs], events.weight[pairs], LOG_EPS, huber)
 
 
 def _event_sample(problem: Problem, config: StageConfig, generator: torch.Generator) -> Tensor:

@@ -95,7 +95,7 @@ def angular_error_deg(normal: np.ndarray, normal_gt: np.ndarray, mask: np.ndarra
 
 def error_stats(errors: np.ndarray, solved: np.ndarray | None = None) -> dict[str, Any]:
     """Summary of angular errors in degrees over the pixels that are not NaN (NaN: outside the mask):
-    ``mae_deg``, ``median_deg``, the shares (0..1) of pixels with an error under each of
+    ``mae_deg``, ``median_deg``, ``p90_deg`` (the 90th percentile: where the tails are), the shares (0..1) of pixels with an error under each of
     ``THRESHOLDS_DEG`` (``SHARE_KEYS``), ``n_pixels``, ``coverage`` (share of them in ``solved``, a
     bool map of the shape of ``errors``; all when None) and ``mae_solved_deg`` (MAE over those; None
     when there are none)."""
@@ -107,7 +107,8 @@ def error_stats(errors: np.ndarray, solved: np.ndarray | None = None) -> dict[st
     if done.size != values.size:
         raise UserError(f"solved map of {done.size} pixels does not fit an error map of {values.size}")
     values, done = values[inside], done[inside]
-    stats: dict[str, Any] = {"mae_deg": float(values.mean()), "median_deg": float(np.median(values))}
+    stats: dict[str, Any] = {"mae_deg": float(values.mean()), "median_deg": float(np.median(values)),
+                             "p90_deg": float(np.percentile(values, 90))}
     for threshold, key in zip(THRESHOLDS_DEG, SHARE_KEYS):
         stats[key] = float(np.count_nonzero(values < threshold) / values.size)
     stats["n_pixels"] = int(values.size)

@@ -365,4 +365,58 @@ def crop_resize(
     return n, np.where(small_mask, h, 0.0), small_mask
 
 
-SCENES: tuple[type[Scene], ...] = (Sphere, ChromeSphere, Blobs, Relief, Geometry)
+class Hollows(Scene):
+    """Two tall rounded ridges with a deep, narrow valley between them, on a round plate: the
+    valley's floor is in cast shadow for most of a turn of a 45° ring light and lit mostly by what
+    the ridges' walls reflect (a path tracer's inter-reflection) — the case a shadow model is for."""
+
+    name: ClassVar[str] = "hollows"
+    summary: ClassVar[str] = "two ridges with a deep narrow valley between: long cast shadows, strong inter-reflection"
+    options: ClassVar[tuple[Option, ...]] = (
+        Option("height", float, 0.3, "ridge height as a fraction of the frame width", minimum=0.0, maximum=1.0),
+        Option("gap", float, 0.1, "distance between the ridges' crests as a fraction of the frame width", minimum=0.02, maximum=0.5),
+        *material_options(),
+    )
+
+    def build(self, size: int, seed: int, **options: Any) -> SceneMaps:
+        x, y = pixel_grid(size)
+        half_gap, width = options["gap"] / 2.0, options["gap"] / 2.5
+        bend = 0.06 * np.sin(2.0 * np.pi * (y - 0.5))
+        along = np.exp(-((y - 0.5) ** 2) / (2.0 * 0.22**2))
+        ridges = sum(np.exp(-((x - 0.5 - bend - side * half_gap) ** 2) / (2.0 * width**2)) for side in (-1.0, 1.0))
+        height = options["height"] * size * along * ridges
+        mask = (x - 0.5) ** 2 + (y - 0.5) ** 2 < 0.47**2
+        materials = build_materials(mask, np.random.default_rng(seed), options)
+        return assemble(normals_from_height(height), height, mask, materials)
+
+
+class Pits(Scene):
+    """Deep smooth pits sunk into a round plate (random positions, depths twice to three times their
+    radius): their floors see the light for a small part of a turn and each other's walls all the time."""
+
+    name: ClassVar[str] = "pits"
+    summary: ClassVar[str] = "deep smooth pits in a plate: floors in cast shadow most of a turn"
+    options: ClassVar[tuple[Option, ...]] = (
+        Option("count", int, 5, "number of pits", minimum=1, maximum=32),
+        Option("depth", float, 2.5, "pit depth in units of its radius", minimum=0.0, maximum=10.0),
+        *material_options(),
+    )
+
+    def build(self, size: int, seed: int, **options: Any) -> SceneMaps:
+        rng = np.random.default_rng(seed)
+        count = options["count"]
+        angle = rng.uniform(0.0, 2.0 * np.pi, count)
+        reach = np.sqrt(rng.uniform(0.0, 1.0, count)) * 0.28
+        centres = 0.5 + reach[:, None] * np.stack([np.cos(angle), np.sin(angle)], axis=1)
+        radii = rng.uniform(0.05, 0.08, count)
+        x, y = pixel_grid(size)
+        height = np.zeros((size, size))
+        for (cx, cy), r in zip(centres, radii):
+            # a smooth well: flat at the plate, steepest at r/√2, its floor 'depth'·r below
+            height -= options["depth"] * r * size * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (r * r))
+        mask = (x - 0.5) ** 2 + (y - 0.5) ** 2 < 0.47**2
+        materials = build_materials(mask, np.random.default_rng(seed + 1), options)
+        return assemble(normals_from_height(height), height - height.min(), mask, materials)
+
+
+SCENES: tuple[type[Scene], ...] = (Sphere, ChromeSphere, Blobs, Relief, Geometry, Hollows, Pits)

@@ -32,6 +32,7 @@ def test_mask_gives_nan_outside_and_stats_skip_it() -> None:
     assert stats == {
         "mae_deg": pytest.approx(45.0),
         "median_deg": pytest.approx(45.0),
+        "p90_deg": pytest.approx(81.0),  # linear between the sorted 45° and 90° at 0.8
         "below_11_25": pytest.approx(1 / 3),
         "below_22_5": pytest.approx(1 / 3),
         "below_30": pytest.approx(1 / 3),

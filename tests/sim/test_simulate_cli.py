@@ -162,7 +162,7 @@ def test_peak_auto_gain_keeps_highlights_below_saturation(tmp_path: Path) -> Non
         (["sphere", "--hot-pixel-fraction", "2"], "--hot-pixel-fraction 2.0 must be between 0 and 1"),
         (["sphere", "--sensor", "davis346", "--black-level", "600"], "--black-level 600.0 must be between 0 and half of saturation"),
         (["sphere", "--size", "33"], "is not a whole number of event pixels"),
-        (["cube"], "unknown scene 'cube' (known: blobs, chrome-sphere, geometry, mesh, relief, sphere)"),
+        (["cube"], "unknown scene 'cube' (known: blobs, chrome-sphere, geometry, hollows, mesh, pits, relief, sphere)"),
         (["sphere", "--set", "bogus=1"], "scene 'sphere' has no option 'bogus'"),
         (["sphere", "--brdf", "phong"], "unknown BRDF 'phong'"),
         (["sphere", "--source", "."], "--source: scene 'sphere' takes no source folder"),

@@ -25,7 +25,7 @@ from pstoolkit_dualres.fields import NeuralField, PyramidField, collapse, decomp
 from pstoolkit_dualres.forward_model import frame_prediction_grid, superpixel_grey
 from pstoolkit_dualres.frame_kernel import supports
 from pstoolkit_dualres.gather import gather_sum
-from pstoolkit_dualres.losses import event_loss, frame_loss
+from pstoolkit_dualres.losses import event_loss, frame_loss, robust_square
 from pstoolkit_dualres.preprocess import Preprocessed, PreprocessOptions, preprocess
 from pstoolkit_dualres.problem import Problem, build_problem
 from pstoolkit_dualres.reflectance import FitModel
@@ -41,7 +41,7 @@ from pstoolkit_dualres.train import (
     train,
 )
 
-STAGE = StageConfig(epochs=1, lr=1e-3, material_lr=1e-3, frame_weight=1.0, event_weight=0.05, tv_weight=0.02,
+STAGE = StageConfig(epochs=1, lr=1e-3, material_lr=1e-3, frame_weight=1.0, event_weight=0.05, event_huber=0.0, indirect_sparsity=0.0, tv_weight=0.02,
                     tv_fraction=0.3, event_batch=0, batch_pixels=256, tile=8, seed=0)
 
 
@@ -177,7 +177,7 @@ def test_a_coordinate_mlp_fits_a_sphere_by_mini_batches(tmp_path: Path) -> None:
     # the paper's network at a quarter of its width (its shape is tested in test_dualres.py), so the
     # test stays fast; the full width converges the same way (benchmarks/dualres.py)
     field = NeuralField(problem.geometry.coords, model.raw_init("pixel"), model.raw_init("smooth"), width=64, material_width=32)
-    config = StageConfig(epochs=40, lr=3e-3, material_lr=3e-3, frame_weight=1.0, event_weight=0.05, tv_weight=0.02,
+    config = StageConfig(epochs=40, lr=3e-3, material_lr=3e-3, frame_weight=1.0, event_weight=0.05, event_huber=0.0, indirect_sparsity=0.0, tv_weight=0.02,
                          tv_fraction=0.3, event_batch=0, batch_pixels=64, tile=8, seed=0)
     history = train(problem, field, model, config, no_progress)
     assert history[-1]["steps"] == 10
@@ -205,10 +205,10 @@ def test_shadow_intervals_of_a_frame_mask_reach_problem_pixels(blobs: tuple[psfm
     np.testing.assert_allclose(lit, [[1.0] * 8, [0.0] * 8, [1.0] * 8], atol=1e-9)
 
 
-def _frame_case(brdf: object, p: int, seed: int) -> tuple:
+def _frame_case(brdf: object, p: int, seed: int, indirect: bool = False) -> tuple:
     generator = torch.Generator().manual_seed(seed)
     frames, per_frame = 3, 4
-    model = FitModel(brdf)
+    model = FitModel(brdf, indirect=indirect)
     raw_normal = torch.randn(p, 3, generator=generator) * 0.3 + torch.tensor([0.0, 0.0, 1.0])
     pixel_raw = torch.randn(p, model.pixel_channels, generator=generator) * 0.2
     smooth_raw = torch.randn(p, model.smooth_channels, generator=generator) * 0.5
@@ -245,30 +245,39 @@ def _assert_same_term(got: tuple[torch.Tensor, list], expected: tuple[torch.Tens
 
 @pytest.mark.parametrize("brdf", [GGX(), Lambertian()], ids=["ggx", "lambertian"])
 @pytest.mark.parametrize("lit", [True, False], ids=["mask", "no-mask"])
-def test_the_compiled_frame_term_is_the_rendered_one(brdf: object, lit: bool) -> None:
+@pytest.mark.parametrize("indirect", [False, True], ids=["direct", "indirect"])
+def test_the_compiled_frame_term_is_the_rendered_one(brdf: object, lit: bool, indirect: bool) -> None:
     """For the built-in GGX and Lambertian ``grid_frame_loss`` runs one compiled pass with its own
     derivatives (``frame_kernel``); value and gradients are torch's autograd of the BRDF's ``shade``
-    through ``frame_prediction_grid`` (float32 rounding)."""
-    case = _frame_case(brdf, 2000, 0)
+    through ``frame_prediction_grid`` (float32 rounding), with and without the indirect-light map."""
+    case = _frame_case(brdf, 2000, 0, indirect)
     model, _, light, weight, visible, view, frames, measured, saturated = case
     visible = visible if lit else None
+    energy = torch.tensor([[0.9, 1.0, 1.1], [0.5, 0.6, 0.7], [1.2, 1.0, 0.8]])
     assert supports(model, torch.zeros(1, 3))
     rendered, rendered_grads = _frame_term(case, lambda n, m: frame_loss(
-        frame_prediction_grid(model, n, m, light, weight, visible, view, frames), measured, saturated))
+        frame_prediction_grid(model, n, m, light, weight, visible, view, frames, energy), measured, saturated))
     fused, fused_grads = _frame_term(case, lambda n, m: grid_frame_loss(
-        model, n, m, light, weight, visible, view, frames, measured, saturated))
+        model, n, m, light, weight, visible, view, frames, measured, saturated, energy=energy))
     _assert_same_term((fused, fused_grads), (rendered, rendered_grads), atol_share=1e-6)
+    if indirect:
+        # the indirect map is there and takes part: its gradient is not zero
+        assert model.smooth_channels == FitModel(brdf).smooth_channels + 1
+        assert float(rendered_grads[2][:, -1].abs().max()) > 0
 
 
+@pytest.mark.parametrize(("huber", "indirect"), [(0.0, False), (0.6, False), (0.0, True)], ids=["square", "huber", "indirect"])
 @pytest.mark.parametrize("brdf", [GGX(), Lambertian()], ids=["ggx", "lambertian"])
-def test_the_compiled_event_term_is_the_rendered_one(brdf: object) -> None:
+def test_the_compiled_event_term_is_the_rendered_one(brdf: object, huber: float, indirect: bool) -> None:
     """For the built-in GGX and Lambertian ``pair_event_loss`` runs one compiled pass with its own
     derivatives (``event_kernel``); value and gradients are torch's autograd of ``superpixel_grey``
     now and at the reference through ``event_loss`` — taps below the horizon, padded taps of weight
-    0, pixels shared by many pairs and a subset of the pairs included (float32 rounding)."""
+    0, pixels shared by many pairs and a subset of the pairs included (float32 rounding) — with the
+    plain square, with a Huber δ that many of the residuals exceed, and with the indirect-light map
+    (which reaches a tap's whole area, shadowed or not)."""
     generator = torch.Generator().manual_seed(1)
     p, count, fan = 600, 3000, 4
-    model, raw, *_ = _frame_case(brdf, p, 1)
+    model, raw, *_ = _frame_case(brdf, p, 1, indirect)
     view = torch.tensor([0.0, 0.0, 1.0])
 
     def directions() -> torch.Tensor:
@@ -282,20 +291,25 @@ def test_the_compiled_event_term_is_the_rendered_one(brdf: object) -> None:
         tap_weight_ref=area * (torch.rand(count, fan, generator=generator) > 0.2),
         light_now=directions(), light_ref=directions(),
         grey_now=torch.rand(count, 3, generator=generator), grey_ref=torch.rand(count, 3, generator=generator),
-        target=0.3 * torch.randn(count, generator=generator), weight=torch.rand(count, generator=generator),
+        target=0.3 * torch.randn(count, generator=generator), weight=torch.rand(count, generator=generator), tap_area=area,
     )
     pairs = torch.randperm(count, generator=generator)[:2500]
     assert supports(model, torch.zeros(1, 3))
 
     def rendered(n: torch.Tensor, m: dict) -> torch.Tensor:
         e = pairs
-        grey = superpixel_grey(model, n, m, taps[e], events.tap_weight_now[e], events.light_now[e], events.grey_now[e], view)
-        grey_ref = superpixel_grey(model, n, m, taps[e], events.tap_weight_ref[e], events.light_ref[e], events.grey_ref[e], view)
-        return event_loss(grey, grey_ref, events.target[e], events.weight[e], LOG_EPS)
+        area_e = events.tap_area[e] if indirect else None
+        grey = superpixel_grey(model, n, m, taps[e], events.tap_weight_now[e], events.light_now[e], events.grey_now[e], view, area_e)
+        grey_ref = superpixel_grey(model, n, m, taps[e], events.tap_weight_ref[e], events.light_ref[e], events.grey_ref[e], view,
+                                   area_e)
+        residual = torch.log(grey + LOG_EPS) - torch.log(grey_ref + LOG_EPS) - events.target[e]
+        if huber > 0:
+            assert 0.1 < float((residual.abs() > huber).float().mean()) < 0.9
+        return event_loss(grey, grey_ref, events.target[e], events.weight[e], LOG_EPS, huber)
 
     case = (model, raw)
     expected, expected_grads = _frame_term(case, rendered)
-    got, got_grads = _frame_term(case, lambda n, m: pair_event_loss(model, n, m, taps[pairs], events, pairs, view))
+    got, got_grads = _frame_term(case, lambda n, m: pair_event_loss(model, n, m, taps[pairs], events, pairs, view, huber))
     _assert_same_term((got, got_grads), (expected, expected_grads), atol_share=1e-5)
 
 
@@ -315,6 +329,16 @@ def test_on_a_gpu_the_frame_term_takes_large_chunks_with_the_same_value_and_grad
         on_gpu = _frame_term(gpu_case, lambda n, m, size=size: grid_frame_loss(model, n, m, *moved[:3], moved[3], frames, *moved[4:],
                                                                              chunk=size))
         _assert_same_term((on_gpu[0].cpu(), [g.cpu() for g in on_gpu[1]]), on_cpu, atol_share=1e-5)
+
+
+def test_the_huber_event_loss_is_the_square_within_delta_and_linear_beyond() -> None:
+    """``robust_square``: r² for |r| ≤ δ, 2δ|r| − δ² beyond (continuous with a continuous slope), and
+    the square itself for δ = 0."""
+    r = torch.tensor([-1.0, -0.2, -0.05, 0.0, 0.05, 0.2, 1.0])
+    assert torch.allclose(robust_square(r, 0.0), r * r)
+    expected = torch.tensor([0.36, 0.04, 0.0025, 0.0, 0.0025, 0.04, 0.36])
+    assert torch.allclose(robust_square(r, 0.2), expected)
+    assert torch.allclose(robust_square(torch.tensor([0.2 + 1e-4]), 0.2), torch.tensor([0.04 + 0.4e-4]), atol=1e-7)
 
 
 def test_gathered_sums_and_their_gradient_are_those_of_indexing() -> None:
