@@ -74,18 +74,24 @@ class CaptureWriter:
         if not self.path.parent.is_dir():
             raise FormatError(self.path, f"folder {self.path.parent} does not exist")
         self._tmp = temporary_sibling(self.path)
-        self._file = h5py.File(self._tmp, "w")
         self._compress = compression_options(compression_level)
         # compresses chunks in worker threads while the caller goes on (psfmt.deflate)
         self._chunks = ChunkCompressor()
         self._event_chunk = int(event_chunk)
-        attrs = self._file.attrs
-        attrs["format"] = FORMAT_NAME
-        attrs["format_version"] = FORMAT_VERSION_STR
-        attrs["creator"] = creator
-        attrs["creator_version"] = creator_version if creator_version is not None else _package_version()
-        attrs["created"] = created or utc_now()
-        attrs["description"] = description
+        try:  # an error or a signal (Ctrl-C, SIGTERM) before the caller holds the writer leaves no file
+            self._file = h5py.File(self._tmp, "w")
+            attrs = self._file.attrs
+            attrs["format"] = FORMAT_NAME
+            attrs["format_version"] = FORMAT_VERSION_STR
+            attrs["creator"] = creator
+            attrs["creator_version"] = creator_version if creator_version is not None else _package_version()
+            attrs["created"] = created or utc_now()
+            attrs["description"] = description
+        except BaseException:
+            if hasattr(self, "_file"):
+                self._file.close()
+            self._tmp.unlink(missing_ok=True)
+            raise
         self._frames: h5py.Dataset | None = None
         self._frame_buffer: np.ndarray = np.empty(0)
         self._frame_meta: dict[str, list[np.ndarray]] = {}

@@ -174,6 +174,6 @@ def test_a_failed_report_leaves_the_old_one_whole(batch_dir: Path, tmp_path: Pat
     capsys.readouterr()
     assert main(["report", str(broken), "-o", str(report)]) == 2
     assert capsys.readouterr().err == (
-        f"pstoolkit: error: {bad}: not a readable .npy array (Object arrays cannot be loaded when allow_pickle=False)\n"
+        f"pstoolkit: error: {bad}: expected an array of numbers, got object\n"
     )
     assert {p.name: p.read_bytes() for p in report.parent.iterdir()} == before
