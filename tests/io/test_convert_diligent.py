@@ -327,7 +327,7 @@ def test_help_lists_converters_and_their_flags(capsys: pytest.CaptureFixture[str
     assert code == 0 and out.startswith("Usage: pstoolkit convert diligent SRC -o OUT [OPTIONS]")
     assert "  --object (STR, repeatable, default none): " in out and "  --semi-real (flag, default False): " in out
     code, _, err = convert(["nope", "src", "-o", "x"], capsys)
-    assert code == 2 and err == "pstoolkit: error: unknown converter 'nope' (known: dat, diligent, diligent-pi, dsec, raw)\n"
+    assert code == 2 and err == "pstoolkit: error: unknown converter 'nope' (known: dat, diligent, diligent-pi, dsec, hdf5, raw)\n"
 
 
 def test_repeatable_option_collects_values_and_keeps_its_default() -> None:
