@@ -109,7 +109,8 @@ def decode(
 
 class Evt3File:
     """An EVT 3.0 RAW file, decoded in bounded memory: ``chunks()`` streams it, ``window()`` decodes
-    only the words around a time range, ``read()`` decodes everything; ``stats`` sums up the last pass.
+    only the words around a time range, ``read()`` decodes everything (with numba, into one output
+    and on two threads where two cores are usable); ``stats`` sums up the last pass.
     The sensor size is the header's (``psfmt.rawheader.resolve_geometry``) unless ``geometry`` gives it."""
 
     def __init__(
