@@ -15,8 +15,12 @@ also loads the compiled engine). Prints a table and writes ``benchmarks/results/
 
 Target: ≥ 5 M events/s.
 
-    python benchmarks/simulate.py [--size 256] [--scenes sphere blobs] [--device cpu] [--refractory-us 2000]
-                                  [--refractory-rule reset-at-end|rate-limited] [--repeat 3] [--no-keep]
+    python benchmarks/simulate.py [--size 256] [--scenes sphere blobs] [--device cpu] [--sensor ideal|evk4|davis346]
+                                  [--refractory-us 2000] [--refractory-rule reset-at-end|rate-limited] [--repeat 3]
+                                  [--no-keep]
+
+``--sensor`` picks the sensor preset (``pstoolkit.sim.sensor``; default ideal, C = 0.15 as the table
+says), the refractory options override its fields.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ from pstoolkit._shared.allocator import keep_freed_memory
 from pstoolkit.events.rule import REFRACTORY_RULES
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.sim import ring_engine
+from pstoolkit.sim.sensor import SENSOR_PRESETS
 from pstoolkit.sim.simulator import (
     SimulationConfig,
     build_renderer,
@@ -96,8 +101,9 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--scenes", nargs="+", default=["sphere", "blobs", "relief"])
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--refractory-us", type=float, default=SimulationConfig.refractory_us)
-    parser.add_argument("--refractory-rule", default=SimulationConfig.refractory_rule, choices=REFRACTORY_RULES)
+    parser.add_argument("--sensor", default="ideal", choices=tuple(SENSOR_PRESETS))
+    parser.add_argument("--refractory-us", type=float, default=None, help="default: the preset's")
+    parser.add_argument("--refractory-rule", default=None, choices=REFRACTORY_RULES, help="default: the preset's")
     parser.add_argument("--repeat", type=int, default=1, help="runs per scene; the fastest is kept")
     parser.add_argument("--no-keep", action="store_true",
                         help="leave glibc's allocator defaults (see pstoolkit._shared.allocator)")
@@ -106,8 +112,8 @@ def main() -> None:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for scene in args.scenes:
-            config = SimulationConfig(
-                scene=scene, size=args.size, event_scale=0.5, frames=3, periods=1, contrast=0.15,
+            config = SimulationConfig.with_preset(
+                args.sensor, scene=scene, size=args.size, event_scale=0.5, frames=3, periods=1,
                 refractory_us=args.refractory_us, refractory_rule=args.refractory_rule, device=args.device,
             )
             runs = [run_scene(config, Path(tmp)) for _ in range(max(1, args.repeat))]
@@ -118,8 +124,9 @@ def main() -> None:
             best["traced_peak_mb"] = traced_peak_mb(config, Path(tmp))
             rows.append(best)
     peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    print(f"{args.size}×{args.size} frames, {args.size // 2}×{args.size // 2} events, one period, C = 0.15, "
-          f"refractory {args.refractory_us:g} µs ({args.refractory_rule}), device {args.device}, {numba.get_num_threads()} numba threads, "
+    print(f"{args.size}×{args.size} frames, {args.size // 2}×{args.size // 2} events, one period, sensor {args.sensor}, "
+          f"C = {config.contrast:g}/{config.c_neg:g}, refractory {config.refractory_us:g} µs ({config.refractory_rule}), "
+          f"device {args.device}, {numba.get_num_threads()} numba threads, "
           f"freed memory {'kept' if kept else 'returned'}")
     print(f"{'scene':8s} {'events':>9s} {'total s':>8s} {'first s':>8s} {'CPU s':>7s} {'M ev/s':>7s} {'engine s':>9s} "
           f"{'engine M ev/s':>14s} {'traced MB':>10s} {'rate %':>7s}")
@@ -136,8 +143,9 @@ def main() -> None:
     result = {
         "size": args.size,
         "event_size": args.size // 2,
-        "refractory_us": args.refractory_us,
-        "refractory_rule": args.refractory_rule,
+        "sensor": args.sensor,
+        "refractory_us": config.refractory_us,
+        "refractory_rule": config.refractory_rule,
         "repeat": args.repeat,
         "freed_memory_kept": kept,
         "device": args.device,

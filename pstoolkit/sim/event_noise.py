@@ -1,7 +1,7 @@
 """An event sensor's noise besides its leak (``pstoolkit.sim.sensor.EventSensor``): shot-noise events,
 whose rate rises in the dark, and hot pixels, drawn block by block of time and merged into the block's
-signal events (``NoiseEvents.merge``); and the leak of pixels that see no light at all
-(``NoiseEvents.static_leak``), for an engine that does not step them.
+signal events (``NoiseEvents.merge``, ``merge_sorted``); and the leak of pixels whose light never
+changes (``static_leak``), for an engine that does not step them.
 
 Both event engines (``pstoolkit.sim.esim``, ``pstoolkit.sim.ring_engine``) call it once per block, so
 memory stays bounded by a block's events: candidates are drawn as a Poisson process at the highest
@@ -89,14 +89,7 @@ class NoiseEvents:
         pix, t_us, pol = pix[keep], t_us[keep], np.asarray(pol, np.int8)[keep]
         self._remember(sig_pix, signal.t)
         self._remember(pix, t_us)
-        if not len(t_us):
-            return signal
-        all_pix = np.concatenate((sig_pix, pix))
-        all_t = np.concatenate((signal.t, t_us))
-        order = np.lexsort((all_pix, all_t))  # stable: signal events keep their order among equals
-        all_pix = all_pix[order]
-        return EventArray(x=all_pix % self.width, y=all_pix // self.width, t=all_t[order],
-                          p=np.concatenate((signal.p, pol))[order])
+        return merge_sorted(signal, pix, t_us, pol, self.width)
 
     def _outside_dead_time(self, pix: np.ndarray, t_us: np.ndarray, sig_pix: np.ndarray, sig_t: np.ndarray) -> np.ndarray:
         """(M,) bool: which noise events (pixel, µs) fall after the refractory period of the pixel's
@@ -138,6 +131,19 @@ class NoiseEvents:
             pix, t_us = pix[order], t_us[order]
             last = np.r_[np.flatnonzero(np.diff(pix)), len(pix) - 1]
             self.last_us[pix[last]] = np.maximum(self.last_us[pix[last]], t_us[last])
+
+
+def merge_sorted(events: EventArray, pixel: np.ndarray, t_us: np.ndarray, polarity: np.ndarray, width: int) -> EventArray:
+    """``events`` (sorted by (µs, pixel)) and the events ``pixel`` (y·width + x), ``t_us``, ``polarity``
+    together, sorted by (µs, pixel), ``events`` first among equals (the sort is stable)."""
+    if not len(t_us):
+        return events
+    all_pixel = np.concatenate((events.y.astype(np.int64) * width + events.x, pixel))
+    all_t = np.concatenate((events.t, t_us))
+    order = np.lexsort((all_pixel, all_t))
+    all_pixel = all_pixel[order]
+    return EventArray(x=all_pixel % width, y=all_pixel // width, t=all_t[order],
+                      p=np.concatenate((events.p, np.asarray(polarity, np.int8)))[order])
 
 
 def static_leak(

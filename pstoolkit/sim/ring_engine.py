@@ -45,7 +45,7 @@ from pstoolkit.errors import UserError
 from pstoolkit.grid import event_shape
 from pstoolkit.optics.lights import RingLight
 from pstoolkit.sim.esim import irradiance_on_lines
-from pstoolkit.sim.event_noise import NoiseEvents, static_leak
+from pstoolkit.sim.event_noise import NoiseEvents, merge_sorted, static_leak
 from pstoolkit.sim.render import Renderer
 from pstoolkit.sim.ring_kernels.inputs import (
     EventRoom,
@@ -114,23 +114,6 @@ def _widen(room: EventRoom) -> EventRoom:
         np.concatenate([room.polarity, np.empty((n_events, capacity - width), np.int8)], axis=1),
         room.count,
     )
-
-
-def _with_static_leak(
-    events: EventArray, unlit: np.ndarray, leak_per_us: np.ndarray, leak_start: np.ndarray, c_pos: np.ndarray,
-    sensor: EventSensor, ta: float, tb: float, width: int,
-) -> EventArray:
-    """``events`` of a block [``ta``, ``tb``) with the leak events of the ``unlit`` pixels, sorted by
-    (µs, pixel) as ``gather`` sorts."""
-    pix, t_us = static_leak(unlit, leak_per_us, leak_start, c_pos, sensor, ta, tb)
-    if not pix.size:
-        return events
-    all_pix = np.concatenate((events.y.astype(np.int64) * width + events.x, pix))
-    all_t = np.concatenate((events.t, t_us))
-    order = np.lexsort((all_pix, all_t))
-    all_pix = all_pix[order]
-    return EventArray(x=all_pix % width, y=all_pix // width, t=all_t[order],
-                      p=np.concatenate((events.p, np.ones(pix.size, np.int8)))[order])
 
 
 def simulate_ring(
@@ -249,7 +232,8 @@ def simulate_ring(
         x, y, t, p = gather(room.t_us, room.polarity, room.count, width, math.floor(ta + 0.5), math.floor(tb + 0.5))
         events = EventArray(x=x, y=y, t=t, p=p)
         if unlit.size:
-            events = _with_static_leak(events, unlit, leak_per_us, leak_start, c_pos, sensor, ta, tb, width)
+            pix, t_us = static_leak(unlit, leak_per_us, leak_start, c_pos, sensor, ta, tb)
+            events = merge_sorted(events, pix, t_us, np.ones(pix.size, np.int8), width)
         if noise is not None:
             lines = np.stack([level_start, state.level])
             lines[:, dark] = math.log(sensor.eps)

@@ -87,11 +87,6 @@ class EventSensor:
         return self.refractory_rule == REFRACTORY_RULES[1] and self.refractory_us > 0
 
     @property
-    def noisy(self) -> bool:
-        """Whether the sensor leaks or fires noise events (shot noise, hot pixels)."""
-        return self.leak_hz > 0 or self.fires_noise
-
-    @property
     def fires_noise(self) -> bool:
         """Whether the sensor fires events of its own besides crossings (shot noise, hot pixels)."""
         return self.shot_noise_hz > 0 or (self.hot_pixel_fraction > 0 and self.hot_pixel_hz > 0)

@@ -214,7 +214,7 @@ FAULTS: dict[str, Fault] = {
     ),
     "sampled interpolation unknown": Fault(
         "structure", broken(sampled_with_times([0, 5, 10], interpolation="cubic")),
-        "/lights: interpolation 'cubic' is not defined in format 1.2 (only 'linear-renormalised')",
+        "/lights: interpolation 'cubic' is not defined in format 1.3 (only 'linear-renormalised')",
     ),
 }
 
@@ -281,7 +281,7 @@ def test_newer_minor_version_and_unknown_parts_only_warn(tmp_path: Path, capsys:
     report = psfmt.validate(path)
     assert report.errors == []
     assert [w.text for w in report.warnings] == [
-        "/: written by format 1.4, newer than 1.2: parts this reader does not know are ignored"
+        "/: written by format 1.4, newer than 1.3: parts this reader does not know are ignored"
     ]
     with psfmt.read(path, verify=True) as capture:
         assert capture.format_version == "1.4" and len(capture.events) == 3000
@@ -289,7 +289,7 @@ def test_newer_minor_version_and_unknown_parts_only_warn(tmp_path: Path, capsys:
     out, err = capsys.readouterr()
     assert err == ""
     assert out.splitlines() == [
-        f"{path}: warning: /: written by format 1.4, newer than 1.2: parts this reader does not know are ignored",
+        f"{path}: warning: /: written by format 1.4, newer than 1.3: parts this reader does not know are ignored",
         f"{path}: valid (1 warning(s))",
     ]
 
