@@ -22,7 +22,8 @@ Shapes (``--shapes``): the simulator's sphere, blobs, relief, hollows and pits (
 concavities whose floors are in cast shadow most of a turn), and bear, cat and pot1 from
 ``--geometry-root`` (DiLiGenT's ground truth through the ``geometry`` scene) when present.
 
-Rows: ``dualres`` (default preset, or ``--dualres-options``), ``eventps`` on the events,
+Rows: ``dualres`` (default preset, or ``--dualres-options``; ``--variants LABEL:key=value,…`` adds a
+row ``dualres LABEL`` per variant), ``eventps`` on the events,
 ``frameps`` on the three exposures, ``frameps`` on the 24 lights plain and robust (``robust=true``,
 the strongest frame baseline). Each row: MAE, median, 90th percentile, share below 11.25°, coverage
 (unsolved pixels count 90°) and the solver's wall seconds.
@@ -156,7 +157,9 @@ def rows_of(captures: Captures, args: argparse.Namespace) -> list[dict[str, Any]
         "robust 24": ("frameps", classic, ["robust=true"]),
     }
     rows = []
-    for method in args.solvers:
+    for label, options in args.variants:
+        runs[f"dualres {label}"] = ("dualres", hybrid, [f"seed={args.seed}", *options])
+    for method in [*args.solvers, *(f"dualres {label}" for label, _ in args.variants)]:
         solver, capture, assignments = runs[method]
         row = {"shape": captures.shape, "renderer": captures.renderer, "material": captures.material, "sensor": captures.sensor,
                "method": method, **run_row(solver, capture, assignments)}
@@ -170,14 +173,15 @@ def rows_of(captures: Captures, args: argparse.Namespace) -> list[dict[str, Any]
 def table(rows: list[dict[str, Any]], column: str) -> None:
     """One table per renderer and sensor: a line per shape, a column per method."""
     methods = [m for m in SOLVERS if any(r["method"] == m for r in rows)]
+    methods += sorted({r["method"] for r in rows} - set(SOLVERS))
     groups = sorted({(r["renderer"], r["sensor"]) for r in rows})
     for renderer, sensor in groups:
         print(f"\n{column} — renderer {renderer}, sensor {sensor}")
-        print(f"  {'shape':24s}" + "".join(f"{m:>12s}" for m in methods))
+        print(f"  {'shape':24s}" + "".join(f"{m[-12:]:>13s}" for m in methods))
         cells = [r for r in rows if r["renderer"] == renderer and r["sensor"] == sensor]
         for shape, material in sorted({(r["shape"], r["material"]) for r in cells}):
             values = {r["method"]: r[column] for r in cells if r["shape"] == shape and r["material"] == material}
-            line = "".join(f"{values[m]:12.2f}" if m in values else f"{'':12s}" for m in methods)
+            line = "".join(f"{values[m]:13.2f}" if m in values else f"{'':13s}" for m in methods)
             print(f"  {shape + ' ' + material:24s}{line}")
 
 
@@ -217,6 +221,14 @@ def verdict(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return found
 
 
+def _variant(text: str) -> tuple[str, list[str]]:
+    """``LABEL:key=value,key=value`` → (LABEL, ["key=value", …])."""
+    label, _, options = text.partition(":")
+    if not label or not options:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected LABEL:key=value[,key=value…]")
+    return label, options.split(",")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--size", type=int, default=128, help="frame width and height, px")
@@ -228,6 +240,8 @@ def main() -> None:
     parser.add_argument("--spp", type=int, default=32, help="path tracer: samples per pixel")
     parser.add_argument("--max-depth", type=int, default=3, help="path tracer: longest path (3: one bounce of inter-reflection)")
     parser.add_argument("--dualres-options", nargs="*", default=[], help="key=value options of dualres")
+    parser.add_argument("--variants", nargs="*", default=[], type=_variant,
+                        help="more dualres rows: LABEL:key=value,key=value (e.g. robust:event_huber=0.1,indirect=true)")
     parser.add_argument("--geometry-root", type=Path, default=GEOMETRY_ROOT)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--data", type=Path, help="folder for the captures, kept between runs (default: a temporary one)")
