@@ -283,9 +283,9 @@ the fits at the edge of a steep region inwards (blobs 128 px, rate-limited 2 ms:
 
 
 def _bounded(normal: np.ndarray, todo: np.ndarray, exact_pixel: np.ndarray, u: np.ndarray,
-             bound_pixel: np.ndarray, w: np.ndarray, shape: tuple[int, int]) -> None:
+             bound_pixel: np.ndarray, w: np.ndarray, shape: tuple[int, int], scale: float) -> None:
     """Refines the filled normals (P, 3) of the pixels ``todo`` in place with their own exact
-    constraints (n·u = 0) and bounds (n·w ≥ 0) (``relation_kernel.bounded_fit``), then
+    constraints (n·u = 0) and bounds (n·w ≥ 0) (``relation_kernel.bounded_fit``, Cauchy ``scale``), then
     ``BOUND_SMOOTHING`` times again from the mean of their neighbourhood (``eventfill.neighbour_mean``
     on the (H, W) grid ``shape``)."""
     exact_order, bound_order = np.argsort(exact_pixel, kind="stable"), np.argsort(bound_pixel, kind="stable")
@@ -294,7 +294,7 @@ def _bounded(normal: np.ndarray, todo: np.ndarray, exact_pixel: np.ndarray, u: n
     for step in range(BOUND_SMOOTHING + 1):
         if step:
             normal[todo] = eventfill.neighbour_mean(normal, shape)[todo]
-        bounded_fit(normal, todo, exact_pixel, u, bound_pixel, w, BOUND_PRIOR, BOUND_PASSES)
+        bounded_fit(normal, todo, exact_pixel, u, bound_pixel, w, BOUND_PRIOR, BOUND_PASSES, scale)
 
 
 class WindowSolver:
@@ -383,7 +383,7 @@ class WindowSolver:
                     confidence[need & ~found] = eventfill.SWING
             if not exact.all():
                 _bounded(normal, np.flatnonzero(rest & (fired > 0)), constraint_pixel, u, pixel[~exact],
-                         -bound[~exact, None] * vectors[~exact], (self.height, self.width))
+                         -bound[~exact, None] * vectors[~exact], (self.height, self.width), params.residual_scale)
             mean, outlier = eventfill.isolated_outliers(normal, fit, (self.height, self.width))
             normal[outlier] = mean[outlier]
             confidence[outlier] = eventfill.NEIGHBOURS
