@@ -291,9 +291,10 @@ def _bounded(normal: np.ndarray, todo: np.ndarray, exact_pixel: np.ndarray, u: n
     exact_order, bound_order = np.argsort(exact_pixel, kind="stable"), np.argsort(bound_pixel, kind="stable")
     exact_pixel, u = exact_pixel[exact_order], np.ascontiguousarray(u[exact_order])
     bound_pixel, w = bound_pixel[bound_order], np.ascontiguousarray(w[bound_order])
+    neighbourhood = eventfill.neighbourhoods(todo, shape)
     for step in range(BOUND_SMOOTHING + 1):
         if step:
-            normal[todo] = eventfill.neighbour_mean(normal, shape)[todo]
+            normal[todo] = eventfill.neighbour_mean(normal, neighbourhood)
         bounded_fit(normal, todo, exact_pixel, u, bound_pixel, w, BOUND_PRIOR, BOUND_PASSES, scale)
 
 
