@@ -348,15 +348,19 @@ class WindowSolver:
         params = self.params
         pixels = self.width * self.height
         hot = eventfill.hot_pixels(paired.fired[:, 0], (self.height, self.width))
-        fired = np.where(hot, 0, paired.fired[:, 0])
+        fired = np.where(hot, 0, paired.fired[:, 0]) if hot.any() else paired.fired[:, 0]
         contrast_pos, contrast_neg = params.contrast_pos, params.contrast_neg
         if params.balance and self.path.circles_axis and paired.turns >= SWING_MIN_TURNS:
             contrast_pos, contrast_neg = balanced_contrasts(paired.fired[~hot], contrast_pos, contrast_neg)
         vectors, kept = constraint_vectors(paired.reference, paired.later, paired.crossed, contrast_pos, contrast_neg)
-        kept &= ~hot[paired.constraint_pixel]
-        pixel, bound, vectors = paired.constraint_pixel[kept], paired.bound[kept], vectors[kept]
+        if hot.any():
+            kept &= ~hot[paired.constraint_pixel]
+        pixel, bound, vectors = paired.constraint_pixel, paired.bound, vectors
+        if not kept.all():
+            pixel, bound, vectors = pixel[kept], bound[kept], vectors[kept]
         exact = bound == 0
-        constraint_pixel, u = pixel[exact], vectors[exact]
+        bounded = not exact.all()
+        constraint_pixel, u = (pixel[exact], vectors[exact]) if bounded else (pixel, vectors)
         normal, values, sums, count = robust_fit(
             constraint_pixel, u, pixels, params.min_pairs, params.reweight, params.residual_scale, ADJUGATE_STEPS
         )
@@ -382,7 +386,7 @@ class WindowSolver:
                 if not swing:
                     normal[need & ~found] = eventfill.AXIS
                     confidence[need & ~found] = eventfill.SWING
-            if not exact.all():
+            if bounded:
                 _bounded(normal, np.flatnonzero(rest & (fired > 0)), constraint_pixel, u, pixel[~exact],
                          -bound[~exact, None] * vectors[~exact], (self.height, self.width), params.residual_scale)
             mean, outlier = eventfill.isolated_outliers(normal, fit, (self.height, self.width))
