@@ -72,7 +72,9 @@ class EventPS(Solver):
         ),
         Option("min_pairs", int, 3, "constraints a pixel needs for its own fit", minimum=2),
         Option("reweight", int, 3, "Cauchy reweighting passes of each pixel's fit (0 = plain least squares, as the paper)", minimum=0),
-        Option("residual_scale", float, 0.03, "Cauchy scale of a pair's residual n·v/|v|", minimum=1e-6),
+        Option("residual_scale", float, 0.03,
+               "Cauchy scale of a constraint's residual n·v/|v| (the reweighting; also the bounded refinement under the rate-limited rule)",
+               minimum=1e-6),
         Option("fill", bool, True, "give pixels without their own fit a normal from the ring's swing or their neighbours"),
         Option("balance", bool, True, "set the ratio C⁺/C⁻ from the events' polarities over whole turns of a ring light (keeping the mean C)"),
         Option(

@@ -283,18 +283,19 @@ the fits at the edge of a steep region inwards (blobs 128 px, rate-limited 2 ms:
 
 
 def _bounded(normal: np.ndarray, todo: np.ndarray, exact_pixel: np.ndarray, u: np.ndarray,
-             bound_pixel: np.ndarray, w: np.ndarray, shape: tuple[int, int]) -> None:
+             bound_pixel: np.ndarray, w: np.ndarray, shape: tuple[int, int], scale: float) -> None:
     """Refines the filled normals (P, 3) of the pixels ``todo`` in place with their own exact
-    constraints (n·u = 0) and bounds (n·w ≥ 0) (``relation_kernel.bounded_fit``), then
+    constraints (n·u = 0) and bounds (n·w ≥ 0) (``relation_kernel.bounded_fit``, Cauchy ``scale``), then
     ``BOUND_SMOOTHING`` times again from the mean of their neighbourhood (``eventfill.neighbour_mean``
     on the (H, W) grid ``shape``)."""
     exact_order, bound_order = np.argsort(exact_pixel, kind="stable"), np.argsort(bound_pixel, kind="stable")
     exact_pixel, u = exact_pixel[exact_order], np.ascontiguousarray(u[exact_order])
     bound_pixel, w = bound_pixel[bound_order], np.ascontiguousarray(w[bound_order])
+    neighbourhood = eventfill.neighbourhoods(todo, shape)
     for step in range(BOUND_SMOOTHING + 1):
         if step:
-            normal[todo] = eventfill.neighbour_mean(normal, shape)[todo]
-        bounded_fit(normal, todo, exact_pixel, u, bound_pixel, w, BOUND_PRIOR, BOUND_PASSES)
+            normal[todo] = eventfill.neighbour_mean(normal, neighbourhood)
+        bounded_fit(normal, todo, exact_pixel, u, bound_pixel, w, BOUND_PRIOR, BOUND_PASSES, scale)
 
 
 class WindowSolver:
@@ -347,15 +348,19 @@ class WindowSolver:
         params = self.params
         pixels = self.width * self.height
         hot = eventfill.hot_pixels(paired.fired[:, 0], (self.height, self.width))
-        fired = np.where(hot, 0, paired.fired[:, 0])
+        fired = np.where(hot, 0, paired.fired[:, 0]) if hot.any() else paired.fired[:, 0]
         contrast_pos, contrast_neg = params.contrast_pos, params.contrast_neg
         if params.balance and self.path.circles_axis and paired.turns >= SWING_MIN_TURNS:
             contrast_pos, contrast_neg = balanced_contrasts(paired.fired[~hot], contrast_pos, contrast_neg)
         vectors, kept = constraint_vectors(paired.reference, paired.later, paired.crossed, contrast_pos, contrast_neg)
-        kept &= ~hot[paired.constraint_pixel]
-        pixel, bound, vectors = paired.constraint_pixel[kept], paired.bound[kept], vectors[kept]
+        if hot.any():
+            kept &= ~hot[paired.constraint_pixel]
+        pixel, bound, vectors = paired.constraint_pixel, paired.bound, vectors
+        if not kept.all():
+            pixel, bound, vectors = pixel[kept], bound[kept], vectors[kept]
         exact = bound == 0
-        constraint_pixel, u = pixel[exact], vectors[exact]
+        bounded = not exact.all()
+        constraint_pixel, u = (pixel[exact], vectors[exact]) if bounded else (pixel, vectors)
         normal, values, sums, count = robust_fit(
             constraint_pixel, u, pixels, params.min_pairs, params.reweight, params.residual_scale, ADJUGATE_STEPS
         )
@@ -381,9 +386,9 @@ class WindowSolver:
                 if not swing:
                     normal[need & ~found] = eventfill.AXIS
                     confidence[need & ~found] = eventfill.SWING
-            if not exact.all():
+            if bounded:
                 _bounded(normal, np.flatnonzero(rest & (fired > 0)), constraint_pixel, u, pixel[~exact],
-                         -bound[~exact, None] * vectors[~exact], (self.height, self.width))
+                         -bound[~exact, None] * vectors[~exact], (self.height, self.width), params.residual_scale)
             mean, outlier = eventfill.isolated_outliers(normal, fit, (self.height, self.width))
             normal[outlier] = mean[outlier]
             confidence[outlier] = eventfill.NEIGHBOURS

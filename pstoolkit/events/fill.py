@@ -62,13 +62,29 @@ def swing_normals(fired: np.ndarray, swing: np.ndarray, turns: float, contrast: 
 def hot_pixels(fired: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """(P,) bool of the pixels that fired (``fired`` (P,) events, (H, W) = ``shape``) more than
     ``HOT_RATIO`` times the median of their eight neighbours and ``HOT_MARGIN`` more: a pixel on a
-    smooth surface fires about as often as its neighbours, a hot pixel on its own (leakage, a defect)."""
-    counts = fired.reshape(shape).astype(np.float64)
-    padded = np.pad(counts, 1, mode="edge")
-    h, w = shape
-    around = np.stack([padded[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
-                       for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx])
-    return (counts > HOT_RATIO * np.median(around, axis=0) + HOT_MARGIN).reshape(-1)
+    smooth surface fires about as often as its neighbours, a hot pixel on its own (leakage, a defect).
+    Only pixels above the margin are looked at, so the test costs next to nothing per window."""
+    counts = fired.reshape(shape)
+    hot = np.zeros(counts.size, dtype=bool)
+    candidates = np.flatnonzero(counts.reshape(-1) > HOT_MARGIN)
+    if candidates.size:
+        padded = np.pad(counts, 1, mode="edge")
+        y, x = np.divmod(candidates, shape[1])
+        around = np.stack([padded[1 + y + dy, 1 + x + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx])
+        hot[candidates] = counts.reshape(-1)[candidates] > HOT_RATIO * np.median(around, axis=0) + HOT_MARGIN
+    return hot
+
+
+def _ring_sums(image: np.ndarray) -> np.ndarray:
+    """Sums of ``image`` (H, W, K) over each pixel's eight neighbours (zero beyond the border)."""
+    h, w = image.shape[:2]
+    padded = np.pad(image, ((1, 1), (1, 1), (0, 0)))
+    total = np.zeros_like(image, dtype=np.float64)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy or dx:
+                total += padded[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w]
+    return total
 
 
 def _box_sums(image: np.ndarray, radius: int) -> np.ndarray:
@@ -83,11 +99,21 @@ def _box_sums(image: np.ndarray, radius: int) -> np.ndarray:
     )
 
 
-def neighbour_mean(normal: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """The normalised mean (P, 3) of each pixel's and its eight neighbours' normals (``normal`` (P, 3)
-    on a (H, W) = ``shape`` grid; zero where the sum is)."""
-    total = _box_sums(normal.reshape(shape + (3,)), 1).reshape(-1, 3)
-    length = np.sqrt(np.einsum("pc,pc->p", total, total))
+def neighbourhoods(pixels: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Flat indices (k, 9) of each of ``pixels``' (k,) 3×3 neighbourhood on a (H, W) = ``shape`` grid,
+    −1 beyond the border."""
+    y, x = np.divmod(np.asarray(pixels, dtype=np.int64), shape[1])
+    dy, dx = np.divmod(np.arange(9), 3)
+    ny, nx = y[:, None] + dy - 1, x[:, None] + dx - 1
+    inside = (ny >= 0) & (ny < shape[0]) & (nx >= 0) & (nx < shape[1])
+    return np.where(inside, ny * shape[1] + nx, -1)
+
+
+def neighbour_mean(normal: np.ndarray, neighbourhood: np.ndarray) -> np.ndarray:
+    """The normalised mean (k, 3) of the normals (``normal`` (P, 3)) of each row of ``neighbourhood``
+    (k, 9) flat indices (``neighbourhoods``; −1 left out); zero where the sum is."""
+    total = np.einsum("kn,knc->kc", (neighbourhood >= 0).astype(np.float64), normal[np.maximum(neighbourhood, 0)])
+    length = np.sqrt(np.einsum("kc,kc->k", total, total))
     return total / np.where(length > 0, length, 1.0)[:, None]
 
 
@@ -100,7 +126,7 @@ def isolated_outliers(normal: np.ndarray, fit: np.ndarray, shape: tuple[int, int
     together comes from pairs the model does not explain (noise events, a highlight). Filled
     neighbours do not count: a silent background beside a limb would pull the limb to the axis."""
     stacked = np.concatenate([normal * fit[:, None], fit[:, None].astype(np.float64)], axis=1)
-    total = _box_sums(stacked.reshape(shape + (4,)), 1).reshape(-1, 4) - stacked
+    total = _ring_sums(stacked.reshape(shape + (4,))).reshape(-1, 4)
     length = np.sqrt(np.einsum("pc,pc->p", total[:, :3], total[:, :3]))
     mean = total[:, :3] / np.where(length > 0, length, 1.0)[:, None]
     cosine = np.einsum("pc,pc->p", mean, normal)

@@ -261,26 +261,30 @@ def bounded_fit(
     w: np.ndarray,
     prior: float,
     passes: int,
+    scale: float,
 ) -> None:
     """Refines the normals (P, 3) of the pixels ``todo`` (k,) in place with their own constraints:
     exact ones n·u = 0 (``exact_pixel`` (m,), unit ``u`` (m, 3)) and one-sided ones n·w ≥ 0
     (``bound_pixel`` (b,), unit ``w`` (b, 3)). Each pass takes the smallest eigenvector of
-    Σ u uᵀ + Σ w wᵀ over the violated w + ``prior``·(I − n₀n₀ᵀ), n₀ the starting normal (the
-    squared hinge, with a pull to the start where the constraints leave n free), for at most
-    ``passes`` passes or until the violated set stops changing the normal; flipped to n_z ≥ 0.
+    Σ c u uᵀ + Σ c w wᵀ over the violated w + ``prior``·(I − n₀n₀ᵀ), n₀ the starting normal (the
+    squared hinge, with a pull to the start where the constraints leave n free), with Cauchy weights
+    c = 1 / (1 + r²/``scale``²) of the residuals r at the current normal (a noise event breaks the
+    relations after it until the next exact event), for at most ``passes`` passes or until a pass
+    moves the normal by less than √``SETTLED``; flipped to n_z ≥ 0.
     Pixel arrays must be sorted (as ``pair_events`` gives them after a stable sort by pixel)."""
     exact_start = np.searchsorted(exact_pixel, todo)
     exact_end = np.searchsorted(exact_pixel, todo, side="right")
     bound_start = np.searchsorted(bound_pixel, todo)
     bound_end = np.searchsorted(bound_pixel, todo, side="right")
+    inv_scale2 = 1.0 / (scale * scale)
     for k in range(todo.shape[0]):
         i = todo[k]
         if bound_end[k] == bound_start[k]:
             continue
         x0, y0, z0 = normal[i, 0], normal[i, 1], normal[i, 2]
-        e = _pixel_sums(u, exact_start[k], exact_end[k], 0.0, 0.0, 0.0, 0.0)
         x, y, z = x0, y0, z0
         for _ in range(passes):
+            e = _pixel_sums(u, exact_start[k], exact_end[k], x, y, z, inv_scale2)
             s0 = e[0] + prior * (1.0 - x0 * x0)
             s1 = e[1] - prior * x0 * y0
             s2 = e[2] - prior * x0 * z0
@@ -289,13 +293,15 @@ def bounded_fit(
             s5 = e[5] + prior * (1.0 - z0 * z0)
             for j in range(bound_start[k], bound_end[k]):
                 a, b, c = w[j, 0], w[j, 1], w[j, 2]
-                if a * x + b * y + c * z < 0.0:
-                    s0 += a * a
-                    s1 += a * b
-                    s2 += a * c
-                    s3 += b * b
-                    s4 += b * c
-                    s5 += c * c
+                residual = a * x + b * y + c * z
+                if residual < 0.0:
+                    weight = 1.0 / (1.0 + residual * residual * inv_scale2)
+                    s0 += weight * a * a
+                    s1 += weight * a * b
+                    s2 += weight * a * c
+                    s3 += weight * b * b
+                    s4 += weight * b * c
+                    s5 += weight * c * c
             _, _, _, nx, ny, nz = _smallest_by_adjugate((s0, s1, s2, s3, s4, s5), 8)
             if nx == 0.0 and ny == 0.0 and nz == 0.0:
                 break
