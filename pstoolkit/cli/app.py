@@ -3,10 +3,12 @@ errors into one line and exit code 2."""
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
 import threading
 from collections.abc import Callable
+from types import FrameType
 from typing import Any
 
 import typer
@@ -169,10 +171,30 @@ def _usage_error(exc: BaseException) -> bool:
 _terminated = threading.Event()
 
 
-def _terminate(signum: int, frame: object) -> None:
+# Seconds before a SIGTERM that arrived inside numba's compiler is delivered again.
+RESEND_S = 0.1
+
+
+def _in_compiler(frame: FrameType | None) -> bool:
+    """Whether ``frame`` or a caller runs in llvmlite, whose callbacks from C (numba compiling a
+    kernel) print and drop any exception raised in them."""
+    while frame is not None:
+        if str(frame.f_globals.get("__name__", "")).startswith("llvmlite"):
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _terminate(signum: int, frame: FrameType | None) -> None:
     """SIGTERM: raised in the main thread as a Ctrl-C is, so that the same clean-up runs (a temporary
-    file removed, a partial folder deleted); the command then exits with 143."""
+    file removed, a partial folder deleted); the command then exits with 143. Inside numba's compiler
+    the exception would be printed and lost, so the signal is sent again a moment later instead."""
     _terminated.set()
+    if _in_compiler(frame):
+        resend = threading.Timer(RESEND_S, os.kill, (os.getpid(), signal.SIGTERM))
+        resend.daemon = True
+        resend.start()
+        return
     raise KeyboardInterrupt
 
 
