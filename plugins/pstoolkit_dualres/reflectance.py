@@ -42,6 +42,11 @@ INDIRECT = FitParam("indirect", 1, 0.0, None, 1e-3, radiometric=False, smooth=Tr
 the light gets 1 from it directly), ≥ 0, starting almost at 0."""
 
 
+def reflects_indirect(brdf: BRDF) -> bool:
+    """Whether ``brdf`` has the per-pixel RGB diffuse albedo that reflects ``INDIRECT`` light."""
+    return any(p.radiometric and p.channels == 3 and not p.smooth for p in brdf.fit)
+
+
 class FitModel:
     """``brdf`` with its maps split into ``pixel`` and ``smooth`` parameters (in ``fit`` order), and
     with ``indirect`` the ``INDIRECT`` map last among the smooth ones. UserError for ``indirect`` with

@@ -36,7 +36,7 @@ from pstoolkit_dualres.fields import NeuralField, PyramidField
 from pstoolkit_dualres.preprocess import SCALE_RULES, Preprocessed, PreprocessOptions, preprocess
 from pstoolkit_dualres.presets import OVERRIDES, PRESETS, Preset, resolve
 from pstoolkit_dualres.problem import Problem, build_problem, start_values
-from pstoolkit_dualres.reflectance import FitModel
+from pstoolkit_dualres.reflectance import FitModel, reflects_indirect
 from pstoolkit_dualres.tiling import plan
 from pstoolkit_dualres.train import StageConfig, train
 
@@ -112,16 +112,17 @@ class DualRes(Solver):
         Option("material_lr", float, -1.0, "learning rate of the smooth materials (−1 = the preset's)", minimum=-1.0),
         Option("frame_weight", float, 1.0, "λ_f, weight of the frame loss (eq. 24)", minimum=0.0),
         Option("event_weight", float, -1.0, "λ_e, weight of the event loss (eq. 25) (−1 = the preset's: fast 8, paper 0.05)", minimum=-1.0),
-        Option("event_huber", float, 0.0,
+        Option("event_huber", float, 0.1,
                "Huber δ of the event residual, log units: residuals beyond it pull linearly (0 = the paper's square)",
                minimum=0.0),
         Option("event_gate", float, 0.0,
                "κ of the event pixels' consistency gate between stages: a pixel whose events the fit leaves with a residual "
                "scale above κ times the typical one (and above half the contrast threshold) weighs (bound/scale)², its frame "
                "pixels restart from the closed form below one half (0 = off)", minimum=0.0),
-        Option("indirect", bool, False,
+        Option("indirect", bool, True,
                "fit an indirect-light map b (smooth, ≥ 0): light from other parts of the object that the diffuse albedo "
-               "reflects and no cast shadow removes (inter-reflection in concavities, a room's ambient light)"),
+               "reflects and no cast shadow removes (inter-reflection in concavities, a room's ambient light); with a BRDF "
+               "that has an RGB diffuse albedo"),
         Option("indirect_sparsity", float, 0.05, "weight of the L1 penalty that keeps b at 0 where the direct light "
                "explains the frames", minimum=0.0),
         Option("tv_weight", float, -1.0, "λ_tv, weight of the TV warm-up (−1 = the preset's)", minimum=-1.0),
@@ -192,7 +193,8 @@ class DualRes(Solver):
         brdf: BRDF = registries.brdfs.get(options["brdf"]).obj()
         if not getattr(brdf, "fit", ()):
             raise UserError(f"dualres: BRDF {options['brdf']!r} declares no fit parameters (BRDF.fit) to estimate")
-        model = FitModel(brdf, indirect=options["indirect"]).to(self.device)
+        # a BRDF without a diffuse albedo (sg, mlp-bases, metallic …) has nothing to reflect it with
+        model = FitModel(brdf, indirect=options["indirect"] and reflects_indirect(brdf)).to(self.device)
         started = time.perf_counter()
         clock = Stopwatch()
         progress(0.0, "preprocessing")
@@ -246,7 +248,7 @@ class DualRes(Solver):
         clock.lap("output")
         return self._result(problem, model, normal_np, maps, {
             **problem.diagnostics, "preset": preset.record(), "brdf": model.name,
-            "shadow_detector": detector_entry.name, "shadow_options": detector_options, "stages": stages,
+            "shadow_detector": detector_entry.name, "shadow_options": detector_options, "stages": stages, "indirect": model.indirect,
             "preprocess_seconds": seconds_pre, "seconds": clock.record(), "final_loss": history[-1] if history else None,
             "device": str(self.device), "preprocess": pre.diagnostics,
         })
