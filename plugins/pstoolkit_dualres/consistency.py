@@ -81,13 +81,15 @@ def event_gate(problem: Problem, field: nn.Module, model: FitModel, n_event_pixe
     usable = events.usable
     pixel = events.pixel[usable.cpu().numpy()]
     squared = pair_residuals(problem, field, model, usable) ** 2
-    order = np.argsort(pixel, kind="stable")
+    # sorted by pixel, then by value: each pixel's median is the middle of its run
+    order = np.lexsort((squared, pixel))
     pixel, squared = pixel[order], squared[order]
     first = np.searchsorted(pixel, np.arange(n_event_pixels))
-    last = np.searchsorted(pixel, np.arange(n_event_pixels), side="right")
+    count = np.searchsorted(pixel, np.arange(n_event_pixels), side="right") - first
     scale = np.full(n_event_pixels, np.nan)
-    for p in np.flatnonzero(last - first >= MIN_PAIRS):
-        scale[p] = np.sqrt(np.median(squared[first[p] : last[p]]))
+    enough = np.flatnonzero(count >= MIN_PAIRS)
+    low, high = first[enough] + (count[enough] - 1) // 2, first[enough] + count[enough] // 2
+    scale[enough] = np.sqrt(0.5 * (squared[low] + squared[high]))
     measured = ~np.isnan(scale)
     typical = float(np.median(scale[measured])) if measured.any() else 0.0
     weight = np.ones(n_event_pixels)
