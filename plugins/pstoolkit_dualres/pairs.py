@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import psfmt
-from pstoolkit.events.rule import REFRACTORY_RULE, check_rule, exact_pairs
+from pstoolkit.events.rule import exact_pairs
 from pstoolkit_dualres.irradiance import Irradiance
 
 
@@ -33,11 +33,6 @@ class EventSamples:
     t_us: np.ndarray
     target: np.ndarray
     weight: np.ndarray
-
-
-def refractory_rule(calibration: psfmt.Calibration, where: str) -> str:
-    """The capture's refractory rule (absent: the format's default), or a UserError if unknown."""
-    return check_rule(calibration.refractory_rule or REFRACTORY_RULE, f"dualres: {where}")
 
 
 def event_samples(

@@ -31,12 +31,13 @@ import numpy as np
 
 import psfmt
 from pstoolkit import GREY_WEIGHTS, LightModel, Progress, UserError, build_light_model, no_progress
+from pstoolkit.events.rule import capture_rule
 from pstoolkit.grid import check_footprint_extent, default_affine, nearest_super_pixel, to_frames
 from pstoolkit.shadows import ShadowEvidence, ShadowMask, interval_profile
 from pstoolkit.shadows.spikes import spike_threshold
 from pstoolkit_dualres.closed_form import ClosedFormStart, closed_form
 from pstoolkit_dualres.irradiance import Irradiance, approximate
-from pstoolkit_dualres.pairs import EventSamples, event_samples, refractory_rule
+from pstoolkit_dualres.pairs import EventSamples, event_samples
 from pstoolkit_dualres.sampling import Samples, importance_samples
 from pstoolkit_dualres.super_pixel_normals import event_normals
 
@@ -272,7 +273,7 @@ def preprocess(capture: psfmt.Capture, options: PreprocessOptions, progress: Pro
     seconds: dict[str, float] = {}
     where = _where(capture)
     frames_in, events_in, light, c_pos, c_neg, refractory = _inputs(capture)
-    rule = refractory_rule(capture.calibration, where)
+    rule = capture_rule(capture.calibration, f"dualres: {where}")
     period = float(light.period_us)
     height, width = frames_in.height, frames_in.width
     event_height, event_width = events_in.height, events_in.width

@@ -24,7 +24,7 @@ import numpy as np
 import psfmt
 from pstoolkit import Option, Progress, Solver, SolverResult, UserError, build_light_model
 from pstoolkit.events import eventps
-from pstoolkit.events.rule import REFRACTORY_RULE, check_rule
+from pstoolkit.events.rule import capture_rule
 from pstoolkit.solve.cluster import available_cpus, max_parallel
 from pstoolkit_eventps.resample import Resampler, event_to_frame_affine
 
@@ -39,11 +39,6 @@ def _contrasts(capture: psfmt.Capture, contrast: float, where: str) -> tuple[flo
     if cal.contrast_pos is None or cal.contrast_neg is None:
         raise UserError(f"eventps: {where} has no contrast threshold in its calibration; set one with --set contrast=C")
     return float(cal.contrast_pos), float(cal.contrast_neg)
-
-
-def refractory_rule(calibration: psfmt.Calibration, where: str) -> str:
-    """The capture's refractory rule (absent: the format's default), or a UserError naming ``where``."""
-    return check_rule(calibration.refractory_rule or REFRACTORY_RULE, f"eventps: {where}")
 
 
 def _check_sequence_size(stream: psfmt.EventArray, window_us: float, target: tuple[int, int]) -> None:
@@ -112,7 +107,7 @@ class EventPS(Solver):
             contrast_pos=contrast_pos,
             contrast_neg=contrast_neg,
             refractory_us=options["refractory_us"] or float(capture.calibration.refractory_us or 0.0),
-            refractory_rule=refractory_rule(capture.calibration, where),
+            refractory_rule=capture_rule(capture.calibration, f"eventps: {where}"),
             min_interval_us=options["min_interval_us"] or None,
             max_interval_us=options["max_interval_us"] or None,
             min_pairs=options["min_pairs"],

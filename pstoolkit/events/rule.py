@@ -47,7 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from psfmt import REFRACTORY_RULES, EventArray
+from psfmt import REFRACTORY_RULES, Calibration, EventArray
 from pstoolkit.errors import UserError
 
 GREY_WEIGHTS = (0.299, 0.587, 0.114)
@@ -66,6 +66,12 @@ def check_rule(rule: str, caller: str) -> str:
     if rule not in REFRACTORY_RULES:
         raise UserError(f"{caller}: refractory rule {rule!r} is not one of {', '.join(REFRACTORY_RULES)}")
     return rule
+
+
+def capture_rule(calibration: Calibration, caller: str) -> str:
+    """A capture's refractory rule (``/calibration@refractory_rule``; absent: the format's default,
+    ``REFRACTORY_RULE``), or a UserError naming ``caller`` for a rule not in ``REFRACTORY_RULES``."""
+    return check_rule(calibration.refractory_rule or REFRACTORY_RULE, caller)
 
 
 def log_irradiance(irradiance: np.ndarray, eps: float = LOG_EPS, dtype: type = np.float64) -> np.ndarray:

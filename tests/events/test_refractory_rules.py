@@ -16,7 +16,7 @@ import psfmt
 from psfmt import EventArray
 from pstoolkit.cli import main
 from pstoolkit.errors import UserError
-from pstoolkit.events.rule import LOG_EPS, REFRACTORY_RULES, exact_pairs, log_irradiance
+from pstoolkit.events.rule import LOG_EPS, REFRACTORY_RULES, capture_rule, exact_pairs, log_irradiance
 from pstoolkit.optics.brdf import GGX
 from pstoolkit.optics.lights import RingLight
 from pstoolkit.plugin.options import defaults
@@ -372,3 +372,12 @@ def test_the_rule_is_an_option_of_the_semi_real_converter(tmp_path: Path, capsys
     assert main(["convert", "diligent", str(folder), "--semi-real", "--refractory-rule", "later", "-o",
                  str(tmp_path / "x.h5")]) == 2
     assert "option refractory_rule: 'later' is not one of reset-at-end, rate-limited" in capsys.readouterr().err
+
+
+def test_a_captures_rule_is_its_calibrations_or_the_formats_default() -> None:
+    """``capture_rule``: the recorded rule, reset-at-end when none is recorded, one line naming the
+    caller for a rule the toolkit does not know (a crafted file)."""
+    assert capture_rule(psfmt.Calibration(refractory_rule="rate-limited"), "x") == "rate-limited"
+    assert capture_rule(psfmt.Calibration(), "x") == REFRACTORY_RULES[0] == "reset-at-end"
+    with pytest.raises(UserError, match=r"^eventps: c.h5: refractory rule 'reset-at-start' is not one of reset-at-end, rate-limited$"):
+        capture_rule(psfmt.Calibration(refractory_rule="reset-at-start"), "eventps: c.h5")
