@@ -24,9 +24,10 @@ import torch
 from torch import nn
 
 from pstoolkit.events.rule import LOG_EPS
-from pstoolkit_dualres.forward_model import superpixel_grey
+from pstoolkit_dualres.losses import log_residual
 from pstoolkit_dualres.problem import Problem
 from pstoolkit_dualres.reflectance import FitModel
+from pstoolkit_dualres.train import pair_grey
 
 # Pairs whose residuals are computed at once (bounds the (pairs, taps) intermediates).
 CHUNK_PAIRS = 1 << 16
@@ -62,12 +63,8 @@ def pair_residuals(problem: Problem, field: nn.Module, model: FitModel, pairs: t
     out = np.empty(pairs.numel(), dtype=np.float64)
     for start in range(0, pairs.numel(), CHUNK_PAIRS):
         e = pairs[start : start + CHUNK_PAIRS]
-        taps = events.taps[e]
-        area = events.tap_area[e] if model.indirect else None
-        now = superpixel_grey(model, normal, maps, taps, events.tap_weight_now[e], events.light_now[e], events.grey_now[e], view, area)
-        ref = superpixel_grey(model, normal, maps, taps, events.tap_weight_ref[e], events.light_ref[e], events.grey_ref[e], view, area)
-        residual = torch.log(now + LOG_EPS) - torch.log(ref + LOG_EPS) - events.target[e]
-        out[start : start + e.numel()] = residual.double().cpu().numpy()
+        now, ref = pair_grey(model, normal, maps, events.taps[e], events, e, view)
+        out[start : start + e.numel()] = log_residual(now, ref, events.target[e], LOG_EPS).double().cpu().numpy()
     return out
 
 

@@ -37,8 +37,12 @@ def robust_square(residual: Tensor, huber: float) -> Tensor:
 def event_loss(grey_t: Tensor, grey_ref: Tensor, target: Tensor, weight: Tensor, eps: float, huber: float = 0.0) -> Tensor:
     """Σ w·ρ_δ(ln((Ĩ_k + ε)/(Ĩ_ref + ε)) − target) / N_e with ``target`` = ln α + p·C per event pair and
     ρ_δ = ``robust_square`` (δ = ``huber``, log units)."""
-    residual = torch.log(grey_t + eps) - torch.log(grey_ref + eps) - target
-    return torch.sum(weight * robust_square(residual, huber)) / max(int(target.numel()), 1)
+    return torch.sum(weight * robust_square(log_residual(grey_t, grey_ref, target, eps), huber)) / max(int(target.numel()), 1)
+
+
+def log_residual(grey_t: Tensor, grey_ref: Tensor, target: Tensor, eps: float) -> Tensor:
+    """The event residual of eq. 25 per pair: ln((Ĩ_k + ε)/(Ĩ_ref + ε)) − target."""
+    return torch.log(grey_t + eps) - torch.log(grey_ref + eps) - target
 
 
 def tv_loss(values: Tensor, pairs: Tensor) -> Tensor:

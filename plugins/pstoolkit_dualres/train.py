@@ -347,12 +347,19 @@ def pair_event_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], ta
     differentiable."""
     if supports(model, normal):
         return fused_event_loss(model, normal, maps, taps, events, pairs, view, LOG_EPS, huber)
+    grey, grey_ref = pair_grey(model, normal, maps, taps, events, pairs, view)
+    return event_loss(grey, grey_ref, events.target[pairs], events.weight[pairs], LOG_EPS, huber)
+
+
+def pair_grey(model: FitModel, normal: Tensor, maps: dict[str, Tensor], taps: Tensor, events: EventTerms, pairs: Tensor,
+              view: Tensor) -> tuple[Tensor, Tensor]:
+    """(E,) each pair's ``superpixel_grey`` now and at its reference time, through torch."""
     area = events.tap_area[pairs] if model.indirect else None
     grey = superpixel_grey(model, normal, maps, taps, events.tap_weight_now[pairs], events.light_now[pairs],
                            events.grey_now[pairs], view, area)
     grey_ref = superpixel_grey(model, normal, maps, taps, events.tap_weight_ref[pairs], events.light_ref[pairs],
                                events.grey_ref[pairs], view, area)
-    return event_loss(grey, grey_ref, events.target[pairs], events.weight[pairs], LOG_EPS, huber)
+    return grey, grey_ref
 
 
 def _event_sample(problem: Problem, config: StageConfig, generator: torch.Generator) -> Tensor:
