@@ -58,7 +58,6 @@ from pstoolkit.evaluation.scoring import score
 from pstoolkit.optics.layouts import GRID
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.sim.config import SimulationConfig
-from pstoolkit.sim.sensor import preset_fields
 from pstoolkit.sim.simulator import simulate
 from pstoolkit.solve.base import run_solver
 from pstoolkit_diligent.rendered import semi_real_from_capture
@@ -84,15 +83,6 @@ class Captures:
     classic: Path
 
 
-def sensor_settings(sensor: str) -> dict[str, Any]:
-    """The ``CaptureTiming`` fields of a ``SENSORS`` entry."""
-    preset, rule = SENSORS[sensor]
-    fields = preset_fields(preset)
-    if rule is not None:
-        fields["refractory_rule"] = rule
-    return fields
-
-
 def scene_of(shape: str, root: Path) -> tuple[str, list[str]]:
     """(scene, scene options) of a shape name."""
     if shape in GEOMETRY:
@@ -103,11 +93,12 @@ def scene_of(shape: str, root: Path) -> tuple[str, list[str]]:
 def own_captures(shape: str, sensor: str, args: argparse.Namespace, folder: Path, material: str = "ggx") -> Captures:
     scene, options = scene_of(shape, args.geometry_root)
     hybrid, classic = folder / f"own-{shape}-{sensor}-{args.size}.h5", folder / f"own-{shape}-{sensor}-{args.size}-c24.h5"
-    common = dict(scene=scene, scene_options=options, size=args.size, seed=args.seed, event_scale=0.5, **sensor_settings(sensor))
+    preset, rule = SENSORS[sensor]
+    common = dict(scene=scene, scene_options=options, size=args.size, seed=args.seed, event_scale=0.5, refractory_rule=rule)
     if not hybrid.exists():
-        simulate(SimulationConfig(**common), hybrid)
+        simulate(SimulationConfig.with_preset(preset, **common), hybrid)
     if not classic.exists():
-        simulate(SimulationConfig(discrete_lights=24, **common), classic)
+        simulate(SimulationConfig.with_preset(preset, discrete_lights=24, **common), classic)
     return Captures(shape, "own", material, sensor, hybrid, classic)
 
 
