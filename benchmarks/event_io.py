@@ -36,6 +36,7 @@ from results_io import write_results
 
 import psfmt
 from psfmt import evt3
+from psfmt._evt3.engine import has_numba
 from psfmt.metavision_hdf5 import MetavisionHdf5File, default_threads
 from psfmt.rawheader import read_header
 
@@ -163,7 +164,7 @@ def main() -> None:
     args = parser.parse_args()
     events = make_events(args.events, np.random.default_rng(args.seed))
     n = len(events)
-    engines = ["numba", "numpy"] if evt3.has_numba() else ["numpy"]
+    engines = ["numba", "numpy"] if has_numba() else ["numpy"]
     rows: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "bench.raw"

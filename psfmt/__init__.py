@@ -13,6 +13,7 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
+from psfmt._validate.findings import Finding
 from psfmt.atomic import atomic_path
 from psfmt.camera import CAMERA_MODELS
 from psfmt.datarate import DataRate, data_rate, target_size
@@ -32,7 +33,7 @@ from psfmt.model import (
 )
 from psfmt.reader import load, read
 from psfmt.results import write_result
-from psfmt.validate import Finding, ValidationReport, validate
+from psfmt.validate import ValidationReport, validate
 from psfmt.version import FORMAT_NAME, FORMAT_VERSION_STR
 from psfmt.writer import CaptureWriter, write
 

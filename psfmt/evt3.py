@@ -29,21 +29,9 @@ import numpy as np
 
 from psfmt._evt3.decoding import DECODER_STATE, Output, decode_into, decode_numba, decode_numpy, decode_parallel, skip_words, state_time_us
 from psfmt._evt3.encoding import ENCODER_STATE, encode_numba, encode_numpy
-from psfmt._evt3.engine import ENGINES, has_numba, resolve, usable_cores  # noqa: F401 -- ENGINES, has_numba: the old import path
-from psfmt._evt3.words import (  # noqa: F401 -- the word types and limits: the old import path
-    ADDR_X,
-    ADDR_Y,
-    EXT_TRIGGER,
+from psfmt._evt3.engine import resolve, usable_cores
+from psfmt._evt3.words import (
     MAX_COORD,
-    SKIPPED_TYPES,
-    TIME_HIGH,
-    TIME_LOW,
-    VECT_8,
-    VECT_12,
-    VECT_BASE_X,
-    VECTOR_MIN_EVENTS,
-    WRAP_DROP,
-    WRAP_US,
 )
 from psfmt.atomic import atomic_path
 from psfmt.errors import FormatError

@@ -3,7 +3,7 @@
 HDF5 is C: a crafted file can send it into a loop that never returns (HDF5 2.0 decoding a global heap
 whose objects were corrupted loops for ever on one flipped bit) or into a crash, and there no Python
 signal or thread reaches it. ``inspect`` runs the checks the reader and the validator share
-(``psfmt.validate.inspect``) in a child python that reports its progress as it reads; a child that
+(``psfmt._validate.checks.inspect``) in a child python that reports its progress as it reads; a child that
 says nothing for ``QUIET_S`` seconds is killed, one that dies is reported, and either way the file is
 a one-line FormatError ("damaged HDF5 file …"). The child's memory is capped too. A file the child
 has checked is then read by the caller: HDF5 parses the same structures the same way, so it reads.
@@ -30,7 +30,10 @@ from dataclasses import asdict, fields
 from pathlib import Path
 from typing import Any
 
+from psfmt._validate import checks
+from psfmt._validate.findings import Finding
 from psfmt.errors import FormatError
+from psfmt.files import open_hdf5
 from psfmt.limits import Limits
 
 QUIET_S = 60.0
@@ -88,12 +91,10 @@ def _lines(stream: Any, into: queue.Queue[str | None]) -> None:
 def inspect(
     path: str | os.PathLike[str], *, content: bool, limits: Limits | None = None, progress: Any = None, quiet_s: float | None = None
 ) -> list[Any]:
-    """``psfmt.validate.inspect`` on the file at ``path``, run in a child process: the findings, or the
+    """``psfmt._validate.checks.inspect`` on the file at ``path``, run in a child process: the findings, or the
     FormatError it raised. A child silent for ``quiet_s`` seconds, or one that dies, makes the file
     "damaged" (``quiet_s`` defaults to ``QUIET_S``). ``progress(fraction, message)`` hears the
     child's progress."""
-    from psfmt.validate import Finding
-
     quiet_s = QUIET_S if quiet_s is None else quiet_s
     path = Path(path)
     limits = limits or Limits.from_env()
@@ -146,8 +147,6 @@ def _child(argv: list[str]) -> None:
         resource.setrlimit(resource.RLIMIT_AS, (memory, memory))
     except (ImportError, ValueError, OSError):  # no rlimits on this system: the time limit still holds
         pass
-    from psfmt.files import open_hdf5
-    from psfmt.validate import inspect as inspect_here
 
     last = [0.0]
 
@@ -160,7 +159,7 @@ def _child(argv: list[str]) -> None:
     try:
         progress(0.0, "structure")
         with open_hdf5(path) as f:
-            findings = inspect_here(f, path, content=content, progress=progress)
+            findings = checks.inspect(f, path, content=content, progress=progress)
         answer: dict[str, Any] = {"findings": [asdict(finding) for finding in findings]}
     except FormatError as exc:
         answer = {"error": exc.message}

@@ -1,6 +1,6 @@
 """Reading hybrid captures: lazily (frames by index, events by window or chunk) or wholly into memory.
 
-The reader runs the validator's own checks (``psfmt.validate.inspect``) before it reads anything, so
+The reader runs the validator's own checks (``psfmt._validate.checks.inspect``) before it reads anything, so
 the two agree on every file: the structure always, the data too with ``verify=True``. Sizes are held
 against what the file stores and against ``psfmt.Limits`` first, so a file cannot make the reader
 allocate more than it holds; every error HDF5 raises becomes a one-line FormatError.

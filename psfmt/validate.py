@@ -1,13 +1,13 @@
 """Two-tier validation of hybrid-capture files: errors (spec violations) and warnings (best practice).
 
-``inspect`` is the one set of checks the validator and the reader share, so they agree on every
+``psfmt._validate.checks.inspect`` is the one set of checks the validator and the reader share, so they agree on every
 file. ``structure_findings`` looks at metadata, shapes and storage only (what the reader refuses a
 file on): before anything is read, every dataset's declared size is held against what the file
 stores and against ``psfmt.Limits``, and links, external storage and filters that would read other
 files or inflate without bound are refused. ``content_findings`` then reads every dataset a reader
 may read, block by block in bounded memory (sortedness, ranges, finiteness, the index), so a file
 that validates also reads. The checks themselves live in ``psfmt._validate``, one module per group
-of the file; this module runs them and keeps their public names importable from here.
+of the file; this module sorts what they find into a report.
 """
 
 from __future__ import annotations
@@ -16,21 +16,11 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import h5py
-
 from psfmt import isolate
-from psfmt._validate.content import content_findings
-from psfmt._validate.events import TRIGGER_DTYPES  # noqa: F401 -- the old import path
+from psfmt._validate.checks import inspect
 from psfmt._validate.findings import Finding
-from psfmt._validate.frames import SATURATED_SHARE_WARNING  # noqa: F401 -- the old import path
-from psfmt._validate.lights import LIGHT_MODEL_PARAMS, SAMPLED_INTERPOLATION, TIME_PARAMS, UNIT_TOLERANCE  # noqa: F401 -- the old import path
-from psfmt._validate.maps import NORMAL_UNIT_TOLERANCE  # noqa: F401 -- the old import path
-from psfmt._validate.scan import SCAN_BYTES, SCAN_CHUNK, Progress  # noqa: F401 -- the old import path
-from psfmt._validate.storage import ALLOWED_FILTERS, KNOWN_GROUPS  # noqa: F401 -- the old import path
-from psfmt._validate.structure import structure_findings
-from psfmt.attributes import attr, plain  # noqa: F401 -- the old import path
-from psfmt.errors import FormatError
-from psfmt.files import hdf5_errors, open_hdf5
+from psfmt._validate.scan import Progress
+from psfmt.files import open_hdf5
 from psfmt.limits import Limits
 
 
@@ -45,22 +35,6 @@ class ValidationReport:
     @property
     def valid(self) -> bool:
         return not self.errors
-
-
-def inspect(
-    f: h5py.File, path: str | os.PathLike[str], *, content: bool, limits: Limits | None = None, progress: Progress | None = None
-) -> list[Finding]:
-    """The checks the reader and the validator share: structure, then (``content``, and only when the
-    structure holds no error) the data. A fatal finding, or anything HDF5 cannot read, raises the
-    FormatError that names ``path``."""
-    with hdf5_errors(path):
-        findings = structure_findings(f, limits)
-        fatal = [x for x in findings if x.fatal]
-        if fatal:
-            raise FormatError(path, fatal[0].text)
-        if content and not any(x.level == "error" for x in findings):
-            findings += content_findings(f, progress)
-    return findings
 
 
 def check(

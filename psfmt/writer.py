@@ -41,8 +41,6 @@ from psfmt.version import FORMAT_NAME, FORMAT_VERSION_STR
 GROW_CHUNKS = 16
 SMALL_FRAMES_CHUNK_BYTES = 1 << 16
 """Frames under ``SMALL_CHUNK_BYTES`` share chunks of about this size (a 1×1 frame is no 3-byte chunk)."""
-# compression_options, row_chunks and put_result are also importable from here, their former home
-__all__ = ["GROW_CHUNKS", "CaptureWriter", "compression_options", "put_result", "row_chunks", "write"]
 
 
 def _package_version() -> str:

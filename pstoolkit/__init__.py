@@ -27,7 +27,6 @@ from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
 
-from pstoolkit._shared import aliases as _aliases
 from pstoolkit.errors import UserError
 from pstoolkit.events.rule import GREY_WEIGHTS
 from pstoolkit.hardware.backend import CameraSource, LightBackend
@@ -44,8 +43,6 @@ from pstoolkit.solve.base import Progress, Solver, SolverResult, no_progress
 
 if TYPE_CHECKING:
     from pstoolkit.solve.api import solve
-
-_aliases.install()
 
 
 class _CallablePackage(types.ModuleType):

@@ -1,8 +1,7 @@
-"""The package layout: subpackages by job, light imports, and the old flat module paths as aliases."""
+"""The package layout: subpackages by job and light imports."""
 
 from __future__ import annotations
 
-import importlib
 import shutil
 import subprocess
 import sys
@@ -11,19 +10,7 @@ from pathlib import Path
 import pytest
 from helpers import REPO
 
-from pstoolkit._shared import aliases
-
 ROOT = REPO
-MOVED = {
-    **aliases.MOVED,
-    "psfmt.tonic": "psfmt.structured",
-}
-
-
-@pytest.mark.parametrize(("old", "new"), sorted(MOVED.items()))
-def test_an_old_module_path_is_the_moved_module(old: str, new: str) -> None:
-    # the same module object, so patching either name patches both
-    assert importlib.import_module(old) is importlib.import_module(new)
 
 
 def test_the_package_folder_holds_subpackages_and_four_modules() -> None:
@@ -31,17 +18,6 @@ def test_the_package_folder_holds_subpackages_and_four_modules() -> None:
     assert modules == ["__init__.py", "errors.py", "grid.py", "testing.py"]
     packages = sorted(p.name for p in (REPO / "pstoolkit").iterdir() if (p / "__init__.py").exists())
     assert packages == ["_shared", "cli", "evaluation", "events", "hardware", "io", "optics", "plugin", "shadows", "sim", "solve", "surface", "view"]
-
-
-def test_an_old_name_keeps_the_moved_module_spec() -> None:
-    old = importlib.import_module("pstoolkit.simkernel")
-    assert old.__name__ == old.__spec__.name == "pstoolkit.sim.ring_engine"
-
-
-def test_the_old_evaluation_module_names_still_import() -> None:
-    from pstoolkit.evaluation import RESULT_FILE, score, scoring
-
-    assert (score, RESULT_FILE) == (scoring.score, scoring.RESULT_FILE)
 
 
 def test_pstoolkit_exports_what_a_plugin_needs() -> None:

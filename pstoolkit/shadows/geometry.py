@@ -1,6 +1,6 @@
 """Cast shadows of the estimated surface (``geometry``): the solver's current normals integrated into
 a height map (``pstoolkit.surface``), then marched towards the light on a time grid with the
-simulator's shadow sweep (``pstoolkit.sim.render.shadow_margin``), at frame resolution.
+simulator's shadow sweep (``pstoolkit.sim.shadow_sweep.shadow_margin``), at frame resolution.
 
 Cast shadows are a function of the shape and the light alone, so a good normal map predicts them
 exactly and at the frame pixels' own resolution; what it cannot see are depth steps at occluding

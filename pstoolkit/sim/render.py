@@ -25,18 +25,12 @@ import torch
 
 from pstoolkit.errors import UserError
 from pstoolkit.events.rule import GREY_WEIGHTS
-from pstoolkit.grid import area_weights, event_shape, footprints  # noqa: F401 -- area_weights: the old import path
+from pstoolkit.grid import event_shape, footprints
 from pstoolkit.optics.brdf import BRDF, GGX, HALF_EPS, MIN_ROUGHNESS, Lambertian
 from pstoolkit.optics.lights import LightModel
-from pstoolkit.sim.exposure import MAX_STEP_DEG, MIN_SAMPLES, exposure_plan, exposure_samples, integrate  # noqa: F401
 from pstoolkit.sim.scenes import SceneMaps
-from pstoolkit.sim.shadow_sweep import (  # noqa: F401 -- the public names: their old import path
-    PENUMBRA_PX,
-    SHADOW_BIAS_PX,
+from pstoolkit.sim.shadow_sweep import (
     ShadowCaster,
-    _openness,
-    cast_shadow_mask,
-    shadow_margin,
     visibility_from_margin,
 )
 

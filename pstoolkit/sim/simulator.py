@@ -57,7 +57,7 @@ from pstoolkit.optics.lights import US_PER_S, LightModel, RingLight, SampledLigh
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.plugin.options import parse_assignments
 from pstoolkit.sim import ring_engine
-from pstoolkit.sim.config import AUTO_GAINS, BIT_DEPTHS, SimulationConfig  # noqa: F401 -- also importable from here, as before
+from pstoolkit.sim.config import BIT_DEPTHS, SimulationConfig
 from pstoolkit.sim.esim import simulate_events
 from pstoolkit.sim.exposure import exposure_plan, exposure_samples
 from pstoolkit.sim.keyed import event_render, key_times_us, window_mean
@@ -65,12 +65,8 @@ from pstoolkit.sim.render import Renderer
 from pstoolkit.sim.renderers import OWN, Rendering
 from pstoolkit.sim.scenes import SceneMaps
 from pstoolkit.sim.sensor import FrameSensor
-from pstoolkit.sim.timing import (  # noqa: F401 -- also importable from here, as before
-    EVENT_MIN_STEP_TURNS,
-    CaptureTiming,
+from pstoolkit.sim.timing import (
     append_event_chunks,
-    check_event_grid,
-    check_limits,
 )
 from pstoolkit.solve.base import Progress, no_progress
 

@@ -12,11 +12,12 @@ from hypothesis import strategies as st
 import psfmt
 from psfmt import evt3
 from psfmt._evt3 import decoding, encoding
+from psfmt._evt3.engine import has_numba
 from psfmt.errors import FormatError
 from psfmt.events import EventArray
 from psfmt.rawheader import format_header, read_header
 
-ENGINES = ["numpy"] + (["numba"] if evt3.has_numba() else [])
+ENGINES = ["numpy"] + (["numba"] if has_numba() else [])
 
 
 def th(h: int) -> int:
@@ -248,7 +249,7 @@ def test_whole_file_read_grows_its_output_past_a_word_per_event(tmp_path: Path) 
         assert raw.stats.events == len(ref_events) and raw.stats.triggers == 2500
 
 
-@pytest.mark.skipif(not evt3.has_numba(), reason="numba not installed")
+@pytest.mark.skipif(not has_numba(), reason="numba not installed")
 def test_two_thread_read_matches_the_block_by_block_decode(tmp_path: Path) -> None:
     """A file past ``PARALLEL_MIN_WORDS`` (vectors, wraps of the 24-bit time, triggers-free) read whole
     on two threads gives the events and stats of decoding it block by block on one."""
