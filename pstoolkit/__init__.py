@@ -15,15 +15,13 @@ models, ``ShadowDetector`` and its evidence and mask types for shadow detectors,
 one-line errors, and the units and constants (``US_PER_S``, ``GREY_WEIGHTS``). Importing the
 package loads neither torch nor numba: ``BRDF`` and ``FitParam`` (torch) load on first use.
 
-From Python, ``pstoolkit.solve(capture, "frameps", robust=True)`` runs a registered solver on a
+From Python, ``pstoolkit.solve_capture(capture, "frameps", robust=True)`` runs a registered solver on a
 capture (a ``psfmt.Capture`` or a path) and returns a ``Solution`` (``pstoolkit.solve.api``).
 """
 
 from __future__ import annotations
 
-import sys
-import types
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 __version__ = "0.1.0"
 
@@ -37,31 +35,8 @@ from pstoolkit.plugin.manager import get_registries, hookimpl
 from pstoolkit.plugin.options import Option
 from pstoolkit.plugin.registry import Registry
 from pstoolkit.shadows import ShadowDetector, ShadowEvidence, ShadowIntervals, ShadowMask
-from pstoolkit.solve.api import Solution
-from pstoolkit.solve.api import solve as _solve
+from pstoolkit.solve.api import Solution, solve_capture
 from pstoolkit.solve.base import Progress, Solver, SolverResult, no_progress
-
-if TYPE_CHECKING:
-    from pstoolkit.solve.api import solve
-
-
-class _CallablePackage(types.ModuleType):
-    """The subpackage ``pstoolkit.solve``, callable as ``pstoolkit.solve(capture, solver, **options)``.
-
-    The function and the subpackage share the name ``pstoolkit.solve``. A plain function bound over
-    the subpackage would break ``import pstoolkit.solve.results as r`` and attribute paths such as
-    ``pstoolkit.solve.base.run_solver`` (both resolve through the package's attribute); a module
-    whose class has ``__call__`` (module ``__class__`` assignment, Python data model §3.3.2.1) keeps
-    every import working and makes the documented call work too."""
-
-    def __call__(
-        self, capture: Any, solver: str, /, *, device: str = "auto", progress: Progress | None = None, **options: Any
-    ) -> Solution:
-        """``pstoolkit.solve.api.solve``: run a registered solver on a capture; see its docstring."""
-        return _solve(capture, solver, device=device, progress=progress, **options)
-
-
-sys.modules["pstoolkit.solve"].__class__ = _CallablePackage
 
 _TORCH_NAMES = {"BRDF": "pstoolkit.optics.brdf", "FitParam": "pstoolkit.optics.brdf"}
 
@@ -80,5 +55,5 @@ __all__ = [
     "LightCalibration", "LightFit", "LightModel",
     "NearRingLight", "Option", "Progress", "Registry", "RingLight", "SampledLight", "ShadowDetector", "ShadowEvidence",
     "ShadowIntervals", "ShadowMask", "Solution", "Solver", "SolverResult", "UserError", "__version__", "build_light_model",
-    "get_registries", "hookimpl", "no_progress", "solve",
+    "get_registries", "hookimpl", "no_progress", "solve_capture",
 ]

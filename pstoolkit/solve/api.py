@@ -1,19 +1,17 @@
-"""The Python API of ``pstoolkit run``: ``pstoolkit.solve(capture, "frameps", robust=True)``.
+"""The Python API of ``pstoolkit run``: ``pstoolkit.solve_capture(capture, "frameps", robust=True)``.
 
     import psfmt, pstoolkit
 
     with psfmt.read("blobs.h5") as capture:
-        result = pstoolkit.solve(capture, "frameps", robust=True)   # a Solution
+        result = pstoolkit.solve_capture(capture, "frameps", robust=True)   # a Solution
     result.normal, result.mask, result.maps          # what the solver returned (a SolverResult)
     result.score.stats["mae_deg"], result.seconds    # its score against the ground truth, its time
     surface = result.integrate("poisson")            # a pstoolkit.surface.Surface
     result.write("out/blobs-frameps")                # the folder `pstoolkit run` writes
 
-``solve`` takes the solver by its registry name and its options as keyword arguments, checked
+``solve_capture`` takes the solver by its registry name and its options as keyword arguments, checked
 against the registry entry's typed options exactly as ``--set`` checks them (the values are given
-to the same parser, so the errors are the same), the others at their defaults. ``pstoolkit.solve``
-is the subpackage ``pstoolkit.solve`` made callable (``pstoolkit/__init__.py`` says why), so
-``pstoolkit.solve.base`` and ``from pstoolkit.solve import results`` import as before.
+to the same parser, so the errors are the same), the others at their defaults.
 """
 
 from __future__ import annotations
@@ -163,7 +161,7 @@ def _solve_open(entry: Entry, capture: psfmt.Capture, options: dict[str, Any], d
     )
 
 
-def solve(
+def solve_capture(
     capture: psfmt.Capture | str | os.PathLike[str],
     solver: str,
     /,
@@ -178,7 +176,7 @@ def solve(
     ----------
     capture
         A ``psfmt.Capture`` (read lazily with ``psfmt.read``, loaded, or made in memory; a lazy one
-        must stay open until ``solve`` returns) or the path of a capture file, read and verified as
+        must stay open until ``solve_capture`` returns) or the path of a capture file, read and verified as
         ``pstoolkit run`` reads it and closed before returning.
     solver
         The solver's registry name (``frameps``, ``eventps``, ``dualres``, a plugin's).

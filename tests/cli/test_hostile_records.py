@@ -147,12 +147,12 @@ def test_seed_beyond_64_bits_is_one_line(capture: Path, tmp_path: Path, capsys: 
     err = one_line(capsys, "run", str(capture), "--solver", "dualres", "--set", "seed=18446744073709551616", "-o", str(tmp_path / "o"))
     assert "option seed: 18446744073709551616 is outside the 64-bit integers" in err
     with pytest.raises(UserError, match="option seed: 1180591620717411303424 is outside the 64-bit integers"):
-        pstoolkit.solve(capture, "dualres", seed=2**70)
+        pstoolkit.solve_capture(capture, "dualres", seed=2**70)
 
 
 def test_progress_must_be_callable(capture: Path) -> None:
     with pytest.raises(UserError, match="progress must be a function progress.fraction, message. or None, not int"):
-        pstoolkit.solve(capture, "frameps", progress=5)  # type: ignore[arg-type]
+        pstoolkit.solve_capture(capture, "frameps", progress=5)  # type: ignore[arg-type]
 
 
 # --- 13. workers, threads, tiles ----------------------------------------------------------------------

@@ -61,8 +61,8 @@ def results(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     root = tmp_path_factory.mktemp("figures")
     capture = sphere_capture(root / "ball.h5", size=32)
     folders = root / "results"
-    pstoolkit.solve(capture, "frameps", device="cpu").write(folders / "ball-frameps")
-    solved = pstoolkit.solve(capture, "frameps", device="cpu", robust=True)
+    pstoolkit.solve_capture(capture, "frameps", device="cpu").write(folders / "ball-frameps")
+    solved = pstoolkit.solve_capture(capture, "frameps", device="cpu", robust=True)
     solved.write(folders / "ball-robust", name="robust")
     surface = solved.integrate("poisson")
     np.save(folders / "ball-frameps" / "depth.npy", np.where(surface.mask, surface.depth, np.nan).astype(np.float32))

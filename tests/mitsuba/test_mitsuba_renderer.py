@@ -55,7 +55,7 @@ def test_diligent_folder_round_trips_through_the_semi_real_recipe(tmp_path: Path
     # the folder as a classic capture of its 96 lights: least squares on lights near the view axis,
     # where the plastic's highlights in the middle of the sphere are the error
     assert main(["convert", "diligent", str(folder), "-o", str(tmp_path / "grid.h5"), "-q"]) == 0
-    stats = pstoolkit.solve(tmp_path / "grid.h5", "frameps", device="cpu").score.stats
+    stats = pstoolkit.solve_capture(tmp_path / "grid.h5", "frameps", device="cpu").score.stats
     assert stats["mae_deg"] < 7.0 and stats["median_deg"] < 4.5
 
 
@@ -71,7 +71,7 @@ def test_direct_capture_validates_and_a_solver_recovers_a_sphere(tmp_path: Path)
         # the truth is the pixels the mesh covers wholly: the scene's mask less its rim
         assert 500 < mask.sum() < scene("sphere", 32).mask.sum()
     # dualres's closed-form start (epochs=0): the rough plastic's highlight ring is the main error
-    solution = pstoolkit.solve(out, "dualres", device="cpu", epochs=0)
+    solution = pstoolkit.solve_capture(out, "dualres", device="cpu", epochs=0)
     error = angular_error_deg(solution.normal, normal, mask)[mask]
     assert np.median(error) < 5.5 and np.mean(error < 20.0) > 0.97
 

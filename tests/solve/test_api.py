@@ -1,4 +1,4 @@
-"""The Python API (issue 24, part C, item 1): ``pstoolkit.solve(capture, "frameps", robust=True)``
+"""The Python API (issue 24, part C, item 1): ``pstoolkit.solve_capture(capture, "frameps", robust=True)``
 with options checked as ``--set`` checks them, the ``Solution`` it returns, solvers that take a
 partial options dict, and the README's "Python API" block, run as written."""
 
@@ -56,10 +56,10 @@ def test_the_readme_python_api_block_runs_as_written(sphere: Path, tmp_path: Pat
 def test_solve_takes_a_path_or_a_capture_and_matches_a_run_with_the_same_options(sphere: Path) -> None:
     entry = get_registries().solvers.get("frameps")
     expected, _ = run_solver(entry, psfmt.load(sphere), entry.parse_options(["frames=4", "robust=true"]))
-    by_path = pstoolkit.solve(sphere, "frameps", device="cpu", frames=4, robust=True)
+    by_path = pstoolkit.solve_capture(sphere, "frameps", device="cpu", frames=4, robust=True)
     with psfmt.read(sphere) as capture:
         seen: list[float] = []
-        by_capture = pstoolkit.solve(capture, "frameps", device="cpu", frames=4, robust=True, progress=lambda f, m: seen.append(f))
+        by_capture = pstoolkit.solve_capture(capture, "frameps", device="cpu", frames=4, robust=True, progress=lambda f, m: seen.append(f))
     for solution in (by_path, by_capture):
         np.testing.assert_array_equal(solution.normal, np.where(expected.mask[..., None], expected.normal, 0))
         np.testing.assert_array_equal(solution.mask, expected.mask)
@@ -83,17 +83,17 @@ def test_bad_options_raise_the_error_set_raises(sphere: Path, keywords: dict[str
     with pytest.raises(UserError) as from_set:
         get_registries().solvers.get("frameps").parse_options(pairs)
     with pytest.raises(UserError) as from_python:
-        pstoolkit.solve(sphere, "frameps", device="cpu", **keywords)
+        pstoolkit.solve_capture(sphere, "frameps", device="cpu", **keywords)
     assert str(from_python.value) == str(from_set.value)
 
 
 def test_unknown_solver_and_bad_capture_are_clear_errors(sphere: Path) -> None:
     with pytest.raises(UserError, match=r"^unknown solver 'nope' \(known: .*frameps"):
-        pstoolkit.solve(sphere, "nope")
+        pstoolkit.solve_capture(sphere, "nope")
     with pytest.raises(TypeError, match="capture must be a psfmt.Capture or the path of a capture file, not int"):
-        pstoolkit.solve(3, "frameps", device="cpu")  # type: ignore[arg-type]
+        pstoolkit.solve_capture(3, "frameps", device="cpu")  # type: ignore[arg-type]
     with pytest.raises(UserError, match=r"^solver 'eventps' needs events and lights, but .*sphere.h5 has none \(frames capture\)$"):
-        pstoolkit.solve(sphere, "eventps", device="cpu")
+        pstoolkit.solve_capture(sphere, "eventps", device="cpu")
 
 
 def test_multiple_and_nested_options_become_set_assignments() -> None:
@@ -129,11 +129,11 @@ def test_a_solver_takes_a_partial_options_dict(sphere: Path) -> None:
 def test_writing_needs_a_capture_file_and_a_positive_error_scale(sphere: Path, tmp_path: Path) -> None:
     in_memory = psfmt.load(sphere)
     in_memory.path = None
-    solution = pstoolkit.solve(in_memory, "frameps", device="cpu")
+    solution = pstoolkit.solve_capture(in_memory, "frameps", device="cpu")
     assert solution.capture_path is None and solution.score is not None
     with pytest.raises(UserError, match="made in memory"):
         solution.write(tmp_path / "r")
-    solved = pstoolkit.solve(sphere, "frameps", device="cpu")
+    solved = pstoolkit.solve_capture(sphere, "frameps", device="cpu")
     with pytest.raises(UserError, match=r"error_max_deg 0: expected a number of degrees above 0 and at most 180"):
         solved.write(tmp_path / "r", error_max_deg=0)
     out = solved.write(tmp_path / "r", name="mine", obj="ball", error_max_deg=10.0)
@@ -142,22 +142,21 @@ def test_writing_needs_a_capture_file_and_a_positive_error_scale(sphere: Path, t
     assert not (tmp_path / "r2").exists()
 
 
-def test_the_solve_package_is_callable_and_still_imports_as_a_package() -> None:
-    """``pstoolkit.solve`` is the function of the API and the subpackage of the solver interface:
-    every way of importing the subpackage still works, in a fresh interpreter, and no torch loads."""
+def test_the_api_function_and_the_solve_package_each_mean_one_thing() -> None:
+    """``pstoolkit.solve_capture`` is the function of the API and ``pstoolkit.solve`` the plain
+    subpackage of the solver interface, in a fresh interpreter, and no torch loads."""
     code = (
-        "import sys\n"
+        "import sys, types\n"
         "import pstoolkit.solve.results as results\n"
         "import pstoolkit\n"
         "from pstoolkit.solve import base\n"
-        "from pstoolkit import solve\n"
-        "import pstoolkit.solve.batch\n"
-        "assert callable(pstoolkit.solve) and solve is pstoolkit.solve\n"
+        "from pstoolkit import solve, solve_capture\n"
+        "assert type(solve) is types.ModuleType and not callable(solve)\n"
+        "assert solve_capture is pstoolkit.solve.api.solve_capture\n"
         "assert pstoolkit.solve.base.run_solver is base.run_solver and results.__name__ == 'pstoolkit.solve.results'\n"
-        "assert pstoolkit.solve.batch.__name__ == 'pstoolkit.solve.batch'\n"
         "print(sorted({'torch', 'numba', 'matplotlib'} & set(sys.modules)))\n"
     )
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env).stdout
     assert out.strip() == "[]"
-    assert "solve" in pstoolkit.__all__ and "Solution" in pstoolkit.__all__
+    assert "solve_capture" in pstoolkit.__all__ and "Solution" in pstoolkit.__all__
