@@ -54,11 +54,11 @@ from results_io import write_results
 
 import psfmt
 from pstoolkit.evaluation.scoring import score
-from pstoolkit.events import eventps
 from pstoolkit.optics.lights import build_light_model
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.sim.simulator import SimulationConfig, simulate
 from pstoolkit.solve.base import no_progress, run_solver
+from pstoolkit_eventps import eventps
 from pstoolkit_eventps.resample import Resampler
 
 RESULTS = Path(__file__).resolve().parent / "results" / "baselines.json"

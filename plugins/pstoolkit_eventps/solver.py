@@ -1,10 +1,10 @@
-"""The ``eventps`` solver: EventPS's optimisation method (``pstoolkit.events.eventps``, which states where it
+"""The ``eventps`` solver: EventPS's optimisation method (``pstoolkit_eventps.eventps``, which states where it
 departs from the paper and its public code) over a whole event stream, and optionally one normal map
 per time window.
 
 Every event pixel gets a normal: from its own pairs (a full rank-2 fit), or, for a pixel with too few
 pairs, from the swing of the ring light over a turn (silence: the camera axis) or from its
-neighbours' constraints (``pstoolkit.events.fill``). The ``confidence`` map says which, at the target
+neighbours' constraints (``pstoolkit_eventps.fill``). The ``confidence`` map says which, at the target
 resolution: ``1`` fit, ``0.5`` neighbours, ``0.25`` swing, ``0`` outside the event sensor's view. Events
 cannot tell a dark background from a surface facing the camera, so a background that fires nothing
 gets the axis too; the mask is the sensor's view. When the target grid (frames or ground truth) differs
@@ -23,9 +23,9 @@ import numpy as np
 
 import psfmt
 from pstoolkit import Option, Progress, Solver, SolverResult, UserError, build_light_model
-from pstoolkit.events import eventps
 from pstoolkit.events.rule import capture_rule
 from pstoolkit.solve.cluster import available_cpus, max_parallel
+from pstoolkit_eventps import eventps
 from pstoolkit_eventps.resample import Resampler, event_to_frame_affine
 
 MAX_SEQUENCE_BYTES = 4 << 30
@@ -48,7 +48,7 @@ def _check_sequence_size(stream: psfmt.EventArray, window_us: float, target: tup
     if size > MAX_SEQUENCE_BYTES:
         raise UserError(
             f"eventps: window_us={window_us:g} gives {count} windows, {size / 2**30:.1f} GiB of normal maps "
-            f"(at most {MAX_SEQUENCE_BYTES / 2**30:g} GiB); use longer windows, or pstoolkit.events.eventps.stream to take them one at a time"
+            f"(at most {MAX_SEQUENCE_BYTES / 2**30:g} GiB); use longer windows, or pstoolkit_eventps.eventps.stream to take them one at a time"
         )
 
 

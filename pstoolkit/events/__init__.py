@@ -1,1 +1,1 @@
-"""Event cameras: the sensor's event rule and the EventPS relation between events and normals."""
+"""Event cameras: the sensor's event rule (``rule``) and the relation between events and normals that the event solvers share (``relation``)."""

@@ -16,14 +16,14 @@ import psfmt
 from psfmt import EventArray
 from pstoolkit.errors import UserError
 from pstoolkit.evaluation.metrics import angular_error_deg
-from pstoolkit.events import eventps
-from pstoolkit.events import fill as eventfill
 from pstoolkit.optics.lights import RingLight, SampledLight, build_light_model
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.sim.esim import simulate_events
 from pstoolkit.sim.sensor import EventSensor
 from pstoolkit.sim.simulator import SimulationConfig, simulate
 from pstoolkit.solve.base import SolverResult, run_solver
+from pstoolkit_eventps import eventps
+from pstoolkit_eventps import fill as eventfill
 
 LUMA = np.array([0.299, 0.587, 0.114])
 NORMAL = np.array([0.3, -0.2, 0.9]) / np.linalg.norm([0.3, -0.2, 0.9])
@@ -142,7 +142,7 @@ def test_too_many_windows_is_one_clear_error() -> None:
     capture.ground_truth = psfmt.GroundTruth(normal=np.broadcast_to(np.float32(0.0), (16384, 16384, 3)))
     message = (
         r"^eventps: window_us=10 gives 4001 windows, 12003\.0 GiB of normal maps \(at most 4 GiB\); "
-        r"use longer windows, or pstoolkit\.events\.eventps\.stream to take them one at a time$"
+        r"use longer windows, or pstoolkit_eventps\.eventps\.stream to take them one at a time$"
     )
     with pytest.raises(UserError, match=message):
         _solve(capture, "window_us=10")
@@ -337,7 +337,7 @@ def test_the_per_pixel_fit_matches_lapack() -> None:
     """``robust_fit`` without reweighting solves each pixel by the adjugate (no trigonometry): the same
     smallest eigenvector and eigenvalues as LAPACK on Σ u uᵀ of noisy constraints, and no normal for a
     pixel below ``min_pairs`` or with parallel constraints."""
-    from pstoolkit.events.relation_kernel import robust_fit
+    from pstoolkit_eventps.relation_kernel import robust_fit
 
     rng = np.random.default_rng(5)
     truth = rng.normal(size=(300, 3))

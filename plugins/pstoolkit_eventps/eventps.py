@@ -1,7 +1,7 @@
 """EventPS (Yu et al., CVPR 2024), the optimisation version, over an event stream: a normal at every
 event pixel, for the whole stream or for each time window as the events arrive.
 
-    from pstoolkit.events import eventps
+    from pstoolkit_eventps import eventps
     from pstoolkit.optics.lights import build_light_model
 
     params = eventps.Params(contrast_pos=0.15, contrast_neg=0.15, refractory_us=2000)
@@ -33,7 +33,7 @@ Per window, the events pair by the refractory rule of ``params.refractory_rule``
 Relations whose span lies outside [``min_interval_us``, ``max_interval_us``] are dropped, as in the
 paper. A pixel with at least ``min_pairs`` exact constraints of rank 2 gets the smallest eigenvector of
 Σ w v vᵀ (``relation_kernel.robust_fit``); the others get a normal from the swing of the ring light or
-from their neighbours (``pstoolkit.events.fill``), and ``confidence`` says which (``eventfill.FIT``,
+from their neighbours (``pstoolkit_eventps.fill``), and ``confidence`` says which (``eventfill.FIT``,
 ``NEIGHBOURS``, ``SWING``). Under "rate-limited" a pixel that fired but has no fit starts from its
 neighbours and is refined by its own exact constraints and bounds (``relation_kernel.bounded_fit``),
 restarting from its neighbourhood's mean ``BOUND_SMOOTHING`` times.
@@ -86,11 +86,11 @@ import numpy as np
 from psfmt import EventArray
 from pstoolkit._shared.vectors import unit
 from pstoolkit.errors import UserError
-from pstoolkit.events import fill as eventfill
 from pstoolkit.events.relation import MIN_RANK_RATIO, constraint_vectors, grey_light
-from pstoolkit.events.relation_kernel import NO_EVENT, bounded_fit, pair_events, robust_fit
 from pstoolkit.events.rule import REFRACTORY_RULE, REFRACTORY_RULES, check_rule
 from pstoolkit.optics.lights import LightModel
+from pstoolkit_eventps import fill as eventfill
+from pstoolkit_eventps.relation_kernel import NO_EVENT, bounded_fit, pair_events, robust_fit
 
 MAX_INTERVAL_PERIODS = 0.5
 """Default longest pair interval under "reset-at-end", as a share of the light period: a pixel near the

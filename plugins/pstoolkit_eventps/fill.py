@@ -1,4 +1,4 @@
-"""Normals for the event pixels whose own constraints do not determine one (``pstoolkit.events.eventps``):
+"""Normals for the event pixels whose own constraints do not determine one (``pstoolkit_eventps.eventps``):
 the swing of a ring light, or the neighbours' constraints, and the confidence levels that say which.
 
 **Swing.** Under a directional light circling the camera axis at zenith θ, a Lambertian pixel with
