@@ -35,10 +35,10 @@ import numpy as np
 from results_io import write_results
 
 import psfmt
-from psfmt import evt3
-from psfmt._evt3.engine import has_numba
-from psfmt.metavision_hdf5 import MetavisionHdf5File, default_threads
-from psfmt.rawheader import read_header
+from psfmt.eventfiles import evt3
+from psfmt.eventfiles._evt3.engine import has_numba
+from psfmt.eventfiles.metavision_hdf5 import MetavisionHdf5File, default_threads
+from psfmt.eventfiles.rawheader import read_header
 
 RESULTS = Path(__file__).resolve().parent / "results" / "event_io.json"
 SENSOR_W, SENSOR_H = 1280, 720

@@ -1,7 +1,8 @@
 """psfmt — the hybrid-capture format: data model, HDF5 reader and writer, validator.
 
 Depends on numpy and h5py only (numba and isal speed it up where installed). The normative
-description is ``spec/hybrid-capture.md``.
+description is ``spec/hybrid-capture.md``. Foreign event files (Prophesee RAW, Metavision DAT and HDF5,
+DSEC-style HDF5, tonic arrays) are read and written by ``psfmt.eventfiles``.
 
     capture = psfmt.read("scene.h5")           # lazy: frames by index, events by window
     window = capture.events.window(0, 1000)    # the first millisecond, read through the index

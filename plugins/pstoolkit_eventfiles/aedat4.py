@@ -23,8 +23,8 @@ from typing import Any, ClassVar
 import numpy as np
 
 import psfmt
+from psfmt.eventfiles.rawheader import concat_triggers
 from psfmt.limits import MAX_ABS_TIME_US
-from psfmt.rawheader import concat_triggers
 from psfmt.text import printable
 from pstoolkit import Option, Progress, UserError
 from pstoolkit_eventfiles.attach import ATTACH_OPTIONS

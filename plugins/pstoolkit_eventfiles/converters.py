@@ -9,7 +9,7 @@ clean recording logs nothing. A recording that leaves no event (a header alone, 
 the sensor) is refused unless ``--allow-empty`` asks for the empty capture.
 
 RAW, DAT and Metavision HDF5 files take their sensor size from the header as Metavision does
-(``psfmt.rawheader.resolve_geometry``), or from ``--geometry WxH``; the capture's description records
+(``psfmt.eventfiles.rawheader.resolve_geometry``), or from ``--geometry WxH``; the capture's description records
 where it came from (``geometry_source = …``) and keeps the file's header lines.
 """
 
@@ -25,13 +25,13 @@ import numpy as np
 import psfmt
 import pstoolkit
 from psfmt.atomic import temporary_sibling
-from psfmt.dat import DatFile
-from psfmt.dsec import DEFAULT_CHUNK_EVENTS, DsecFile
-from psfmt.evt2 import Evt2File
-from psfmt.evt3 import Evt3File
+from psfmt.eventfiles.dat import DatFile
+from psfmt.eventfiles.dsec import DEFAULT_CHUNK_EVENTS, DsecFile
+from psfmt.eventfiles.evt2 import Evt2File
+from psfmt.eventfiles.evt3 import Evt3File
+from psfmt.eventfiles.metavision_hdf5 import MetavisionHdf5File
+from psfmt.eventfiles.rawheader import RawHeader, concat_triggers, missing_geometry, parse_geometry, read_header
 from psfmt.limits import MAX_SENSOR_SIDE
-from psfmt.metavision_hdf5 import MetavisionHdf5File
-from psfmt.rawheader import RawHeader, concat_triggers, missing_geometry, parse_geometry, read_header
 from psfmt.text import printable
 from pstoolkit import Converter, Option, Progress, UserError
 from pstoolkit_eventfiles.attach import (

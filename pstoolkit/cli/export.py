@@ -75,10 +75,10 @@ def _export_frames(capture_file: Path, fmt: str, out: Path, force: bool, quiet: 
 
 def _export_events(capture_file: Path, fmt: str, out: Path, compression: str, quiet: bool, as_json: bool) -> None:
     # the codecs load here, so that other commands start without numba's import
-    from psfmt.dat import write_dat
-    from psfmt.dsec import write_dsec
-    from psfmt.evt2 import write_raw as write_evt2
-    from psfmt.evt3 import write_raw as write_evt3
+    from psfmt.eventfiles.dat import write_dat
+    from psfmt.eventfiles.dsec import write_dsec
+    from psfmt.eventfiles.evt2 import write_raw as write_evt2
+    from psfmt.eventfiles.evt3 import write_raw as write_evt3
 
     if fmt not in EVENT_FORMATS:
         raise UserError(f"--events {fmt!r} is not one of {', '.join(EVENT_FORMATS)}")

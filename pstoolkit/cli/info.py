@@ -120,7 +120,7 @@ NUMPY_SIZING_EVENTS = 2_000_000
 def event_encoding(capture: psfmt.Capture) -> dict[str, Any]:
     """The real EVT 3.0 size of the capture's events (words only, no header) beside the 16-bit
     estimate, and the data rate with the real size."""
-    from psfmt.evt3 import encoded_size  # here, so that other commands start without the codec
+    from psfmt.eventfiles.evt3 import encoded_size  # here, so that other commands start without the codec
 
     assert capture.events is not None
     # the numpy encoder up to a few million events: the compiled one would first spend half a second

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 import psfmt
-from psfmt import dat, evt2, evt3
+from psfmt.eventfiles import dat, evt2, evt3
 from psfmt.events import EventArray
 from pstoolkit.cli import main as cli
 

@@ -12,10 +12,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import psfmt
-from psfmt import dat, evt3
 from psfmt.errors import FormatError
+from psfmt.eventfiles import dat, evt3
+from psfmt.eventfiles.rawheader import DecodeStats, format_header
 from psfmt.events import EventArray
-from psfmt.rawheader import DecodeStats, format_header
 from pstoolkit.cli import main
 
 

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 import psfmt
-from psfmt import dat, evt3
-from psfmt.dsec import write_dsec
-from psfmt.rawheader import format_header
+from psfmt.eventfiles import dat, evt3
+from psfmt.eventfiles.dsec import write_dsec
+from psfmt.eventfiles.rawheader import format_header
 from pstoolkit.cli import main
 
 

@@ -12,7 +12,7 @@ import pytest
 from helpers.prophesee import GEN3_EVT2, GEN41_EVT3
 
 import psfmt
-from psfmt import evt2, evt3
+from psfmt.eventfiles import evt2, evt3
 from psfmt.events import EventArray
 from pstoolkit.cli import main
 

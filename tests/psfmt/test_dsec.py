@@ -8,10 +8,10 @@ import h5py
 import numpy as np
 import pytest
 
-from psfmt import dsec
 from psfmt.errors import FormatError
+from psfmt.eventfiles import dsec
+from psfmt.eventfiles.structured import TONIC_DTYPE, from_structured, to_tonic
 from psfmt.events import EventArray
-from psfmt.structured import TONIC_DTYPE, from_structured, to_tonic
 
 
 def sample(n: int = 4000, seed: int = 0) -> EventArray:

@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from psfmt import evt2
+from psfmt.eventfiles import evt2
+from psfmt.eventfiles.rawheader import read_header
 from psfmt.events import EventArray
-from psfmt.rawheader import read_header
 
 
 def cd(x: int, y: int, t_low: int, on: bool) -> int:

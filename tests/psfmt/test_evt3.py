@@ -10,12 +10,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import psfmt
-from psfmt import evt3
-from psfmt._evt3 import decoding, encoding
-from psfmt._evt3.engine import has_numba
 from psfmt.errors import FormatError
+from psfmt.eventfiles import evt3
+from psfmt.eventfiles._evt3 import decoding, encoding
+from psfmt.eventfiles._evt3.engine import has_numba
+from psfmt.eventfiles.rawheader import format_header, read_header
 from psfmt.events import EventArray
-from psfmt.rawheader import format_header, read_header
 
 ENGINES = ["numpy"] + (["numba"] if has_numba() else [])
 

@@ -13,11 +13,11 @@ from helpers.prophesee import GEN3_EVT2, GEN41_EVT3
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from psfmt import evt2, evt3
 from psfmt.errors import FormatError
+from psfmt.eventfiles import evt2, evt3
+from psfmt.eventfiles.rawheader import missing_geometry, read_header, resolve_geometry
+from psfmt.eventfiles.rawsensors import PLUGINS, SENSOR_GENERATIONS, SENSOR_NAMES, SYSTEM_IDS, implied_sensor, integrator
 from psfmt.events import EventArray
-from psfmt.rawheader import missing_geometry, read_header, resolve_geometry
-from psfmt.rawsensors import PLUGINS, SENSOR_GENERATIONS, SENSOR_NAMES, SYSTEM_IDS, implied_sensor, integrator
 from psfmt.text import printable
 
 CORPUS = Path(__file__).resolve().parents[1] / "fuzz" / "corpus" / "raw_headers"
@@ -212,7 +212,7 @@ def test_fuzzed_header_variants_give_a_geometry_or_one_line(tmp_path: Path, name
 
 
 def test_the_documented_table_is_the_code_s() -> None:
-    """docs/event-files.md's geometry table lists exactly the entries of ``psfmt.rawsensors``."""
+    """docs/event-files.md's geometry table lists exactly the entries of ``psfmt.eventfiles.rawsensors``."""
     doc = (Path(__file__).resolve().parents[2] / "docs" / "event-files.md").read_text()
     rows = [line.split("|")[1:-1] for line in doc.splitlines() if line.startswith("| ") and "×" in line.split("|")[2]]
     documented: dict[str, set[str]] = {"system_ID": set(), "plugin_name": set(), "sensor_name": set(), "sensor_generation": set()}

@@ -22,7 +22,7 @@ from helpers.mutations import probe
 
 import psfmt
 from psfmt import isolate
-from psfmt.rawheader import format_header
+from psfmt.eventfiles.rawheader import format_header
 from pstoolkit.cli import main
 
 

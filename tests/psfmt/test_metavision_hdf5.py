@@ -10,11 +10,11 @@ import h5py
 import numpy as np
 import pytest
 
-from psfmt._ecf.batch import decode_batch
-from psfmt._ecf.chunk import OK
-from psfmt._evt3.engine import has_numba
 from psfmt.errors import FormatError
-from psfmt.metavision_hdf5 import MetavisionHdf5File
+from psfmt.eventfiles._ecf.batch import decode_batch
+from psfmt.eventfiles._ecf.chunk import OK
+from psfmt.eventfiles._evt3.engine import has_numba
+from psfmt.eventfiles.metavision_hdf5 import MetavisionHdf5File
 
 DATA = Path(__file__).parent / "data" / "ecf"
 ENGINES = ["numpy", pytest.param("numba", marks=pytest.mark.skipif(not has_numba(), reason="numba not installed"))]

@@ -6,8 +6,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from psfmt._ecf.loop import compiled
-from psfmt._ecf.vector import decode_vector
+from psfmt.eventfiles._ecf.loop import compiled
+from psfmt.eventfiles._ecf.vector import decode_vector
 
 
 def decode_batch(
@@ -15,7 +15,7 @@ def decode_batch(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """x, y (uint16), t (int64 µs), p (int8 ±1) of the stored ECF ``chunks`` holding ``counts``
     events each (the counts from their headers, checked by the caller), and each chunk's status
-    (``psfmt._ecf.chunk``). ``engine`` ``numba`` splits the chunks over ``threads`` threads."""
+    (``psfmt.eventfiles._ecf.chunk``). ``engine`` ``numba`` splits the chunks over ``threads`` threads."""
     sizes = np.array([len(b) for b in chunks], np.int64)
     ends = np.cumsum(sizes)
     starts = ends - sizes

@@ -14,8 +14,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from psfmt._evt3.engine import jit
-from psfmt._evt3.words import ADDR_X, ADDR_Y, EXT_TRIGGER, SKIPPED_TYPES, TIME_HIGH, TIME_LOW, VECT_8, VECT_12, VECT_BASE_X, WRAP_DROP
+from psfmt.eventfiles._evt3.engine import jit
+from psfmt.eventfiles._evt3.words import ADDR_X, ADDR_Y, EXT_TRIGGER, SKIPPED_TYPES, TIME_HIGH, TIME_LOW, VECT_8, VECT_12, VECT_BASE_X, WRAP_DROP
 from psfmt.events import EventArray, Triggers
 
 DECODER_STATE = (0, 0, 0, 0, -1, -1, 0)

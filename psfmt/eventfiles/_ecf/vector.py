@@ -1,4 +1,4 @@
-"""The ECF decoder with whole-array numpy operations: what ``psfmt._ecf.loop`` gives, without numba.
+"""The ECF decoder with whole-array numpy operations: what ``psfmt.eventfiles._ecf.loop`` gives, without numba.
 
 Only the escapes are walked one by one: a count escape (a time byte ``d << 4 | 15``, a row word
 ``y << 5 | 31``, a polarity byte ``p << 7 | 127``) makes the next bytes a count rather than a code.
@@ -11,11 +11,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from psfmt._ecf.chunk import LONG_DELTA, MAX_DIGITS, MODE_PACKED, MODE_PACKED_XP, OK, OUTSIDE, OVERRUN, SHORT, TIME_BACK
+from psfmt.eventfiles._ecf.chunk import LONG_DELTA, MAX_DIGITS, MODE_PACKED, MODE_PACKED_XP, OK, OUTSIDE, OVERRUN, SHORT, TIME_BACK
 
 
 class ChunkFault(Exception):
-    """A chunk that cannot be decoded; ``code`` is a status of ``psfmt._ecf.chunk``."""
+    """A chunk that cannot be decoded; ``code`` is a status of ``psfmt.eventfiles._ecf.chunk``."""
 
     def __init__(self, code: int) -> None:
         super().__init__(code)
@@ -171,7 +171,7 @@ def decode_chunk(data: np.ndarray, n: int, width: int, height: int) -> tuple[np.
 
 
 def decode_vector(buf, starts, ends, counts, at, width, height, x, y, t, p, status) -> None:  # type: ignore[no-untyped-def]
-    """What ``psfmt._ecf.loop.decode_loop`` does, chunk by chunk with whole-array operations."""
+    """What ``psfmt.eventfiles._ecf.loop.decode_loop`` does, chunk by chunk with whole-array operations."""
     for k in range(len(starts)):
         n, o = int(counts[k]), int(at[k])
         try:

@@ -1,7 +1,7 @@
 """The ECF decoder as one loop per chunk (the reference; numba compiles it where installed).
 
 ``decode_loop`` decodes chunks ``k`` of ``buf[starts[k]:ends[k]]`` holding ``counts[k]`` events into
-the output columns from ``at[k]`` on, and sets ``status[k]`` to a code of ``psfmt._ecf.chunk``
+the output columns from ``at[k]`` on, and sets ``status[k]`` to a code of ``psfmt.eventfiles._ecf.chunk``
 (``OK`` or the first fault met). Chunks are independent, so callers split them across threads.
 """
 
@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from psfmt._ecf.chunk import LONG_DELTA, MAX_DIGITS, MODE_PACKED, MODE_PACKED_XP, OK, OUTSIDE, OVERRUN, SHORT, TIME_BACK
+from psfmt.eventfiles._ecf.chunk import LONG_DELTA, MAX_DIGITS, MODE_PACKED, MODE_PACKED_XP, OK, OUTSIDE, OVERRUN, SHORT, TIME_BACK
 
 
 def _u16(buf, pos):  # type: ignore[no-untyped-def]

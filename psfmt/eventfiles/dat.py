@@ -1,6 +1,6 @@
 """Metavision DAT files of CD events: decoding in bounded memory and writing, bit-exactly.
 
-A DAT file is ``% key value`` header lines (the RAW header's syntax, ``psfmt.rawheader``), two bytes
+A DAT file is ``% key value`` header lines (the RAW header's syntax, ``psfmt.eventfiles.rawheader``), two bytes
 (the event type: 12 for EventCD, or 0 for the older Event2d; the event size: 8), then 8-byte
 little-endian records: a uint32 timestamp in µs, and a uint32 holding x in bits 0–13, y in bits
 14–27 and the polarity in bits 28–31 (1: brighter → p = +1, 0: darker → p = −1). That is the
@@ -25,8 +25,8 @@ import numpy as np
 
 from psfmt.atomic import atomic_path
 from psfmt.errors import FormatError
+from psfmt.eventfiles.rawheader import DecodeStats, RawHeader, iter_words, missing_geometry, read_header
 from psfmt.events import EventArray
-from psfmt.rawheader import DecodeStats, RawHeader, iter_words, missing_geometry, read_header
 
 EVENT_2D, EVENT_CD, EVENT_EXT_TRIGGER = 0, 12, 14
 EVENT_SIZE = 8

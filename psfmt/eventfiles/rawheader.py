@@ -6,7 +6,7 @@ vendor's readers define it (OpenEB ``GenericHeader::parse_header``); the lines m
 The sensor geometry is resolved as Metavision resolves it (``resolve_geometry``): ``% geometry WxH``,
 the ``width=``/``height=`` fields of ``% format``, the older ``% Width`` / ``% Height`` lines, and then
 the Prophesee sensor that ``system_ID``, ``plugin_name``, ``sensor_name`` or ``sensor_generation``
-implies (``psfmt.rawsensors``); a geometry given by the caller overrides them all.
+implies (``psfmt.eventfiles.rawsensors``); a geometry given by the caller overrides them all.
 """
 
 from __future__ import annotations
@@ -21,9 +21,9 @@ from typing import BinaryIO
 import numpy as np
 
 from psfmt.errors import FormatError
+from psfmt.eventfiles.rawsensors import implied_encoding, implied_sensor, shown, unknown_identity
 from psfmt.events import Triggers
 from psfmt.limits import MAX_SENSOR_SIDE
-from psfmt.rawsensors import implied_encoding, implied_sensor, shown, unknown_identity
 
 MAX_HEADER_BYTES = 1 << 20
 ENCODINGS = ("EVT3", "EVT2", "EVT21")
@@ -72,7 +72,7 @@ def resolve_geometry(
     """``(width, height, source)`` of the sensor, in Metavision's order: ``override`` (the caller's
     ``--geometry``), ``% geometry WxH``, ``% format …;width=W;height=H`` (both present must agree, as
     Metavision requires), ``% Width`` / ``% Height``, then the sensor the Prophesee tables imply
-    (``psfmt.rawsensors.implied_sensor``); None when nothing declares or implies one. A declared
+    (``psfmt.eventfiles.rawsensors.implied_sensor``); None when nothing declares or implies one. A declared
     geometry that is unreadable, contradictory or beyond 1…65536 pixels a side is a FormatError."""
     if override is not None:
         width, height = _check_sides(*override, path, label)

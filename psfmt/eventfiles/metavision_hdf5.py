@@ -9,7 +9,7 @@ first event, the attribute ``offset`` = minus the first event's time); ``/EXT_TR
 ``format``, ``system_ID`` …), from which the sensor size is resolved as for RAW files.
 
 ECF chunks are read raw (``read_direct_chunk``) and decoded by psfmt's own decoder
-(``psfmt._ecf``: a compiled loop when numba is installed, split over threads, else whole-array
+(``psfmt.eventfiles._ecf``: a compiled loop when numba is installed, split over threads, else whole-array
 numpy), a batch of chunks at a time, so memory stays bounded whatever the file's length. A dataset
 with no filter, or one HDF5 can apply (gzip, or what ``hdf5plugin`` registers when installed), is
 read through h5py in the same batches. Nothing in the file is trusted: a chunk whose header counts
@@ -27,14 +27,14 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from psfmt._ecf.batch import decode_batch
-from psfmt._ecf.chunk import FILTER_ID, MAX_CHUNK_EVENTS, MESSAGES, OK
-from psfmt._evt3.engine import resolve, usable_cores
 from psfmt.errors import FormatError
+from psfmt.eventfiles._ecf.batch import decode_batch
+from psfmt.eventfiles._ecf.chunk import FILTER_ID, MAX_CHUNK_EVENTS, MESSAGES, OK
+from psfmt.eventfiles._evt3.engine import resolve, usable_cores
+from psfmt.eventfiles.rawheader import RawHeader, missing_geometry, resolve_geometry
 from psfmt.events import EventArray, Triggers, check_window
 from psfmt.files import hdf5_errors, open_hdf5
 from psfmt.limits import Limits
-from psfmt.rawheader import RawHeader, missing_geometry, resolve_geometry
 from psfmt.text import printable
 
 try:  # registers the zstd/blosc/lz4 filters with HDF5 when present

@@ -14,7 +14,7 @@ change and runs of at least ``VECTOR_MIN_EVENTS`` events of one row, time and po
 pixels as a VECT_BASE_X followed by the triplet VECT_12, VECT_12, VECT_8 that the vendor's decoder
 expects; both engines write the same bytes, whatever the block boundaries.
 
-The word layout, the engine choice and both kernels live in ``psfmt._evt3``; this module streams
+The word layout, the engine choice and both kernels live in ``psfmt.eventfiles._evt3``; this module streams
 files and blocks through them.
 """
 
@@ -27,22 +27,22 @@ from pathlib import Path
 
 import numpy as np
 
-from psfmt._evt3.decoding import DECODER_STATE, Output, decode_into, decode_numba, decode_numpy, decode_parallel, skip_words, state_time_us
-from psfmt._evt3.encoding import ENCODER_STATE, encode_numba, encode_numpy
-from psfmt._evt3.engine import resolve, usable_cores
-from psfmt._evt3.words import (
-    MAX_COORD,
-)
 from psfmt.atomic import atomic_path
 from psfmt.errors import FormatError
-from psfmt.events import EventArray, Triggers
-from psfmt.rawheader import (
+from psfmt.eventfiles._evt3.decoding import DECODER_STATE, Output, decode_into, decode_numba, decode_numpy, decode_parallel, skip_words, state_time_us
+from psfmt.eventfiles._evt3.encoding import ENCODER_STATE, encode_numba, encode_numpy
+from psfmt.eventfiles._evt3.engine import resolve, usable_cores
+from psfmt.eventfiles._evt3.words import (
+    MAX_COORD,
+)
+from psfmt.eventfiles.rawheader import (
     DecodeStats,
     concat_triggers,
     format_header,
     iter_words,
     read_sized_header,
 )
+from psfmt.events import EventArray, Triggers
 
 DEFAULT_CHUNK_WORDS = 1 << 22
 PARALLEL_MIN_WORDS = 1 << 18
@@ -99,7 +99,7 @@ class Evt3File:
     """An EVT 3.0 RAW file, decoded in bounded memory: ``chunks()`` streams it, ``window()`` decodes
     only the words around a time range, ``read()`` decodes everything (with numba, into one output
     and on two threads where two cores are usable); ``stats`` sums up the last pass.
-    The sensor size is the header's (``psfmt.rawheader.resolve_geometry``) unless ``geometry`` gives it."""
+    The sensor size is the header's (``psfmt.eventfiles.rawheader.resolve_geometry``) unless ``geometry`` gives it."""
 
     def __init__(
         self,

@@ -16,14 +16,14 @@ import numpy as np
 
 from psfmt.atomic import atomic_path
 from psfmt.errors import FormatError
-from psfmt.events import EventArray, Triggers
-from psfmt.rawheader import (
+from psfmt.eventfiles.rawheader import (
     DecodeStats,
     concat_triggers,
     format_header,
     iter_words,
     read_sized_header,
 )
+from psfmt.events import EventArray, Triggers
 
 CD_OFF, CD_ON, TIME_HIGH, EXT_TRIGGER = 0x0, 0x1, 0x8, 0xA
 SKIPPED_TYPES = (0xE, 0xF)

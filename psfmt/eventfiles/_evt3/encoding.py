@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from psfmt._evt3.engine import jit
-from psfmt._evt3.words import ADDR_X, ADDR_Y, TIME_HIGH, TIME_LOW, VECT_8, VECT_12, VECT_BASE_X, VECTOR_MIN_EVENTS
+from psfmt.eventfiles._evt3.engine import jit
+from psfmt.eventfiles._evt3.words import ADDR_X, ADDR_Y, TIME_HIGH, TIME_LOW, VECT_8, VECT_12, VECT_BASE_X, VECTOR_MIN_EVENTS
 
 ENCODER_STATE = (-1, 0, -1)
 """The state before the first event: the TIME_HIGH in force as t >> 12 (-1: none yet), the low bits, y (-1: none yet)."""
