@@ -53,11 +53,13 @@ import numpy as np
 from results_io import write_results
 
 import psfmt
+from pstoolkit._shared.progress import no_progress
 from pstoolkit.evaluation.scoring import score
 from pstoolkit.optics.lights import build_light_model
 from pstoolkit.plugin.manager import get_registries
-from pstoolkit.sim.simulator import SimulationConfig, simulate
-from pstoolkit.solve.base import no_progress, run_solver
+from pstoolkit.sim.config import SimulationConfig
+from pstoolkit.sim.simulator import simulate
+from pstoolkit.solve.base import run_solver
 from pstoolkit_eventps import eventps
 from pstoolkit_eventps.resample import Resampler
 

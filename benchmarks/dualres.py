@@ -68,7 +68,8 @@ from pstoolkit.plugin.manager import get_registries
 from pstoolkit.shadows import ShadowEvidence, ShadowMask
 from pstoolkit.shadows.geometry import GeometryDetector
 from pstoolkit.shadows.score import score, true_shadows
-from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit.sim.config import SimulationConfig
+from pstoolkit.sim.simulator import simulate
 from pstoolkit_diligent.rendered import semi_real_from_capture
 
 RESULTS = Path(__file__).resolve().parent / "results" / "dualres.json"

@@ -110,7 +110,8 @@ def capture_path(folder: Path, shape: tuple[int, int], seed: int) -> Path:
     side = max(height, width)
     square = folder / f"blobs-{side}-seed{seed}.h5"
     if not square.exists():
-        from pstoolkit.sim.simulator import SimulationConfig, simulate
+        from pstoolkit.sim.config import SimulationConfig
+        from pstoolkit.sim.simulator import simulate
 
         simulate(SimulationConfig(scene="blobs", size=side, seed=seed), square)
     if height == width:

@@ -34,7 +34,8 @@ from results_io import write_results
 import psfmt
 from pstoolkit.evaluation.metrics import angular_error_deg
 from pstoolkit.plugin.manager import get_registries
-from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit.sim.config import SimulationConfig
+from pstoolkit.sim.simulator import simulate
 from pstoolkit.solve.base import run_solver
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))

@@ -35,7 +35,8 @@ from results_io import write_results
 import psfmt
 from pstoolkit.evaluation.scoring import score
 from pstoolkit.plugin.manager import get_registries
-from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit.sim.config import SimulationConfig
+from pstoolkit.sim.simulator import simulate
 from pstoolkit.solve.base import run_solver
 from pstoolkit_diligent.rendered import semi_real_from_capture
 

@@ -47,7 +47,8 @@ from pstoolkit.hardware.sphere_events import SphereEvents
 from pstoolkit.hardware.sphere_frames import SphereFrames
 from pstoolkit.optics.lights import RingLight
 from pstoolkit.plugin.manager import get_registries
-from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit.sim.config import SimulationConfig
+from pstoolkit.sim.simulator import simulate
 from pstoolkit.solve.base import run_solver
 from pstoolkit.testing import chrome_sphere_pinhole
 

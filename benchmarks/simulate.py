@@ -42,18 +42,13 @@ import torch
 from results_io import write_results
 
 import psfmt
+from psfmt import REFRACTORY_RULES
 from pstoolkit._shared.allocator import keep_freed_memory
-from pstoolkit.events.rule import REFRACTORY_RULES
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.sim import ring_engine
+from pstoolkit.sim.config import SimulationConfig
 from pstoolkit.sim.sensor import SENSOR_PRESETS
-from pstoolkit.sim.simulator import (
-    SimulationConfig,
-    build_renderer,
-    build_scene,
-    compiled_blocks,
-    simulate,
-)
+from pstoolkit.sim.simulator import build_renderer, build_scene, compiled_blocks, simulate
 
 RESULTS = Path(__file__).resolve().parent / "results" / "simulate.json"
 TARGET_EVENTS_PER_S = 5e6

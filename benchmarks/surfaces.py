@@ -34,7 +34,8 @@ from results_io import write_results
 import psfmt
 from pstoolkit.evaluation.metrics import depth_error
 from pstoolkit.plugin.manager import get_registries
-from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit.sim.config import SimulationConfig
+from pstoolkit.sim.simulator import simulate
 from pstoolkit.solve.base import run_solver
 
 RESULTS = Path(__file__).resolve().parent / "results" / "surfaces.json"

@@ -7,6 +7,11 @@ rule and the EventPS relation), ``sim`` (scenes, renderer, event engines, the si
 ``surface`` (normal integration), ``evaluation`` (scores, tables, the report), ``hardware``
 (backends, calibration), ``io`` (normal maps, DiLiGenT folders, converters) and ``cli``.
 
+The parts stand in layers, lowest first: ``errors``, ``version``, ``_shared``, ``grid``, ``plugin``,
+``io``, ``optics``, ``events``, ``evaluation``, ``surface``, ``shadows``, ``solve``, ``hardware``,
+``sim``, ``view``, this root, ``cli``. A module imports its own part or a lower one, never a higher
+one, and no two modules import each other (``tests/test_layout.py`` reads the imports and checks).
+
 A plugin imports what it needs from here: ``hookimpl`` to mark its hook functions, ``Option`` for
 typed options, ``Registry`` for the registries its hooks receive, ``Solver``/``SolverResult`` and
 ``Progress`` for solvers, ``Converter`` for dataset converters, ``LightBackend`` and ``CameraSource``
@@ -23,20 +28,21 @@ from __future__ import annotations
 
 from typing import Any
 
-__version__ = "0.1.0"
-
+from pstoolkit._shared.progress import Progress, no_progress
 from pstoolkit.errors import UserError
-from pstoolkit.events.rule import GREY_WEIGHTS
 from pstoolkit.hardware.backend import CameraSource, LightBackend
 from pstoolkit.hardware.lightcal import LightCalibration, LightFit
 from pstoolkit.io.converter import Converter
+from pstoolkit.optics.grey import GREY_WEIGHTS
 from pstoolkit.optics.lights import US_PER_S, LightModel, NearRingLight, RingLight, SampledLight, build_light_model
-from pstoolkit.plugin.manager import get_registries, hookimpl
+from pstoolkit.plugin.manager import get_registries
 from pstoolkit.plugin.options import Option
 from pstoolkit.plugin.registry import Registry
+from pstoolkit.plugin.spec import hookimpl
 from pstoolkit.shadows import ShadowDetector, ShadowEvidence, ShadowIntervals, ShadowMask
 from pstoolkit.solve.api import Solution, solve_capture
-from pstoolkit.solve.base import Progress, Solver, SolverResult, no_progress
+from pstoolkit.solve.base import Solver, SolverResult
+from pstoolkit.version import __version__
 
 _TORCH_NAMES = {"BRDF": "pstoolkit.optics.brdf", "FitParam": "pstoolkit.optics.brdf"}
 

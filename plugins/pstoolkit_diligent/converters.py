@@ -24,10 +24,11 @@ import numpy as np
 
 import psfmt
 import pstoolkit
+from psfmt import REFRACTORY_RULES
 from pstoolkit import Converter, Option, Progress, UserError
-from pstoolkit.events.rule import REFRACTORY_RULES
+from pstoolkit.io.diligent_layout import FILENAMES
 from pstoolkit.sim.sensor import MAX_NOISE_HZ, MAX_RATE_SPREAD_DECADES, SENSOR_PRESETS
-from pstoolkit_diligent.folder import FILENAMES, ObjectFolder, scan_object
+from pstoolkit_diligent.folder import ObjectFolder, scan_object
 from pstoolkit_diligent.geometry import (
     Square,
     area_resize,

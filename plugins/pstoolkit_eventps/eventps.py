@@ -83,11 +83,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from psfmt import EventArray
+from psfmt import REFRACTORY_RULES, EventArray
 from pstoolkit._shared.vectors import unit
 from pstoolkit.errors import UserError
 from pstoolkit.events.relation import MIN_RANK_RATIO, constraint_vectors, grey_light
-from pstoolkit.events.rule import REFRACTORY_RULE, REFRACTORY_RULES, check_rule
+from pstoolkit.events.rule import REFRACTORY_RULE, check_rule
 from pstoolkit.optics.lights import LightModel
 from pstoolkit_eventps import fill as eventfill
 from pstoolkit_eventps.relation_kernel import NO_EVENT, bounded_fit, pair_events, robust_fit

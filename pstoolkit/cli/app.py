@@ -16,11 +16,11 @@ import typer
 from psfmt import FormatError
 from psfmt.isolate import isolated
 from psfmt.text import printable
-from pstoolkit import __version__
 from pstoolkit._shared.allocator import keep_freed_memory
+from pstoolkit._shared.progress import Progress, no_progress
 from pstoolkit.cli.help import PlainCommand, PlainGroup
 from pstoolkit.errors import Interrupted, UserError
-from pstoolkit.solve.base import Progress, no_progress
+from pstoolkit.version import __version__
 
 
 class _Typer(typer.Typer):
@@ -75,7 +75,7 @@ def _stderr_console() -> Any:
 
 
 class ProgressBar:
-    """``progress(fraction, message)`` (``pstoolkit.solve.base.Progress``) drawn with rich: the label, a
+    """``progress(fraction, message)`` (``pstoolkit._shared.progress.Progress``) drawn with rich: the label, a
     bar, the percentage, the time remaining and the whole message. The bar starts on the first call,
     ends on a line of its own when the fraction reaches 1, and starts again if a later call goes back
     below 1 (a second phase)."""

@@ -17,7 +17,6 @@ import numpy as np
 import typer
 
 import psfmt
-import pstoolkit
 from pstoolkit.cli.app import app, echo, progress_bar
 from pstoolkit.errors import Interrupted, UserError
 from pstoolkit.hardware.backend import (
@@ -30,6 +29,7 @@ from pstoolkit.hardware.backend import (
 )
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.plugin.options import parse_assignments
+from pstoolkit.version import __version__
 
 DEFAULT_PERIOD_MS = 1000.0 / 30.0
 DIRECTIONS = {"ccw": 1, "cw": -1}
@@ -150,7 +150,7 @@ def capture_command(
                 stack.enter_context(s)
             sweep = Sweep(_period_us(period_ms, sources), DIRECTIONS[direction], smooth, trigger, exposures)
             writer = stack.enter_context(
-                psfmt.CaptureWriter(out, description=description, creator="pstoolkit capture", creator_version=pstoolkit.__version__)
+                psfmt.CaptureWriter(out, description=description, creator="pstoolkit capture", creator_version=__version__)
             )
             _begin(writer, sources)
             rig: LightBackend = stack.enter_context(light_cls(port, light_options))

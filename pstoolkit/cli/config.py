@@ -94,7 +94,7 @@ def check_capture(ctx: Any, capture: Path | None) -> None:
     config = loaded(ctx)
     if config is None:
         return
-    from pstoolkit import __version__
+    from pstoolkit.version import __version__
 
     if config.from_result and config.version not in (None, __version__) and not ctx.params.get("quiet"):
         echo(f"note: {config.path} was written by pstoolkit {config.version}, this is {__version__}: results may differ", err=True)

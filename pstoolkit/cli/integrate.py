@@ -30,7 +30,7 @@ def integrate_command(
     surface entry in result.json (integrator, options, projection, seconds, files and, with
     --capture holding ground-truth depth, the RMSE after least-squares scale and offset alignment)."""
     # deferred: the integrators load scipy and the result writer OpenCV, which `pstoolkit --help` never needs
-    from pstoolkit.solve.results import summary_json
+    from pstoolkit.io.textdata import summary_json
     from pstoolkit.surface.outputs import add_surface, folder_inputs, read_summary, surface_line
 
     entry = get_registries().integrators.get(integrator)

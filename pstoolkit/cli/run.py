@@ -8,12 +8,13 @@ from pathlib import Path
 import typer
 
 import psfmt
-from pstoolkit import __version__
+from pstoolkit._shared.progress import Progress
 from pstoolkit.cli.app import app, echo, progress_bar
 from pstoolkit.cli.config import check_capture, config_option, integrator_assignments_of, solver_assignments
 from pstoolkit.errors import UserError
 from pstoolkit.plugin.manager import get_registries
-from pstoolkit.solve.base import Progress, check_tiling, resolve_device, resolve_options
+from pstoolkit.solve.base import check_tiling, resolve_device, resolve_options
+from pstoolkit.version import __version__
 
 _RESULT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
 
@@ -68,7 +69,8 @@ def run(
     The output folder is replaced as a unit: no file of an earlier result stays. With --config FILE,
     the settings come from a TOML file or an earlier run's result.json (docs/config.md)."""
     # deferred: writing maps loads OpenCV and integrating loads scipy, which `pstoolkit --help` never needs
-    from pstoolkit.solve.results import check_error_max, check_result_folder, result_folder, result_summary, solve_capture, summary_json, write_result_folder
+    from pstoolkit.io.textdata import summary_json
+    from pstoolkit.solve.results import check_error_max, check_result_folder, result_folder, result_summary, solve_capture, write_result_folder
     from pstoolkit.surface.outputs import SurfaceInputs, add_surface, capture_truth, surface_line
 
     entry = get_registries().solvers.get(solver)

@@ -53,12 +53,11 @@ from psfmt.describe import cut
 from psfmt.text import printable
 from pstoolkit._shared.vectors import solved_pixels
 from pstoolkit.errors import UserError
+from pstoolkit.evaluation.batchlog import read_failures
 from pstoolkit.evaluation.markup import md
 from pstoolkit.evaluation.scoring import GROUND_TRUTH_METRICS, METRICS, RESULT_FILE, TITLES, Record, collect, markdown_table
-from pstoolkit.io.normalmap import normal_to_rgb, read_normal_npy, read_npy
+from pstoolkit.io.normalmap import error_to_rgb, normal_to_rgb, read_normal_npy, read_npy
 from pstoolkit.io.textdata import read_json_object
-from pstoolkit.solve.batch import read_failures
-from pstoolkit.solve.results import error_to_rgb
 
 DPI = 100
 PANEL_PX = (240, 260)

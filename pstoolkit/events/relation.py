@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pstoolkit.events.rule import GREY_WEIGHTS
+from pstoolkit.optics.grey import GREY_WEIGHTS
 from pstoolkit.optics.lights import LightModel
 
 # The upper triangle of a symmetric 3×3 matrix, in the order the sums are accumulated.

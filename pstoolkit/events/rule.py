@@ -50,9 +50,6 @@ import numpy as np
 from psfmt import REFRACTORY_RULES, Calibration, EventArray
 from pstoolkit.errors import UserError
 
-GREY_WEIGHTS = (0.299, 0.587, 0.114)
-"""Rec. 601 luma: the grey an event sensor (and a grey solve) sees of linear RGB."""
-
 LOG_EPS = 1e-3
 REFRACTORY_RULE = REFRACTORY_RULES[0]
 """The default rule, and the rule of a capture that records none."""

@@ -22,10 +22,10 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from psfmt.atomic import check_target
+from pstoolkit._shared.progress import Progress, no_progress
 from pstoolkit.errors import UserError
 from pstoolkit.plugin.options import Option
 from pstoolkit.plugin.registry import Entry, PluginError
-from pstoolkit.solve.base import Progress, no_progress
 
 
 class Converter(ABC):

@@ -33,11 +33,11 @@ import scipy.io
 
 import psfmt
 from psfmt.atomic import check_target
+from pstoolkit._shared.progress import Progress, no_progress
 from pstoolkit.errors import UserError
 from pstoolkit.io.diligent_layout import DIRECTIONS, FILENAMES, INTENSITIES, MASK, NORMAL, NORMAL_VARIABLE
 from pstoolkit.io.folders import atomic_folder
 from pstoolkit.io.normalmap import write_png
-from pstoolkit.solve.base import Progress, no_progress
 
 PNG_WHITE = 65535
 MASK_LEVEL = 1.0 / 256.0

@@ -241,3 +241,20 @@ def read_geometry_folder(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.n
     if depth.shape != mask.shape:
         raise UserError(f"{depth_path}: depth is {depth.shape}, the normal map {image.shape[0]}×{image.shape[1]}")
     return normal.astype(np.float32), mask, depth
+
+
+UNSOLVED_RGB = (128, 128, 128)
+"""``error.png``'s colour of a pixel the solver left unsolved."""
+
+
+def error_to_rgb(error_deg: np.ndarray, error_max_deg: float, solved: np.ndarray | None = None) -> np.ndarray:
+    """8-bit RGB (H, W, 3) of an angular-error map through the Turbo colormap over 0…``error_max_deg``
+    degrees (larger errors saturate); NaN pixels (outside the mask) are black, pixels outside
+    ``solved`` (H, W) bool (None: all solved) ``UNSOLVED_RGB``."""
+    inside = np.isfinite(error_deg)
+    level = np.clip(np.where(inside, error_deg, 0.0) / error_max_deg * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    rgb = cv2.applyColorMap(level, cv2.COLORMAP_TURBO)[..., ::-1].copy()
+    if solved is not None:
+        rgb[inside & ~solved] = UNSOLVED_RGB
+    rgb[~inside] = 0
+    return rgb

@@ -16,7 +16,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from psfmt.text import printable
+from pstoolkit._shared.numbers import INT_RANGE
 from pstoolkit.errors import UserError
 
 if sys.version_info >= (3, 11):
@@ -28,8 +31,6 @@ MAX_TEXT_BYTES = 16 << 20
 """Largest JSON or TOML file read (16 MiB): a result.json of a 4096² run is a few kilobytes."""
 MAX_DEPTH = 64
 """Deepest nesting of arrays and tables accepted (the toolkit writes at most 4)."""
-INT_RANGE = (-(1 << 63), (1 << 63) - 1)
-"""Integers accepted: int64's (what torch, numpy and numba take; a solver's seed too)."""
 _MAX_INT_DIGITS = 19
 
 
@@ -117,3 +118,16 @@ def read_toml(path: Path) -> dict[str, Any]:
     except ValueError as exc:  # TOMLDecodeError, and the integer-digits limit of int()
         raise UserError(f"{path}: not a valid TOML file ({printable(exc)})") from None
     return check_value(value, path)
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return str(value)
+
+
+def summary_json(summary: dict[str, Any]) -> str:
+    """``result.json``'s text (numpy values as plain numbers, anything else unknown as a string)."""
+    return json.dumps(summary, indent=2, default=_jsonable)

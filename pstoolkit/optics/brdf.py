@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from pstoolkit.events.rule import GREY_WEIGHTS
+from pstoolkit.optics.grey import GREY_WEIGHTS
 from pstoolkit.plugin.options import Option
 
 MIN_ROUGHNESS = 0.02

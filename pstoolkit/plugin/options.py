@@ -8,8 +8,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from pstoolkit._shared.numbers import INT_RANGE
 from pstoolkit.errors import UserError
-from pstoolkit.io.textdata import INT_RANGE
 
 _TRUE = {"1", "true", "yes", "on"}
 _FALSE = {"0", "false", "no", "off"}
@@ -18,7 +18,7 @@ _FALSE = {"0", "false", "no", "off"}
 @dataclass(frozen=True)
 class Option:
     """One option of a solver, scene, backend …: ``type`` is int, float, bool or str; ``choices``
-    restricts a str option; ``minimum``/``maximum`` bound a number; an int lies in int64 (``textdata.INT_RANGE``). A float option is finite: NaN
+    restricts a str option; ``minimum``/``maximum`` bound a number; an int lies in int64 (``_shared.numbers.INT_RANGE``). A float option is finite: NaN
     passes no range check and is not JSON, infinity is no setting. A ``multiple`` option may be
     given repeatedly: its value is the tuple of the given values in order (``default`` when none).
     A ``nested`` option (a multiple str) collects the options of another registry entry the owner

@@ -1,6 +1,6 @@
 """Cast shadows of the estimated surface (``geometry``): the solver's current normals integrated into
 a height map (``pstoolkit.surface``), then marched towards the light on a time grid with the
-simulator's shadow sweep (``pstoolkit.sim.shadow_sweep.shadow_margin``), at frame resolution.
+simulator's shadow sweep (``pstoolkit.optics.shadow_sweep.shadow_margin``), at frame resolution.
 
 Cast shadows are a function of the shape and the light alone, so a good normal map predicts them
 exactly and at the frame pixels' own resolution; what it cannot see are depth steps at occluding
@@ -43,7 +43,7 @@ def surface_shadow_blocks(evidence: ShadowEvidence, height: np.ndarray, time_ste
     next one overwrites: use it (or copy it) before asking for the next. The whole (time_steps, P)
     map never exists (0.75 GB at 1024² pixels and 720 steps)."""
     # deferred: the sweep is compiled with numba, which `pstoolkit plugins` need not load
-    from pstoolkit.sim.shadow_sweep import ShadowCaster
+    from pstoolkit.optics.shadow_sweep import ShadowCaster
 
     mask = np.asarray(evidence.mask, dtype=bool)
     directions = evidence.light.evaluate(evidence.t0_us + grid_times(evidence.period_us, time_steps))[0]

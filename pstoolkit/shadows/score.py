@@ -39,7 +39,7 @@ def true_shadows(depth: np.ndarray, mask: np.ndarray, light: LightModel, t0_us: 
     ShadowMask
         The shadow intervals of every frame pixel, per period from ``t0_us``.
     """
-    from pstoolkit.sim.shadow_sweep import cast_shadow_mask  # deferred: compiled with numba
+    from pstoolkit.optics.shadow_sweep import cast_shadow_mask  # deferred: compiled with numba
 
     mask = np.asarray(mask, dtype=bool)
     directions = light.evaluate(t0_us + grid_times(period_us, steps))[0]

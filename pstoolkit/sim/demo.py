@@ -17,10 +17,11 @@ from dataclasses import asdict
 from pathlib import Path
 
 import psfmt
-import pstoolkit
+from pstoolkit._shared.progress import Progress, no_progress
 from pstoolkit.errors import UserError
-from pstoolkit.sim.simulator import SimulationConfig, simulate
-from pstoolkit.solve.base import Progress, no_progress
+from pstoolkit.sim.config import SimulationConfig
+from pstoolkit.sim.simulator import simulate
+from pstoolkit.version import __version__
 
 DEMO_CONFIG = SimulationConfig(scene="blobs", size=128, seed=0, event_scale=0.5, frames=3, periods=1)
 
@@ -34,7 +35,7 @@ def cache_dir() -> Path:
 def demo_key(config: SimulationConfig) -> str:
     """16 hex digits identifying the demo's content: options, pstoolkit and format versions."""
     text = json.dumps(
-        {"config": asdict(config), "pstoolkit": pstoolkit.__version__, "format": psfmt.FORMAT_VERSION_STR},
+        {"config": asdict(config), "pstoolkit": __version__, "format": psfmt.FORMAT_VERSION_STR},
         sort_keys=True,
     )
     return hashlib.sha256(text.encode()).hexdigest()[:16]

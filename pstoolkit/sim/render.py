@@ -24,15 +24,15 @@ import numpy as np
 import torch
 
 from pstoolkit.errors import UserError
-from pstoolkit.events.rule import GREY_WEIGHTS
 from pstoolkit.grid import event_shape, footprints
 from pstoolkit.optics.brdf import BRDF, GGX, HALF_EPS, MIN_ROUGHNESS, Lambertian
+from pstoolkit.optics.grey import GREY_WEIGHTS
 from pstoolkit.optics.lights import LightModel
-from pstoolkit.sim.scenes import SceneMaps
-from pstoolkit.sim.shadow_sweep import (
+from pstoolkit.optics.shadow_sweep import (
     ShadowCaster,
     visibility_from_margin,
 )
+from pstoolkit.sim.scenes import SceneMaps
 
 # Work is chunked so one (T, P, 3) float tensor holds about this many values.
 CHUNK_VALUES = 1 << 21

@@ -22,10 +22,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from pstoolkit._shared.progress import Progress, no_progress
 from pstoolkit.optics.lights import LightModel
 from pstoolkit.plugin.options import Option
 from pstoolkit.sim.scenes import SceneMaps
-from pstoolkit.solve.base import Progress, no_progress
 
 OWN = "own"
 """``--renderer`` value of the simulator's built-in engines."""

@@ -11,8 +11,9 @@ from typing import Any
 
 import numpy as np
 
+from psfmt import REFRACTORY_RULES
 from pstoolkit.errors import UserError
-from pstoolkit.events.rule import LOG_EPS, REFRACTORY_RULE, REFRACTORY_RULES, check_rule
+from pstoolkit.events.rule import LOG_EPS, REFRACTORY_RULE, check_rule
 
 # Smallest contrast threshold a pixel draws: a spread (``sigma``) cannot give a pixel that fires on noise.
 MIN_CONTRAST = 0.01

@@ -47,11 +47,12 @@ import numpy as np
 import torch
 
 import psfmt
-import pstoolkit
+from pstoolkit._shared.progress import Progress, no_progress
 from pstoolkit.errors import UserError
-from pstoolkit.events.rule import GREY_WEIGHTS, log_irradiance
+from pstoolkit.events.rule import log_irradiance
 from pstoolkit.grid import area_weights, event_shape
 from pstoolkit.optics.brdf import GGX
+from pstoolkit.optics.grey import GREY_WEIGHTS
 from pstoolkit.optics.layouts import layout_light, layout_lights
 from pstoolkit.optics.lights import US_PER_S, LightModel, RingLight, SampledLight
 from pstoolkit.plugin.manager import get_registries
@@ -68,7 +69,7 @@ from pstoolkit.sim.sensor import FrameSensor
 from pstoolkit.sim.timing import (
     append_event_chunks,
 )
-from pstoolkit.solve.base import Progress, no_progress
+from pstoolkit.version import __version__
 
 DIFFUSE_LEVEL = 0.8
 DIFFUSE_PERCENTILE = 99.0
@@ -193,7 +194,7 @@ def _simulate(config: SimulationConfig, path: str | os.PathLike[str], progress: 
     # what an independent renderer draws is the truth: its mask of wholly covered pixels and its normals
     normal, mask = (maps.normal, maps.mask) if rendering is None else (rendering.normal, rendering.mask)
     with psfmt.CaptureWriter(
-        path, description=_description(config), creator="pstoolkit", creator_version=pstoolkit.__version__
+        path, description=_description(config), creator="pstoolkit", creator_version=__version__
     ) as writer:
         # first, so the writer's threads compress the maps while the engine is set up
         writer.set_ground_truth(

@@ -10,8 +10,10 @@ from dataclasses import dataclass, replace
 from typing import Any, TypeVar
 
 import psfmt
+from psfmt import REFRACTORY_RULES
+from pstoolkit._shared.progress import Progress
 from pstoolkit.errors import UserError
-from pstoolkit.events.rule import REFRACTORY_RULE, REFRACTORY_RULES
+from pstoolkit.events.rule import REFRACTORY_RULE
 from pstoolkit.sim.sensor import (
     FRAME_BIT_DEPTHS,
     MAX_NOISE_HZ,
@@ -23,7 +25,6 @@ from pstoolkit.sim.sensor import (
     preset_fields,
     sensor_preset,
 )
-from pstoolkit.solve.base import Progress
 
 # Shortest render step of the event simulation, as a fraction of a light turn: a shadow edge or the
 # terminator is resolved to 0.25° of the turn (23 µs at 30 turns/s) instead of ESIM's 1 µs floor, which

@@ -26,10 +26,11 @@ import numpy as np
 
 import psfmt
 from psfmt.describe import names
+from pstoolkit._shared.progress import Progress, no_progress
 from pstoolkit.errors import UserError
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.plugin.registry import Entry
-from pstoolkit.solve.base import Progress, SolverResult, input_data_rate, no_progress, resolve_device, resolve_options, run_solver
+from pstoolkit.solve.base import SolverResult, input_data_rate, resolve_device, resolve_options, run_solver
 
 if TYPE_CHECKING:
     from pstoolkit.evaluation.scoring import Score

@@ -26,13 +26,11 @@ import numpy as np
 
 import psfmt
 from psfmt.describe import names
+from pstoolkit._shared.progress import Progress, no_progress
 from pstoolkit.errors import UserError
 from pstoolkit.plugin.options import Option, fill_defaults
 from pstoolkit.plugin.registry import Entry, PluginError
 from pstoolkit.solve.cluster import check_workers
-
-Progress = Callable[[float, str], None]
-"""``progress(fraction, message)``: fraction of the work done in [0, 1] and what is happening."""
 
 INPUTS: dict[str, Callable[[psfmt.Capture], bool]] = {
     "frames": lambda c: c.frames is not None,
@@ -42,10 +40,6 @@ INPUTS: dict[str, Callable[[psfmt.Capture], bool]] = {
 """What a solver may declare in ``needs``, and how to tell whether a capture has it."""
 
 DEVICES = ("auto", "cpu", "cuda")
-
-
-def no_progress(fraction: float, message: str) -> None:
-    """The progress callback that reports nowhere."""
 
 
 @dataclass

@@ -24,15 +24,16 @@ from typing import Any
 import psfmt
 from psfmt.atomic import temporary_sibling
 from psfmt.isolate import isolated
+from pstoolkit._shared.progress import Progress, no_progress
 from pstoolkit.errors import UserError
+from pstoolkit.evaluation.batchlog import LOG_FILE, Outcome
 from pstoolkit.evaluation.scoring import RESULT_FILE
 from pstoolkit.io.folders import replace_folder
-from pstoolkit.io.textdata import read_json
+from pstoolkit.io.textdata import read_json, summary_json
 from pstoolkit.plugin.manager import get_registries
-from pstoolkit.solve.base import Progress, no_progress, resolve_device, resolve_options
-from pstoolkit.solve.results import result_summary, solve_capture, summary_json, write_result_folder
+from pstoolkit.solve.base import resolve_device, resolve_options
+from pstoolkit.solve.results import result_summary, solve_capture, write_result_folder
 
-LOG_FILE = "batch.json"
 CAPTURE_SUFFIXES = (".h5", ".hdf5")
 STATUSES = ("done", "skipped", "failed")
 
@@ -49,22 +50,6 @@ class Pair:
     folder: str
     device: str = "auto"
     error_max_deg: float = 30.0
-
-
-@dataclass(frozen=True)
-class Outcome:
-    """What became of a pair: ``status`` is done, skipped (its result folder was already complete) or
-    failed with a one-line ``error`` (and the ``traceback`` of an unexpected exception);
-    ``seconds`` is the solver time of a pair done now."""
-
-    object: str
-    solver: str
-    capture: str
-    folder: str
-    status: str
-    error: str | None = None
-    seconds: float | None = None
-    traceback: str | None = None
 
 
 def expand_captures(paths: Sequence[Path]) -> list[Path]:
@@ -287,13 +272,3 @@ def write_log(outdir: Path, outcomes: Sequence[Outcome]) -> Path:
     return path
 
 
-def read_failures(outdir: Path) -> list[Outcome]:
-    """The failed pairs of the last batch run in ``outdir`` (none without ``batch.json``)."""
-    path = outdir / LOG_FILE
-    if not path.is_file():
-        return []
-    data = read_json(path)
-    try:
-        return [Outcome(**entry) for entry in data["pairs"] if entry["status"] == "failed"]
-    except (ValueError, KeyError, TypeError) as exc:
-        raise UserError(f"{path}: not a batch log written by `pstoolkit batch` ({exc})") from None

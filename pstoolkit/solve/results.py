@@ -20,7 +20,6 @@ solver made, so it is not drawn as one.
 
 from __future__ import annotations
 
-import json
 import os
 import re
 from collections.abc import Iterator, Sequence
@@ -29,25 +28,24 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 import psfmt
 from psfmt.atomic import check_target
-from pstoolkit import __version__
+from pstoolkit._shared.progress import Progress, no_progress
 from pstoolkit.errors import UserError
 from pstoolkit.evaluation.metrics import SHARE_KEYS
 from pstoolkit.evaluation.scoring import RESULT_FILE, Score, score
 from pstoolkit.io.checksum import file_sha256
 from pstoolkit.io.folders import atomic_folder
-from pstoolkit.io.normalmap import write_normal_npy, write_normal_png, write_npy, write_png
+from pstoolkit.io.normalmap import error_to_rgb, write_normal_npy, write_normal_png, write_npy, write_png
+from pstoolkit.io.textdata import summary_json
 from pstoolkit.plugin.registry import Entry, PluginError
-from pstoolkit.solve.base import Progress, input_data_rate, no_progress, run_solver
+from pstoolkit.solve.base import input_data_rate, run_solver
+from pstoolkit.version import __version__
 
 ROBUST_PERCENTILE = 99.0
 PNG_TOP = 65535
-UNSOLVED_RGB = (128, 128, 128)
-"""``error.png``'s colour of a pixel the solver left unsolved."""
 RESERVED_MAPS = frozenset({"normal", "mask", "error"})
 """Names ``run`` uses itself (``normal.png``, the stored mask, ``error.png``), not open to solver maps."""
 _MAP_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]*")
@@ -118,19 +116,6 @@ def prepare_maps(maps: dict[str, np.ndarray], mask: np.ndarray, blame: str) -> l
         scale = map_scale(values, mask)
         outputs.append(MapOutput(name, array, encode_map(values, mask, scale), scale))
     return outputs
-
-
-def error_to_rgb(error_deg: np.ndarray, error_max_deg: float, solved: np.ndarray | None = None) -> np.ndarray:
-    """8-bit RGB (H, W, 3) of an angular-error map through the Turbo colormap over 0…``error_max_deg``
-    degrees (larger errors saturate); NaN pixels (outside the mask) are black, pixels outside
-    ``solved`` (H, W) bool (None: all solved) ``UNSOLVED_RGB``."""
-    inside = np.isfinite(error_deg)
-    level = np.clip(np.where(inside, error_deg, 0.0) / error_max_deg * 255.0 + 0.5, 0, 255).astype(np.uint8)
-    rgb = cv2.applyColorMap(level, cv2.COLORMAP_TURBO)[..., ::-1].copy()
-    if solved is not None:
-        rgb[inside & ~solved] = UNSOLVED_RGB
-    rgb[~inside] = 0
-    return rgb
 
 
 def write_maps(folder: Path, outputs: list[MapOutput]) -> None:
@@ -261,19 +246,6 @@ def result_summary(
         "pstoolkit_version": __version__,
         "diagnostics": solved.diagnostics,
     }
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    return str(value)
-
-
-def summary_json(summary: dict[str, Any]) -> str:
-    """``result.json``'s text (numpy values as plain numbers, anything else unknown as a string)."""
-    return json.dumps(summary, indent=2, default=_jsonable)
 
 
 def check_result_folder(folder: Path, inputs: Sequence[Path] = ()) -> None:

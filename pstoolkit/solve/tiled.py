@@ -25,7 +25,8 @@ from contextlib import contextmanager
 from typing import Any
 
 import psfmt
-from pstoolkit.solve.base import Progress, SolverResult
+from pstoolkit._shared.progress import Progress
+from pstoolkit.solve.base import SolverResult
 from pstoolkit.solve.cluster import available_cpus
 from pstoolkit.solve.tiles import Stitcher, Tile, crop_capture
 

@@ -31,8 +31,8 @@ from pstoolkit.errors import UserError
 from pstoolkit.evaluation.metrics import depth_error
 from pstoolkit.evaluation.scoring import RESULT_FILE, read_result_json
 from pstoolkit.io.normalmap import read_normal_npy, read_npy, write_npy, write_png
+from pstoolkit.io.textdata import summary_json
 from pstoolkit.plugin.registry import Entry
-from pstoolkit.solve.results import summary_json
 from pstoolkit.surface.base import Camera, Surface, points
 
 DEPTH_NPY, DEPTH_PNG, MESH_PLY, MESH_OBJ = "depth.npy", "depth.png", "mesh.ply", "mesh.obj"

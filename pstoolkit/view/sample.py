@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pstoolkit.io.normalmap import write_normal_npy, write_normal_png, write_npy, write_png
-from pstoolkit.solve.results import encode_map, error_to_rgb, map_scale, prepare_maps, write_maps
+from pstoolkit.io.normalmap import error_to_rgb, write_normal_npy, write_normal_png, write_npy, write_png
+from pstoolkit.solve.results import encode_map, map_scale, prepare_maps, write_maps
 
 RADIUS = 0.45
 """Sphere radius as a share of the image side."""

@@ -18,7 +18,8 @@ from helpers.batch import session_captures
 
 import psfmt
 from pstoolkit.cli import main
-from pstoolkit.solve.batch import Outcome, plan, run_pair, solver_options, write_log
+from pstoolkit.evaluation.batchlog import Outcome
+from pstoolkit.solve.batch import plan, run_pair, solver_options, write_log
 
 SOLVERS = ["frameps", "eventps"]
 

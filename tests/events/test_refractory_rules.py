@@ -13,10 +13,10 @@ import pytest
 from helpers.diligent import write_diligent
 
 import psfmt
-from psfmt import EventArray
+from psfmt import REFRACTORY_RULES, EventArray
 from pstoolkit.cli import main
 from pstoolkit.errors import UserError
-from pstoolkit.events.rule import LOG_EPS, REFRACTORY_RULES, capture_rule, exact_pairs, log_irradiance
+from pstoolkit.events.rule import LOG_EPS, capture_rule, exact_pairs, log_irradiance
 from pstoolkit.optics.brdf import GGX
 from pstoolkit.optics.lights import RingLight
 from pstoolkit.plugin.options import defaults

@@ -6,7 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit.sim.config import SimulationConfig
+from pstoolkit.sim.simulator import simulate
 
 SIZE = 32
 

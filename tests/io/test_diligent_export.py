@@ -20,7 +20,8 @@ from pstoolkit.cli import main
 from pstoolkit.errors import UserError
 from pstoolkit.io.diligent_export import export_diligent
 from pstoolkit.optics.layouts import grid_directions
-from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit.sim.config import SimulationConfig
+from pstoolkit.sim.simulator import simulate
 from pstoolkit_diligent.folder import scan_object
 from pstoolkit_diligent.rendered import semi_real_from_capture
 from pstoolkit_diligent.semireal import BOUNDARY_LOOP

@@ -15,7 +15,8 @@ from pstoolkit.shadows.intervals import RunCollector, grid_times, intervals_from
 from pstoolkit.shadows.score import score, true_shadows
 from pstoolkit.shadows.silences import dark_spans
 from pstoolkit.shadows.spikes import find_shadows, spike_threshold
-from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit.sim.config import SimulationConfig
+from pstoolkit.sim.simulator import simulate
 from pstoolkit_dualres.preprocess import PreprocessOptions, preprocess
 
 T = 33_333.0

@@ -9,12 +9,12 @@ from scipy.ndimage import distance_transform_edt, map_coordinates
 from pstoolkit.grid import area_weights
 from pstoolkit.optics.equivalent import equivalent_lights, sample_times
 from pstoolkit.optics.lights import NearRingLight, RingLight
+from pstoolkit.optics.shadow_sweep import ShadowCaster, cast_shadow_mask
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.plugin.options import defaults
 from pstoolkit.sim.exposure import exposure_samples, integrate
 from pstoolkit.sim.render import Renderer
 from pstoolkit.sim.scenes import Blobs, SceneMaps, Sphere
-from pstoolkit.sim.shadow_sweep import ShadowCaster, cast_shadow_mask
 
 LAMBERTIAN = get_registries().brdfs.get("lambertian").obj
 GGX = get_registries().brdfs.get("ggx").obj

@@ -19,6 +19,7 @@ from pstoolkit.optics.brdf import GGX, Lambertian
 from pstoolkit.optics.lights import RingLight
 from pstoolkit.plugin.options import defaults
 from pstoolkit.sim import ring_engine
+from pstoolkit.sim.config import SimulationConfig
 from pstoolkit.sim.esim import simulate_events
 from pstoolkit.sim.exposure import exposure_samples, integrate
 from pstoolkit.sim.render import Renderer
@@ -26,7 +27,7 @@ from pstoolkit.sim.ring_kernels import inputs, lanes, shadow_table, tuning
 from pstoolkit.sim.ring_kernels.inputs import FrameInputs, ShadowTable
 from pstoolkit.sim.scenes import Blobs, Sphere
 from pstoolkit.sim.sensor import EventSensor
-from pstoolkit.sim.simulator import SHADOW_STEP_DEG, SimulationConfig, simulate
+from pstoolkit.sim.simulator import SHADOW_STEP_DEG, simulate
 
 PERIOD_US = 30000.0
 C = 0.15

@@ -20,11 +20,12 @@ from pstoolkit.optics.brdf import GGX, Lambertian
 from pstoolkit.optics.lights import RingLight
 from pstoolkit.plugin.options import defaults
 from pstoolkit.sim import ring_engine
+from pstoolkit.sim.config import SimulationConfig
 from pstoolkit.sim.esim import simulate_events
 from pstoolkit.sim.render import Renderer
 from pstoolkit.sim.scenes import Blobs, Sphere
 from pstoolkit.sim.sensor import SHOT_NOISE_BRIGHT_FACTOR, EventSensor, FrameSensor, sensor_preset
-from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit.sim.simulator import simulate
 
 PERIOD_US = 30_000.0
 SIZE = 32  # frame pixels; events at half that

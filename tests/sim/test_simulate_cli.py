@@ -11,11 +11,12 @@ import pytest
 import psfmt
 from pstoolkit.cli import main
 from pstoolkit.optics.layouts import grid_directions
+from pstoolkit.optics.shadow_sweep import shadow_margin, visibility_from_margin
 from pstoolkit.plugin.options import defaults
+from pstoolkit.sim.config import SimulationConfig
 from pstoolkit.sim.demo import demo_capture_path, demo_key
 from pstoolkit.sim.scenes import Sphere
-from pstoolkit.sim.shadow_sweep import shadow_margin, visibility_from_margin
-from pstoolkit.sim.simulator import DIFFUSE_LEVEL, SimulationConfig
+from pstoolkit.sim.simulator import DIFFUSE_LEVEL
 
 FAST = ["--size", "32", "--period-ms", "5", "--quiet"]
 

@@ -30,8 +30,9 @@ from helpers.batch import session_captures
 
 from pstoolkit.cli import main
 from pstoolkit.errors import UserError
+from pstoolkit.evaluation.batchlog import Outcome
 from pstoolkit.plugin import manager as plugins
-from pstoolkit.solve.batch import Outcome, expand_captures, is_complete, plan, run_batch, run_pair, solver_options
+from pstoolkit.solve.batch import expand_captures, is_complete, plan, run_batch, run_pair, solver_options
 from pstoolkit.solve.cluster import local_cluster
 from pstoolkit.testing import fake_distribution
 

@@ -22,7 +22,8 @@ import psfmt
 import pstoolkit
 from pstoolkit.cli import main
 from pstoolkit.plugin.manager import get_registries
-from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit.sim.config import SimulationConfig
+from pstoolkit.sim.simulator import simulate
 from pstoolkit.solve.config import read_config
 
 FRAMEPS_DEFAULTS = {"frames": 0, "robust": False, "dark_fraction": 0.25, "saturation_level": 1.0, "threshold": 0.002}

@@ -18,9 +18,10 @@ from pstoolkit.errors import UserError
 from pstoolkit.evaluation.metrics import angular_error_deg
 from pstoolkit.optics.lights import RingLight, SampledLight, build_light_model
 from pstoolkit.plugin.manager import get_registries
+from pstoolkit.sim.config import SimulationConfig
 from pstoolkit.sim.esim import simulate_events
 from pstoolkit.sim.sensor import EventSensor
-from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit.sim.simulator import simulate
 from pstoolkit.solve.base import SolverResult, run_solver
 from pstoolkit_eventps import eventps
 from pstoolkit_eventps import fill as eventfill

@@ -13,7 +13,8 @@ from pstoolkit.cli import main
 from pstoolkit.errors import UserError
 from pstoolkit.evaluation.metrics import angular_error_deg
 from pstoolkit.plugin.manager import get_registries
-from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit.sim.config import SimulationConfig
+from pstoolkit.sim.simulator import simulate
 from pstoolkit.solve.base import SolverResult, run_solver
 
 

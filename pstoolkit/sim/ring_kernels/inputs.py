@@ -11,8 +11,8 @@ import numba
 import numpy as np
 import torch
 
-from pstoolkit.events.rule import GREY_WEIGHTS
 from pstoolkit.optics.brdf import GGX, HALF_EPS
+from pstoolkit.optics.grey import GREY_WEIGHTS
 from pstoolkit.optics.lights import RingLight
 from pstoolkit.sim.render import Renderer
 

@@ -87,7 +87,7 @@ def shadow_room(
 
 
 def sweep_rows(renderer: Renderer, ta: float, tb: float) -> tuple[np.ndarray, np.ndarray, ShadowGrid]:
-    """Unclipped visibility (``pstoolkit.sim.shadow_sweep._openness`` of the shadow margins) of the frame pixels at the
+    """Unclipped visibility (``pstoolkit.optics.shadow_sweep._openness`` of the shadow margins) of the frame pixels at the
     grid times around [ta, tb]: (N, H·W) float32 rows for keys first, first + 1, … (the renderer's
     sweep buffer, valid until its next sweep), which of them are column-major (N,) (see
     ``Renderer.frame_openness``), and the grid. Without cast shadows two rows of ones (V = 1

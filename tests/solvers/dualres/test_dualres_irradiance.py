@@ -12,7 +12,8 @@ import pytest
 import psfmt
 from pstoolkit.errors import UserError
 from pstoolkit.shadows import interval_profile
-from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit.sim.config import SimulationConfig
+from pstoolkit.sim.simulator import simulate
 from pstoolkit_dualres.irradiance import Irradiance, approximate
 from pstoolkit_dualres.preprocess import PreprocessOptions, preprocess
 

@@ -16,7 +16,8 @@ from pstoolkit.errors import UserError
 from pstoolkit.events.rule import consecutive_pairs
 from pstoolkit.shadows import interval_profile
 from pstoolkit.shadows.score import true_shadows
-from pstoolkit.sim.simulator import SimulationConfig, simulate
+from pstoolkit.sim.config import SimulationConfig
+from pstoolkit.sim.simulator import simulate
 from pstoolkit_dualres.irradiance import approximate
 from pstoolkit_dualres.preprocess import Preprocessed, PreprocessOptions, preprocess
 from pstoolkit_dualres.sampling import Samples, importance_samples, segment_counts

@@ -14,13 +14,14 @@ import pytest
 import torch
 
 import psfmt
+from pstoolkit._shared.progress import no_progress
 from pstoolkit.evaluation.metrics import angular_error_deg
 from pstoolkit.events.rule import LOG_EPS
 from pstoolkit.optics.brdf import GGX, Lambertian, MetallicGGX
 from pstoolkit.shadows import ShadowIntervals, ShadowMask
 from pstoolkit.shadows.score import true_shadows
-from pstoolkit.sim.simulator import SimulationConfig, simulate
-from pstoolkit.solve.base import no_progress
+from pstoolkit.sim.config import SimulationConfig
+from pstoolkit.sim.simulator import simulate
 from pstoolkit_dualres.fields import NeuralField, PyramidField, collapse, decompose
 from pstoolkit_dualres.forward_model import frame_prediction_grid, superpixel_grey
 from pstoolkit_dualres.frame_kernel import supports
