@@ -4,7 +4,7 @@
 Through torch, each pair renders its super pixel twice (now and at the reference time) through every
 operation of the BRDF on (E, F, 3) intermediates, and the backward scatters the taps' gradients with
 ``index_put_``, which made the pairs a step can afford few. Here each pair is rendered in registers:
-per tap the GGX sample of ``frame_kernel`` (the same formulas of ``pstoolkit.optics.brdf.GGX.shade``
+per tap the GGX sample of ``ggx_kernel`` (the same formulas of ``pstoolkit.optics.brdf.GGX.shade``
 and its hand-derived derivatives), the two grey sums, the log residual, and the taps' gradients,
 which are then added into the pixels in pair order (the result does not depend on the thread count).
 Tests compare value and gradients with torch's autograd of ``superpixel_grey`` and ``event_loss``.
@@ -20,7 +20,8 @@ import torch
 from numba import prange
 from torch import Tensor
 
-from pstoolkit_dualres.frame_kernel import float32_array, ggx_half, ggx_maps, ggx_pixel, ggx_specular
+from pstoolkit_dualres.frame_kernel import float32_array, ggx_maps
+from pstoolkit_dualres.ggx_kernel import ggx_half, ggx_pixel, ggx_specular
 from pstoolkit_dualres.problem import EventTerms
 from pstoolkit_dualres.reflectance import INDIRECT, FitModel
 
