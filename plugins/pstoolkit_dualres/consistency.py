@@ -24,10 +24,9 @@ import torch
 from torch import nn
 
 from pstoolkit.events.rule import LOG_EPS
-from pstoolkit_dualres.losses import log_residual
+from pstoolkit_dualres.losses import log_residual, pair_grey
 from pstoolkit_dualres.problem import Problem
 from pstoolkit_dualres.reflectance import FitModel
-from pstoolkit_dualres.train import pair_grey
 
 # Pairs whose residuals are computed at once (bounds the (pairs, taps) intermediates).
 CHUNK_PAIRS = 1 << 16

@@ -9,14 +9,42 @@
   explain — noise events, a threshold off its nominal value, light reflected from other parts of the
   object — pull the fit with a bounded force instead of one that grows with their residual.
 - Total variation (eq. 26, the warm-up term of LL22a): mean L1 difference of neighbouring pixels.
+
+``losses`` sums them as eq. 26 weighs them on one batch of ``train``: the frame term through
+``grid_frame_loss`` (one compiled pass for the built-in BRDFs, ``frame_kernel``, else torch in chunks
+of pixels) or, without a shared time grid, through ``frame_prediction``; the event term through
+``pair_event_loss`` (``event_kernel``, else ``pair_grey`` and ``event_loss``).
 """
 
 from __future__ import annotations
 
-import torch
-from torch import Tensor
+from typing import TYPE_CHECKING
 
+import torch
+from torch import Tensor, nn
+
+from pstoolkit.events.rule import LOG_EPS
+from pstoolkit_dualres.event_kernel import fused_event_loss
+from pstoolkit_dualres.forward_model import frame_prediction, frame_prediction_grid, superpixel_grey
+from pstoolkit_dualres.frame_kernel import fused_frame_loss, supports
 from pstoolkit_dualres.gather import gather_sum
+from pstoolkit_dualres.problem import EventTerms, Problem
+from pstoolkit_dualres.reflectance import INDIRECT, FitModel
+
+if TYPE_CHECKING:
+    from pstoolkit_dualres.train import Batch, StageConfig
+
+# Pixels per chunk of the frame term on the shared time grid (``grid_frame_loss``): the rendering's
+# intermediates, (chunk, K·S, 3) float32 each (4.5 MiB at 16384 pixels and K·S = 24), stay below
+# glibc's largest mmap threshold (32 MiB), so the allocator reuses them from chunk to chunk instead
+# of mapping and faulting in fresh pages for every tensor of every step.
+FRAME_CHUNK = 16384
+# On a GPU, chunks as large as half its free memory holds for the chunk's graph (bytes per pixel and
+# sample: the whole term's graph was some 10 kB per pixel at K·S = 24), up to CUDA_FRAME_CHUNK pixels:
+# fewer, larger kernels (a 1024² solve's training 3× faster on an H200 than in chunks of FRAME_CHUNK,
+# docs/dualres-tuning.md).
+GRAPH_BYTES_PER_SAMPLE = 512
+CUDA_FRAME_CHUNK = 1 << 20
 
 
 def frame_loss(predicted: Tensor, measured: Tensor, saturated: Tensor) -> Tensor:
@@ -51,3 +79,185 @@ def tv_loss(values: Tensor, pairs: Tensor) -> Tensor:
         return values.sum() * 0.0
     difference = values.new_tensor([1.0, -1.0]).expand(pairs.shape[0], 2)
     return gather_sum(values, pairs, difference).abs().mean()
+
+
+def frame_chunk(normal: Tensor, samples: int) -> int:
+    """Pixels per chunk of ``grid_frame_loss`` on ``normal``'s device for ``samples`` (K·S) light
+    samples: FRAME_CHUNK on the CPU; on a GPU what half its free memory holds at
+    GRAPH_BYTES_PER_SAMPLE per pixel and sample, between FRAME_CHUNK and CUDA_FRAME_CHUNK."""
+    if normal.device.type != "cuda":
+        return FRAME_CHUNK
+    free_bytes, _ = torch.cuda.mem_get_info(normal.device)
+    fits = free_bytes // 2 // (max(samples, 1) * GRAPH_BYTES_PER_SAMPLE)
+    return int(min(CUDA_FRAME_CHUNK, max(FRAME_CHUNK, fits)))
+
+
+
+def grid_frame_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], light: Tensor, weight: Tensor,
+                    visible: Tensor | None, view: Tensor, frames: int, measured: Tensor, saturated: Tensor,
+                    chunk: int | None = None, energy: Tensor | None = None) -> Tensor:
+    """``frame_loss`` of ``frame_prediction_grid`` over all P pixels: for the built-in GGX and
+    Lambertian on the CPU in one compiled pass with its own derivatives (``frame_kernel``), for any
+    other BRDF through torch with its graph held one chunk of ``chunk`` pixels at a time.
+
+    With gradients enabled, each chunk's rendering is differentiated at once into the gradient of
+    the loss with respect to ``normal`` and ``maps`` (and into the ``.grad`` of the model's own
+    parameters, if any: zero them before calling), then freed; the result is the loss value plus a
+    term that is zero in value and whose gradient with respect to ``normal`` and ``maps`` is the one
+    gathered, so the caller's backward carries it on. The (P, K·S, 3) graph of the whole frame term —
+    some 10 kB per pixel, whose pages were faulted in afresh every step — never exists: a step's
+    time and memory grow linearly with P (numbers in benchmarks/dualres_scale.py).
+
+    Parameters
+    ----------
+    model, light, weight, view, frames
+        As for ``frame_prediction_grid``: the BRDF, (K·S, 3) light directions and weights, (3,) view
+        direction, K frames.
+    normal
+        (P, 3) unit normals.
+    maps
+        The BRDF's maps, (P, channels) each.
+    visible
+        (K·S, P) lit share of each sample, or None.
+    measured, saturated
+        (K·P, 3) frame values and (K·P,) clipped flags, rows frame·P + pixel.
+    chunk
+        Pixels per chunk (default ``frame_chunk``).
+    energy
+        (K, 3) each frame's light energy (``FrameTerms.energy``), for a model with indirect light.
+
+    Returns
+    -------
+    Tensor
+        The scalar mean |Ã − A| of ``frame_loss`` (equal up to float rounding of the chunked sum).
+    """
+    if supports(model, normal):
+        return fused_frame_loss(model, normal, maps, light, weight, visible, view, frames, measured, saturated, energy)
+    p = normal.shape[0]
+    chunk = frame_chunk(normal, light.shape[0]) if chunk is None else chunk
+    if p <= chunk:
+        predicted = frame_prediction_grid(model, normal, maps, light, weight, visible, view, frames, energy)
+        return frame_loss(predicted, measured, saturated)
+    names = list(maps)
+    inputs = [normal, *(maps[name] for name in names)]
+    differentiate = torch.is_grad_enabled() and any(x.requires_grad for x in inputs)
+    measured_k, saturated_k = measured.reshape(frames, p, -1), saturated.reshape(frames, p)
+    value = normal.new_zeros(())
+    grads: list[list[Tensor]] = [[] for _ in inputs]
+    for start in range(0, p, chunk):
+        part = slice(start, start + chunk)
+        # leaves of the chunk's own rows: a slice of a whole-P leaf would backward into a (P, C) buffer per chunk
+        leaves = [x[part].detach().requires_grad_(differentiate and x.requires_grad) for x in inputs]
+        predicted = frame_prediction_grid(model, leaves[0], dict(zip(names, leaves[1:])), light, weight,
+                                          None if visible is None else visible[:, part], view, frames, energy)
+        rows = measured_k[:, part].reshape(predicted.shape)
+        # frame_loss is a mean: each chunk weighs by its share of the values
+        loss = frame_loss(predicted, rows, saturated_k[:, part].reshape(-1)) * (predicted.shape[0] / (frames * p))
+        if differentiate:
+            loss.backward()
+            for store, leaf in zip(grads, leaves):
+                store.append(leaf.grad if leaf.grad is not None else torch.zeros_like(leaf))
+        value = value + loss.detach()
+    if not differentiate:
+        return value
+    dot = sum(torch.sum(x * torch.cat(g)) for x, g in zip(inputs, grads) if x.requires_grad)
+    # zero in value, the gathered gradient in backward
+    return value + (dot - dot.detach())
+
+
+
+def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageConfig, batch: Batch,
+           tv_share: float) -> tuple[Tensor, dict[str, float]]:
+    """The total loss of eq. 26 (with the field's own smoothness penalty) and its parts on ``batch``.
+
+    Parameters
+    ----------
+    problem
+        The fit's tensors, with the current cast-shadow mask applied.
+    field
+        The surface and material field (``fields``): ``field(pixels)`` gives the normals and raw
+        channels at those masked pixels, ``field.penalty()`` its own smoothness penalty.
+    model
+        The fitted BRDF, which turns the raw channels into maps.
+    config
+        The stage's loss weights λ_f, λ_e, λ_tv.
+    batch
+        The step's pixels, frame samples, event pairs and TV pairs.
+    tv_share
+        Factor on λ_tv (the warm-up's fade from 1 to 0; 0: no TV term).
+
+    Returns
+    -------
+    total : Tensor
+        The scalar loss, differentiable.
+    parts : dict
+        The parts as floats: "frame", and "event", "tv" and "indirect" (the mean indirect light) when
+        they apply.
+    """
+    normal, pixel_raw, smooth_raw = field(batch.pixels)
+    maps = model.maps(pixel_raw, smooth_raw)
+    n = batch.frame_pixels
+    own_normal, own_maps = (normal, maps) if n is None else (normal[:n], {k: v[:n] for k, v in maps.items()})
+    frames, view = problem.frames, problem.geometry.view
+    if frames.shared_light is not None:
+        visible = frames.shared_visible
+        if visible is not None and batch.pixels is not None:
+            visible = visible[:, batch.pixels[:n]]
+        measured, saturated = frames.measured, frames.saturated
+        if batch.frame_rows is not None:
+            measured, saturated = measured[batch.frame_rows], saturated[batch.frame_rows]
+        lf = grid_frame_loss(model, own_normal, own_maps, frames.shared_light, frames.shared_weight, visible, view,
+                             frames.count, measured, saturated, energy=frames.energy)
+    else:
+        light, weight = frames.sample_light, frames.sample_weight
+        if batch.samples is not None:
+            light, weight = light[batch.samples], weight[batch.samples]
+        predicted = frame_prediction(model, own_normal, own_maps, batch.sample_pixel, batch.sample_group, light, weight,
+                                     view, frames.count * own_normal.shape[0], energy=frames.energy)
+        measured, saturated = frames.measured, frames.saturated
+        if batch.frame_rows is not None:
+            measured, saturated = measured[batch.frame_rows], saturated[batch.frame_rows]
+        lf = frame_loss(predicted, measured, saturated)
+    total = config.frame_weight * lf + field.penalty()
+    parts = {"frame": float(lf.detach())}
+    if model.indirect:
+        # L1: the indirect light stays 0 where the direct light explains the frames
+        li = maps[INDIRECT.name].mean()
+        total = total + config.indirect_sparsity * li
+        parts["indirect"] = float(li.detach())
+    e = batch.events
+    if e.numel() and config.event_weight > 0:
+        le = pair_event_loss(model, normal, maps, batch.event_taps, problem.events, e, view, config.event_huber)
+        total = total + config.event_weight * le
+        parts["event"] = float(le.detach())
+    if tv_share > 0 and config.tv_weight > 0:
+        ltv = tv_loss(normal, batch.tv_pairs) + tv_loss(maps[model.diffuse] if model.diffuse else pixel_raw, batch.tv_pairs)
+        total = total + config.tv_weight * tv_share * ltv
+        parts["tv"] = float(ltv.detach())
+    return total, parts
+
+
+
+def pair_event_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], taps: Tensor, events: EventTerms, pairs: Tensor,
+                    view: Tensor, huber: float = 0.0) -> Tensor:
+    """The event term of eq. 25 over the event ``pairs`` (indices into ``events``) whose super pixels
+    cover the frame pixels ``taps`` (E, F) of ``normal`` (P, 3) and ``maps``: one compiled pass
+    (``event_kernel``) for the built-in GGX and Lambertian on the CPU, else ``superpixel_grey`` now and
+    at the reference time through ``event_loss``; ``huber`` its δ (0: the square). The scalar loss,
+    differentiable."""
+    if supports(model, normal):
+        return fused_event_loss(model, normal, maps, taps, events, pairs, view, LOG_EPS, huber)
+    grey, grey_ref = pair_grey(model, normal, maps, taps, events, pairs, view)
+    return event_loss(grey, grey_ref, events.target[pairs], events.weight[pairs], LOG_EPS, huber)
+
+
+
+def pair_grey(model: FitModel, normal: Tensor, maps: dict[str, Tensor], taps: Tensor, events: EventTerms, pairs: Tensor,
+              view: Tensor) -> tuple[Tensor, Tensor]:
+    """(E,) each pair's ``superpixel_grey`` now and at its reference time, through torch."""
+    area = events.tap_area[pairs] if model.indirect else None
+    grey = superpixel_grey(model, normal, maps, taps, events.tap_weight_now[pairs], events.light_now[pairs],
+                           events.grey_now[pairs], view, area)
+    grey_ref = superpixel_grey(model, normal, maps, taps, events.tap_weight_ref[pairs], events.light_ref[pairs],
+                               events.grey_ref[pairs], view, area)
+    return grey, grey_ref

@@ -33,7 +33,7 @@ def fitted(sphere_48: Path) -> tuple[Problem, PyramidField, FitModel, int]:
 
 def test_the_residuals_are_those_of_the_event_term(fitted: tuple[Problem, PyramidField, FitModel, int]) -> None:
     """``pair_residuals`` squared and weighted sum to the plain event term of the same pairs."""
-    from pstoolkit_dualres.train import pair_event_loss
+    from pstoolkit_dualres.losses import pair_event_loss
 
     problem, field, model, _ = fitted
     pairs = problem.events.usable[:500]

@@ -26,21 +26,11 @@ from pstoolkit_dualres.fields import NeuralField, PyramidField, collapse, decomp
 from pstoolkit_dualres.forward_model import frame_prediction_grid, superpixel_grey
 from pstoolkit_dualres.frame_kernel import supports
 from pstoolkit_dualres.gather import gather_sum
-from pstoolkit_dualres.losses import event_loss, frame_loss, robust_square
+from pstoolkit_dualres.losses import CUDA_FRAME_CHUNK, FRAME_CHUNK, event_loss, frame_chunk, frame_loss, grid_frame_loss, pair_event_loss, robust_square
 from pstoolkit_dualres.preprocess import Preprocessed, PreprocessOptions, preprocess
 from pstoolkit_dualres.problem import Problem, build_problem
 from pstoolkit_dualres.reflectance import FitModel
-from pstoolkit_dualres.train import (
-    CUDA_FRAME_CHUNK,
-    FRAME_CHUNK,
-    StageConfig,
-    Tiling,
-    frame_chunk,
-    grid_frame_loss,
-    mini_batches,
-    pair_event_loss,
-    train,
-)
+from pstoolkit_dualres.train import StageConfig, Tiling, mini_batches, train
 
 STAGE = StageConfig(epochs=1, lr=1e-3, material_lr=1e-3, frame_weight=1.0, event_weight=0.05, event_huber=0.0, indirect_sparsity=0.0, tv_weight=0.02,
                     tv_fraction=0.3, event_batch=0, batch_pixels=256, tile=8, seed=0)
