@@ -43,6 +43,7 @@ import numpy as np
 from psfmt import EventArray
 from pstoolkit.errors import UserError
 from pstoolkit.grid import event_shape
+from pstoolkit.optics.brdf import GGX
 from pstoolkit.optics.lights import RingLight
 from pstoolkit.sim.esim import irradiance_on_lines
 from pstoolkit.sim.event_noise import NoiseEvents, merge_sorted, static_leak
@@ -51,6 +52,7 @@ from pstoolkit.sim.ring_kernels.inputs import (
     EventRoom,
     EventRule,
     PixelState,
+    ShadedScene,
     StepLimits,
     footprints,
     frame_constants,
@@ -58,13 +60,13 @@ from pstoolkit.sim.ring_kernels.inputs import (
     owner_slots,
     ring_params,
 )
-from pstoolkit.sim.ring_kernels.output import gather, window_exposures
-from pstoolkit.sim.ring_kernels.shadow_table import block_table
+from pstoolkit.sim.ring_kernels.output import gather
+from pstoolkit.sim.ring_kernels.shadow_table import CastShadows, block_table
 from pstoolkit.sim.ring_kernels.stepper import advance, start
 from pstoolkit.sim.ring_kernels.tuning import BLOCK_GRID_STEPS, FIRST_ROOM, MAX_STEP_TURNS, ROOM_BYTES, TABLE_ROWS
 from pstoolkit.sim.sensor import EventSensor, check_sampling
 
-__all__ = ["Block", "simulate_ring", "supported", "window_exposures"]
+__all__ = ["Block", "cast_shadows", "shaded_scene", "simulate_ring", "supported"]
 
 
 @dataclass
@@ -76,6 +78,19 @@ class Block:
     events: EventArray
     t_end_us: float
     window_sums: np.ndarray | None
+
+
+def shaded_scene(renderer: Renderer) -> ShadedScene:
+    """What the kernels take of ``renderer``'s scene, light and BRDF (``ShadedScene``)."""
+    constants, rgb = renderer.closed_form_constants()
+    return ShadedScene(constants, rgb, np.asarray(renderer.light.intensity, dtype=np.float64),  # type: ignore[attr-defined]
+                       isinstance(renderer.brdf, GGX), renderer.index, renderer.column_major_index,
+                       renderer.maps.height, renderer.maps.width)
+
+
+def cast_shadows(renderer: Renderer) -> CastShadows:
+    """What the shadow table takes of ``renderer``'s cast shadows (``CastShadows``)."""
+    return CastShadows(renderer.shadows, renderer.shadow_step_us, renderer.frame_openness, renderer.maps.height * renderer.maps.width)
 
 
 def supported(renderer: Renderer) -> bool:
@@ -184,8 +199,9 @@ def simulate_ring(
         max_dt_us = light.period_us * MAX_STEP_TURNS
     longest_us = (TABLE_ROWS - 3) * grid_dt_us
     block_us = min(BLOCK_GRID_STEPS * grid_dt_us if block_us is None else float(block_us), longest_us)
-    feet = footprints(renderer, event_scale)
-    frame = frame_inputs(renderer, frame_constants(renderer), feet)
+    scene, cast = shaded_scene(renderer), cast_shadows(renderer)
+    feet = footprints(*(a.cpu().numpy() for a in renderer.footprint(event_scale)), renderer.pixels)
+    frame = frame_inputs(scene, frame_constants(scene), feet)
     owner = owner_slots(feet)
     n_events = height * width
     c_pos, c_neg = sensor.thresholds(n_events)
@@ -196,14 +212,14 @@ def simulate_ring(
     ring = ring_params(light)
     spans = _block_spans(ends, block_us, longest_us)
     # the first block's table serves the start too
-    table = block_table(renderer, *spans[0], frame, ring)
+    table = block_table(cast, *spans[0], frame, ring)
     state = PixelState(
         level=np.empty(n_events), hi=np.empty(n_events), lo=np.empty(n_events),
         blind_until_us=np.full(n_events, -np.inf if rule.paced else np.inf),
         step_us=np.full(n_events, max_dt_us / 4.0), slope=np.full(n_events, np.nan),
         shade=np.zeros((*feet.pixel.shape, 2)), sums=np.zeros((*feet.pixel.shape, 2)),
     )
-    start(0.0, frame, ring, table, renderer.shadows, rule.eps, state)
+    start(0.0, frame, ring, table, cast.shadows, rule.eps, state)
     leak_start = sensor.leak_start(c_pos)
     state.hi[:] = state.level - leak_start + c_pos
     state.lo[:] = state.level - leak_start - c_neg
@@ -218,8 +234,8 @@ def simulate_ring(
                      np.zeros(n_events, np.int64))
     everyone = np.arange(n_events)
     for block, (ta, tb) in enumerate(spans):
-        if block and renderer.shadows:
-            table = block_table(renderer, ta, tb, frame, ring)
+        if block and cast.shadows:
+            table = block_table(cast, ta, tb, frame, ring)
         level_start = state.level.copy() if noise is not None else None
         order = everyone
         while True:

@@ -64,6 +64,7 @@ from pstoolkit.sim.exposure import exposure_plan, exposure_samples
 from pstoolkit.sim.keyed import event_render, key_times_us, window_mean
 from pstoolkit.sim.render import Renderer
 from pstoolkit.sim.renderers import OWN, Rendering
+from pstoolkit.sim.ring_kernels.output import window_exposures
 from pstoolkit.sim.scenes import SceneMaps
 from pstoolkit.sim.sensor import FrameSensor
 from pstoolkit.sim.timing import (
@@ -343,7 +344,7 @@ def _write_compiled(
     count = append_event_chunks(writer, event_size, chunks(), config.duration_us, report)
     exposures = []
     for sums in window_sums:
-        diffuse, gloss = ring_engine.window_exposures(renderer, sums)
+        diffuse, gloss = window_exposures(ring_engine.shaded_scene(renderer), sums)
         exposures.append([gloss if isinstance(b, GGX) else diffuse for b in brdfs])
     return count, exposures
 

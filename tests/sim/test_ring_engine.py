@@ -187,12 +187,12 @@ def test_only_shadows_on_lit_pixels_shorten_the_steps() -> None:
         r = renderer(scene, GGX())
         # the sphere declares that it casts no shadows; swept all the same, the table says so
         r = Renderer(dataclasses.replace(r.maps, self_shadowing=True), r.light, r.brdf, shadow_step_us=r.shadow_step_us)
-        constants = inputs.frame_constants(r)
+        constants = inputs.frame_constants(ring_engine.shaded_scene(r))
         ring = inputs.ring_params(r.light)  # type: ignore[arg-type]
         block_us = tuning.BLOCK_GRID_STEPS * r.shadow_step_us  # type: ignore[operator]
         shadowed, lit_shadowed = False, False
         for ta in np.arange(0.0, PERIOD_US, block_us):
-            openness, column_major, grid = shadow_table.sweep_rows(r, ta, min(ta + block_us, PERIOD_US))
+            openness, column_major, grid = shadow_table.sweep_rows(ring_engine.cast_shadows(r), ta, min(ta + block_us, PERIOD_US))
             reach = shadow_table.lit_shadow(constants.values, r.index, r.column_major_index, ring[1], openness,
                                           column_major, shadow_table.grid_light(ring, openness.shape[0], grid))
             shadowed |= bool((openness < 1.0).any())
@@ -207,11 +207,11 @@ def test_lit_shadow_bits_follow_their_definition() -> None:
     checked on a table of all ``TABLE_ROWS`` grid times, with row- and column-major rows."""
     r = renderer(Blobs(), GGX())
     step = float(r.shadow_step_us)  # type: ignore[arg-type]
-    openness, column_major, grid = shadow_table.sweep_rows(r, 0.5 * step, 62.3 * step)
+    openness, column_major, grid = shadow_table.sweep_rows(ring_engine.cast_shadows(r), 0.5 * step, 62.3 * step)
     rows = openness.shape[0]
     assert rows == tuning.TABLE_ROWS
     assert column_major.any() and not column_major.all()
-    constants = inputs.frame_constants(r)
+    constants = inputs.frame_constants(ring_engine.shaded_scene(r))
     ring = inputs.ring_params(r.light)  # type: ignore[arg-type]
     light = shadow_table.grid_light(ring, rows, grid)
     reach = shadow_table.lit_shadow(constants.values, r.index, r.column_major_index, ring[1], openness, column_major,
@@ -233,7 +233,7 @@ def test_lit_shadow_bits_follow_their_definition() -> None:
     # the shadows' last interval and masks that are not all one
     assert (expected >> np.uint64(rows - 2)).any()
     assert (expected != (np.uint64(1) << np.uint64(rows - 1)) - np.uint64(1)).any()
-    longer = shadow_table.sweep_rows(r, 0.5 * step, 63.3 * step)
+    longer = shadow_table.sweep_rows(ring_engine.cast_shadows(r), 0.5 * step, 63.3 * step)
     with pytest.raises(ValueError, match="more than TABLE_ROWS"):
         shadow_table.lit_shadow(constants.values, r.index, r.column_major_index, ring[1], longer[0], longer[1],
                               shadow_table.grid_light(ring, longer[0].shape[0], longer[2]))
@@ -245,9 +245,9 @@ def test_shading_reads_the_table_only_where_the_bits_say_it_matters() -> None:
     r = renderer(Blobs(), GGX())
     step = float(r.shadow_step_us)  # type: ignore[arg-type]
     ta, tb = 3.2 * step, 61.7 * step
-    openness, column_major, grid = shadow_table.sweep_rows(r, ta, tb)
-    constants = inputs.frame_constants(r)
-    feet = inputs.footprints(r, 0.5)
+    openness, column_major, grid = shadow_table.sweep_rows(ring_engine.cast_shadows(r), ta, tb)
+    constants = inputs.frame_constants(ring_engine.shaded_scene(r))
+    feet = inputs.footprints(*(a.cpu().numpy() for a in r.footprint(0.5)), r.pixels)
     ring = inputs.ring_params(r.light)  # type: ignore[arg-type]
     reach = shadow_table.lit_shadow(constants.values, r.index, r.column_major_index, ring[1], openness, column_major,
                                   shadow_table.grid_light(ring, openness.shape[0], grid))

@@ -1,20 +1,40 @@
 """What the ring-light engine's kernels read and update, grouped as ``NamedTuple`` records (numba
 passes them as structs): the closed form's per-frame-pixel constants, the event pixels' footprints,
-the ring light, the event rule, the step limits, the shadow table and the per-pixel state."""
+the ring light, the event rule, the step limits, the shadow table and the per-pixel state; and, as a
+dataclass, what they take of the renderer's scene (``ShadedScene``)."""
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numba
 import numpy as np
 import torch
 
-from pstoolkit.optics.brdf import GGX, HALF_EPS
+from pstoolkit.optics.brdf import HALF_EPS
 from pstoolkit.optics.grey import GREY_WEIGHTS
 from pstoolkit.optics.lights import RingLight
-from pstoolkit.sim.render import Renderer
+
+
+@dataclass(frozen=True)
+class ShadedScene:
+    """What the kernels take of a renderer (``pstoolkit.sim.ring_engine.shaded_scene``): its closed
+    form's per-pixel ``constants`` and float64 ``rgb`` albedo and F0 (``Renderer.closed_form_constants``),
+    the light's RGB ``intensity`` (3,) float64, ``specular`` True for GGX (False: Lambertian), the
+    masked frame pixels' flat positions row-major ``index`` (P,) and column-major ``index_t`` (P,)
+    (``Renderer.column_major_index``), and the frame's ``height`` and ``width``."""
+
+    constants: dict[str, torch.Tensor]
+    rgb: dict[str, torch.Tensor]
+    intensity: np.ndarray
+    specular: bool
+    index: np.ndarray
+    index_t: np.ndarray
+    height: int
+    width: int
+
 
 # Columns of the per-frame-pixel constants (``FrameConstants.values``).
 NX, NY, NZ, GREY_DIFFUSE, GREY_SPECULAR, NORM2, ALPHA2_1, K, ONE_K, VIEW = range(10)
@@ -146,10 +166,10 @@ class EventRoom(NamedTuple):
     count: np.ndarray
 
 
-def frame_constants(renderer: Renderer) -> FrameConstants:
-    """The closed form's per-pixel constants of ``renderer`` (its own, so the kernels shade as it does)."""
-    c, rgb = renderer.closed_form_constants()
-    e_grey = np.asarray(renderer.light.intensity, dtype=np.float64) * np.asarray(GREY_WEIGHTS)  # type: ignore[attr-defined]
+def frame_constants(scene: ShadedScene) -> FrameConstants:
+    """The closed form's per-pixel constants of the renderer's ``scene`` (its own, so the kernels shade as it does)."""
+    c, rgb = scene.constants, scene.rgb
+    e_grey = scene.intensity * np.asarray(GREY_WEIGHTS)
     columns = {
         NX: c["nT"][0], NY: c["nT"][1], NZ: c["nT"][2],
         GREY_DIFFUSE: rgb["albedo"] @ torch.as_tensor(e_grey, dtype=torch.float64),
@@ -157,15 +177,16 @@ def frame_constants(renderer: Renderer) -> FrameConstants:
         NORM2: c["nn"], ALPHA2_1: c["alpha2_1"], K: c["k"], ONE_K: c["1_k"], VIEW: c["dv"],
     }
     values = np.stack([columns[i].cpu().numpy() for i in range(len(columns))], axis=1)
-    return FrameConstants(np.ascontiguousarray(values), isinstance(renderer.brdf, GGX))
+    return FrameConstants(np.ascontiguousarray(values), scene.specular)
 
 
-def footprints(renderer: Renderer, event_scale: float) -> Footprints:
-    """The event pixels' frame pixels (``Renderer.footprint``), unused slots last and marked −1, and
-    each frame pixel's owner: the event pixel covering most of it (the first such on a tie)."""
-    position, weight = (np.ascontiguousarray(a.cpu().numpy()) for a in renderer.footprint(event_scale))
+def footprints(position: np.ndarray, weight: np.ndarray, pixels: int) -> Footprints:
+    """The event pixels' frame pixels, ``position`` (E, K) into the ``pixels`` masked frame pixels with
+    area ``weight`` (E, K) (``Renderer.footprint``), unused slots last and marked −1, and each frame
+    pixel's owner: the event pixel covering most of it (the first such on a tie)."""
+    position, weight = np.ascontiguousarray(position), np.ascontiguousarray(weight)
     pixel, ordered, owned = np.empty_like(position), np.empty_like(weight), np.zeros(position.shape, np.bool_)
-    _order_slots(position, weight, renderer.pixels, pixel, ordered, owned)
+    _order_slots(position, weight, pixels, pixel, ordered, owned)
     return Footprints(pixel, ordered, owned)
 
 
@@ -207,10 +228,9 @@ def owner_slots(feet: Footprints) -> np.ndarray:
     return owner
 
 
-def frame_inputs(renderer: Renderer, constants: FrameConstants, feet: Footprints) -> FrameInputs:
-    """The lanes' frame inputs of ``renderer`` from its constants and footprints."""
-    return FrameInputs(constants.values, feet.weight, feet.pixel, renderer.index, renderer.column_major_index,
-                       constants.specular)
+def frame_inputs(scene: ShadedScene, constants: FrameConstants, feet: Footprints) -> FrameInputs:
+    """The lanes' frame inputs of the renderer's ``scene`` from its constants and footprints."""
+    return FrameInputs(constants.values, feet.weight, feet.pixel, scene.index, scene.index_t, constants.specular)
 
 
 def ring_params(light: RingLight) -> RingParams:

@@ -7,7 +7,7 @@ import numba
 import numpy as np
 
 from pstoolkit.optics.lights import US_PER_S
-from pstoolkit.sim.render import Renderer
+from pstoolkit.sim.ring_kernels.inputs import ShadedScene
 from pstoolkit.sim.ring_kernels.tuning import GATHER_RUNS
 
 
@@ -69,12 +69,12 @@ def exposure_images(
             out[1, f, c] = diffuse + f0[i, c] * sums[i, 1] * e_per_us[c]
 
 
-def window_exposures(renderer: Renderer, sums: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def window_exposures(scene: ShadedScene, sums: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The (H, W, 3) float64 radiant exposures (dt in seconds) of a window from its ``pstoolkit.sim.ring_engine.Block.window_sums``:
-    the diffuse part alone, and with the GGX specular part (as ``renderer`` shades them)."""
-    rgb = renderer.closed_form_constants()[1]
-    e_per_us = np.asarray(renderer.light.intensity, dtype=np.float64) / US_PER_S  # type: ignore[attr-defined]
-    out = np.zeros((2, renderer.maps.height * renderer.maps.width, 3))
-    exposure_images(sums, rgb["albedo"].cpu().numpy(), rgb["f0"].cpu().numpy(), e_per_us, renderer.index, out)
-    diffuse, gloss = out.reshape(2, renderer.maps.height, renderer.maps.width, 3)
+    the diffuse part alone, and with the GGX specular part (as the renderer of ``scene`` shades them)."""
+    rgb = scene.rgb
+    e_per_us = scene.intensity / US_PER_S
+    out = np.zeros((2, scene.height * scene.width, 3))
+    exposure_images(sums, rgb["albedo"].cpu().numpy(), rgb["f0"].cpu().numpy(), e_per_us, scene.index, out)
+    diffuse, gloss = out.reshape(2, scene.height, scene.width, 3)
     return diffuse, gloss

@@ -6,14 +6,27 @@ steps short only around those (``shadow_room``)."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numba
 import numpy as np
 from numba.cpython.unsafe.numbers import trailing_zeros
 
-from pstoolkit.sim.render import Renderer
 from pstoolkit.sim.ring_kernels.inputs import NX, NY, NZ, FrameInputs, RingParams, ShadowGrid, ShadowTable
 from pstoolkit.sim.ring_kernels.tuning import PIXELS_PER_TASK, SHADOW_TILE, TABLE_ROWS
+
+
+@dataclass(frozen=True)
+class CastShadows:
+    """The renderer's cast shadows as the table reads them (``pstoolkit.sim.ring_engine.cast_shadows``):
+    whether the scene has any (``shadows``), the step of its shadow grid ``step_us``, its
+    ``frame_openness`` of grid keys (``Renderer.frame_openness``) and the frame's ``pixels`` (H·W)."""
+
+    shadows: bool
+    step_us: float | None
+    frame_openness: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+    pixels: int
 
 
 @numba.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
@@ -86,18 +99,17 @@ def shadow_room(
     return min(max((table.grid_first + j) * table.grid_step_us - t_us, grid_dt), max_dt)
 
 
-def sweep_rows(renderer: Renderer, ta: float, tb: float) -> tuple[np.ndarray, np.ndarray, ShadowGrid]:
+def sweep_rows(cast: CastShadows, ta: float, tb: float) -> tuple[np.ndarray, np.ndarray, ShadowGrid]:
     """Unclipped visibility (``pstoolkit.optics.shadow_sweep._openness`` of the shadow margins) of the frame pixels at the
     grid times around [ta, tb]: (N, H·W) float32 rows for keys first, first + 1, … (the renderer's
     sweep buffer, valid until its next sweep), which of them are column-major (N,) (see
     ``Renderer.frame_openness``), and the grid. Without cast shadows two rows of ones (V = 1
     everywhere)."""
-    if not renderer.shadows:
-        return (np.ones((2, renderer.maps.height * renderer.maps.width), dtype=np.float32), np.zeros(2, np.bool_),
-                ShadowGrid(1.0, 0.0))
-    step = float(renderer.shadow_step_us)  # type: ignore[arg-type]
+    if not cast.shadows:
+        return (np.ones((2, cast.pixels), dtype=np.float32), np.zeros(2, np.bool_), ShadowGrid(1.0, 0.0))
+    step = float(cast.step_us)  # type: ignore[arg-type]
     first = math.floor(ta / step)
-    openness, column_major = renderer.frame_openness(np.arange(first, math.floor(tb / step) + 2))
+    openness, column_major = cast.frame_openness(np.arange(first, math.floor(tb / step) + 2))
     return openness, column_major, ShadowGrid(step, float(first))
 
 
@@ -109,11 +121,11 @@ def grid_light(ring: RingParams, rows: int, grid: ShadowGrid) -> np.ndarray:
     return np.stack([ring.cos_e * np.cos(phi), ring.cos_e * np.sin(phi), slack])
 
 
-def block_table(renderer: Renderer, ta: float, tb: float, frame: FrameInputs, ring: RingParams) -> ShadowTable:
+def block_table(cast: CastShadows, ta: float, tb: float, frame: FrameInputs, ring: RingParams) -> ShadowTable:
     """The shadow table of the block [ta, tb]: ``sweep_rows`` and, with cast shadows, the frame pixels'
     ``lit_shadow`` bits (without, none: no pixel is shadowed while lit)."""
-    openness, column_major, grid = sweep_rows(renderer, ta, tb)
-    if not renderer.shadows:
+    openness, column_major, grid = sweep_rows(cast, ta, tb)
+    if not cast.shadows:
         return ShadowTable(openness, column_major, *grid, np.zeros(openness.shape[1], np.uint64))
     reach = lit_shadow(frame.values, frame.index, frame.index_t, ring.sin_e, openness, column_major,
                        grid_light(ring, openness.shape[0], grid))
