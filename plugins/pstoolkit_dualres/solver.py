@@ -1,8 +1,9 @@
 """The ``dualres`` solver: DualResPS (three long exposures + events) by inverse rendering.
 
-Pipeline: ``preprocess`` → the shadow detector of the registry (``--set shadow_detector=NAME``) →
-``problem.build_problem`` with its mask → Adam on the frame, event and TV losses (eq. 24–26,
-``train``) in stages: a detector that uses the surface (``geometry``, ``fused``) runs again on the
+Pipeline: ``preprocess`` → the shadow detector of the registry (``--set shadow_detector=NAME``; one
+that uses the surface, ``geometry`` or ``fused``, on the closed-form start's normals) → the closed form
+again under its mask → ``problem.build_problem`` with the mask → Adam on the frame, event and TV losses
+(eq. 24–26, ``train``) in stages: a detector that uses the surface runs again on the
 fitted normals between stages (``presets.Preset.detect_at``), the mask is applied to the frames and
 events, and the pixels it puts in shadow restart from the closed form under it; with ``event_gate``
 κ the event pixels whose pairs the fit cannot explain weigh less from then on and their frame pixels
@@ -201,7 +202,10 @@ class DualRes(Solver):
         pre = preprocess(capture, PreprocessOptions(scale_rule=options["scale_rule"]),
                          lambda fraction, message: progress(PREPROCESS_SHARE * fraction, message))
         clock.lap("preprocess")
-        shadows = detector.detect(pre.evidence, detector_options)
+        # a detector that uses the surface starts from the closed form's: the fit's first stage then
+        # already leaves out the shadows it predicts (the events confirm them, with ``fused``)
+        evidence = pre.evidence.with_normal(pre.init.normal) if detector.uses_surface else pre.evidence
+        shadows = detector.detect(evidence, detector_options)
         clock.lap("detect")
         init = pre.closed_form(shadows) if len(shadows) else pre.init
         clock.lap("closed_form")

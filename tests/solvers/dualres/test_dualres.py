@@ -123,10 +123,11 @@ def test_the_shadow_mask_counts_and_the_detector_comes_from_the_registry(blobs: 
     capture = psfmt.load(blobs)
     fused = _solve(capture, "dualres", "epochs=40")
     none = _solve(capture, "dualres", "epochs=40", "shadow_detector=none")
-    assert _mae(fused.normal, capture) < 0.6 * _mae(none.normal, capture)  # measured 0.59° vs 1.22°
+    assert _mae(fused.normal, capture) < 0.6 * _mae(none.normal, capture)  # measured 0.49° vs 1.03°
     stages = fused.diagnostics["stages"]
     assert fused.diagnostics["shadow_detector"] == "fused" and [s["epoch"] for s in stages] == [0, 16]
-    assert stages[0]["shadow_intervals"] == 0 and stages[1]["shadow_intervals"] > 100
+    # the first mask comes from the closed form's surface, the second from the fit's
+    assert stages[0]["shadow_intervals"] > 100 and stages[1]["shadow_intervals"] > 100
     assert 0.02 < fused.maps["cast_shadow"][capture.ground_truth.mask].mean() < 0.1
     assert none.diagnostics["stages"] == [{"epoch": 0, "shadow_intervals": 0, "cast_shadow_share": 0.0}]
     assert not none.maps["cast_shadow"].any()
