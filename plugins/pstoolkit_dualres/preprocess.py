@@ -19,12 +19,15 @@ Steps (one light period of events from the first exposure's start, ``t0_us``):
 6. The super pixels' normals from their events alone (the EventPS relation, ``eventnormal``), and the
    closed-form start from the per-pixel equivalent lights (``init``, eq. 14/16), here without a
    cast-shadow mask; ``Preprocessed.closed_form`` solves it again under a mask.
+7. Where the super pixels' profiles over the turn are mostly specular (``profile_start``; ``start``
+   "auto"), or always (``start`` "profile"), their normals from the profiles replace the closed
+   form's (``start_normal``).
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -38,11 +41,13 @@ from pstoolkit.shadows.spikes import spike_threshold
 from pstoolkit_dualres.closed_form import ClosedFormStart, closed_form
 from pstoolkit_dualres.irradiance import Irradiance, approximate
 from pstoolkit_dualres.pairs import EventSamples, event_samples
+from pstoolkit_dualres.profile_start import PROFILE_START_WEIGHT, profile_normals, profiles, specular_weight
 from pstoolkit_dualres.sampling import Samples, importance_samples
 from pstoolkit_dualres.super_pixel_normals import event_normals
 
 SCALE_RULES = ("windows", "spikes")
 CONFIDENCE_RULES = ("linear", "none")
+STARTS = ("auto", "closed", "profile")
 # Tolerance (µs) when checking that the exposure windows tile the light period.
 TILE_TOLERANCE_US = 2.0
 # θ of Algorithm 1 that marks the abrupt changes where the "spikes" scale rule may change s.
@@ -67,7 +72,10 @@ class PreprocessOptions:
 
     Closed-form start: ``init_iterations`` fixed-point steps of the attached-shadow clamp (at least 1),
     ``light_samples`` per window for the equivalent lights. ``mask_threshold``: a frame pixel is on
-    the object when its brightest window exceeds this share of saturation.
+    the object when its brightest window exceeds this share of saturation (frameps's ``threshold``).
+    ``start``: "auto" starts from the super pixels' profile normals where the profiles' specular weight
+    (``profile_start.specular_weight``) reaches ``profile_start.PROFILE_START_WEIGHT``, "profile"
+    always, "closed" never.
     """
 
     sigma: float = 40.0
@@ -78,7 +86,8 @@ class PreprocessOptions:
     max_pair_share: float = 0.5
     init_iterations: int = 10
     light_samples: int = 64
-    mask_threshold: float = 0.02
+    mask_threshold: float = 0.002
+    start: str = "auto"
 
     def check(self) -> None:
         """UserError naming the first option out of range."""
@@ -92,6 +101,7 @@ class PreprocessOptions:
             ("init_iterations", 0 <= self.init_iterations <= 100, "must be between 0 and 100"),
             ("light_samples", 8 <= self.light_samples <= 4096, "must be between 8 and 4096"),
             ("mask_threshold", 0 <= self.mask_threshold < 1, "must be in [0, 1)"),
+            ("start", self.start in STARTS, f"must be one of {', '.join(STARTS)}"),
         ]
         for name, ok, message in limits:
             if not ok:
@@ -117,7 +127,8 @@ class Preprocessed:
     ``evidence``: what shadow detectors read. ``irradiance``: Î of the super pixels over the period;
     ``samples`` the importance samples of eq. 21/23 placed on it (phases), made on first use.
     ``events``: the event pairs of eq. 25. ``super_normal`` (H, W, 3): the super pixels' event normals
-    interpolated to the frame pixels (0 where unknown). ``init``: the closed-form start without a
+    interpolated to the frame pixels (0 where unknown). ``start_normal`` (H, W, 3): the profile start's
+    normals that replace the closed form's where nonzero, or None (step 7). ``init``: the start without a
     cast-shadow mask.
     """
 
@@ -146,6 +157,7 @@ class Preprocessed:
     irradiance: Irradiance
     events: EventSamples
     super_normal: np.ndarray
+    start_normal: np.ndarray | None
     init: ClosedFormStart
     options: PreprocessOptions
     diagnostics: dict[str, Any] = field(default_factory=dict)
@@ -173,13 +185,14 @@ class Preprocessed:
         the mask shadows, which the unmasked start already solved."""
         mask, base = (self.mask, None) if only is None else (self.mask & only, self.init)
         return start(self.per_window, self.windows_us + self.t0_us, mask, self.light, self.super_normal,
-                     self.options, shadows, base)
+                     self.options, shadows, base, self.start_normal)
 
 
 def start(per_window: np.ndarray, windows_us: np.ndarray, mask: np.ndarray, light: LightModel,
           super_normal: np.ndarray, options: PreprocessOptions, shadows: ShadowMask | None,
-          base: ClosedFormStart | None = None) -> ClosedFormStart:
-    """The closed-form start (``closed_form.closed_form``) of the window means under a cast-shadow mask.
+          base: ClosedFormStart | None = None, start_normal: np.ndarray | None = None) -> ClosedFormStart:
+    """The closed-form start (``closed_form.closed_form``) of the window means under a cast-shadow mask,
+    its normals replaced by ``start_normal`` where that is given and nonzero.
 
     Parameters
     ----------
@@ -200,6 +213,8 @@ def start(per_window: np.ndarray, windows_us: np.ndarray, mask: np.ndarray, ligh
         The cast-shadow mask at frame pixels, or None or empty (none).
     base
         The start of the pixels outside ``mask`` (``closed_form.closed_form``), or None.
+    start_normal
+        (H, W, 3) unit normals of the profile start (zero where unknown), or None.
 
     Returns
     -------
@@ -211,8 +226,47 @@ def start(per_window: np.ndarray, windows_us: np.ndarray, mask: np.ndarray, ligh
         def visibility(t_us: np.ndarray, pixels: np.ndarray) -> np.ndarray:
             return ~shadows.contains_grid(pixels, t_us)
 
-    return closed_form(per_window, windows_us, mask, light, visibility=visibility, iterations=options.init_iterations,
-                       n_samples=options.light_samples, super_normal=super_normal, base=base)
+    closed = closed_form(per_window, windows_us, mask, light, visibility=visibility, iterations=options.init_iterations,
+                         n_samples=options.light_samples, super_normal=super_normal, base=base)
+    return _with_start_normal(closed, start_normal, mask)
+
+
+def _with_start_normal(closed: ClosedFormStart, start_normal: np.ndarray | None, mask: np.ndarray) -> ClosedFormStart:
+    """``closed`` with its normals replaced by ``start_normal`` (H, W, 3) where that is nonzero in ``mask``."""
+    if start_normal is None:
+        return closed
+    known = mask[..., None] & np.any(start_normal != 0, axis=-1, keepdims=True)
+    return replace(closed, normal=np.where(known, start_normal, closed.normal).astype(closed.normal.dtype))
+
+
+def _profile_start(irradiance: Irradiance, light: LightModel, view: np.ndarray, mask: np.ndarray,
+                   super_pixel: np.ndarray, affine: np.ndarray, t0_us: float, period_us: float,
+                   event_shape: tuple[int, int], rule: str) -> tuple[float | None, np.ndarray | None]:
+    """The specular weight of the profiles of the super pixels on the object (``profile_start``), and by
+    ``rule`` (``PreprocessOptions.start``) the profile start's normals at the frame pixels (H, W, 3) or
+    None; the weight is None where ``rule`` is "closed" or no super pixel sees light."""
+    if rule == "closed":
+        return None, None
+    event_height, event_width = event_shape
+    height, width = mask.shape
+    n_events_px = event_height * event_width
+    on_object = np.unique(super_pixel[mask.ravel()])
+    y, grey = profiles(irradiance, light, t0_us, period_us, on_object)
+    lit = y.max(axis=1) > 0
+    if not lit.any():
+        return None, None
+    seen, y = on_object[lit], y[lit]
+    y = y / y.max(axis=1, keepdims=True)
+    weight, roughness = specular_weight(y, grey, view)
+    if rule == "auto" and weight < PROFILE_START_WEIGHT:
+        return weight, None
+    values = np.zeros((n_events_px, 3))
+    values[seen] = profile_normals(y, grey, view, weight, roughness)
+    known = np.zeros(n_events_px, dtype=bool)
+    known[seen] = True
+    normal = to_frames(values, known, affine, height, width, event_height, event_width)[0]
+    length = np.linalg.norm(normal, axis=1, keepdims=True)
+    return weight, np.where(length > 0, normal / np.maximum(length, 1e-12), 0.0).reshape(height, width, 3)
 
 
 def _where(capture: psfmt.Capture) -> str:
@@ -323,7 +377,10 @@ def preprocess(capture: psfmt.Capture, options: PreprocessOptions, progress: Pro
     coarse, coarse_known = event_normals(pairs.pixel, pairs.t_ref_us, pairs.t_us, pairs.target, pairs.weight, light,
                                          n_pixels=n_events_px)
     super_normal = to_frames(coarse, coarse_known, affine, height, width, event_height, event_width)[0].reshape(height, width, 3)
-    init = start(per_window, windows + t0, mask, light, super_normal, options, None)
+    closed = start(per_window, windows + t0, mask, light, super_normal, options, None)
+    weight, start_normal = _profile_start(irradiance, light, capture.calibration.view_direction, mask, super_pixel,
+                                          affine, t0, period, (event_height, event_width), options.start)
+    init = _with_start_normal(closed, start_normal, mask)
     seconds["init"] = time.perf_counter() - tick
     progress(1.0, "done")
     diagnostics = {
@@ -332,6 +389,8 @@ def preprocess(capture: psfmt.Capture, options: PreprocessOptions, progress: Pro
         "event_pairs": len(pairs.pixel),
         "effective_lights": {str(n): int(np.sum(init.effective[mask] == n)) for n in range(4)},
         "init_iterations": int(init.iterations),
+        "specular_weight": weight,
+        "start": "closed" if start_normal is None else "profile",
         "saturated_share": float(saturated[:, mask].mean()),
         "seconds": {**{k: round(v, 4) for k, v in seconds.items()}, "total": round(time.perf_counter() - started, 4)},
     }
@@ -341,5 +400,5 @@ def preprocess(capture: psfmt.Capture, options: PreprocessOptions, progress: Pro
         refractory_us=refractory, refractory_rule=rule, frames=frames, saturated=saturated,
         t_start_us=frames_in.t_start_us.copy(), t_end_us=frames_in.t_end_us.copy(), frame_window=frame_window,
         windows_us=windows, per_window=per_window, mask=mask, evidence=evidence, irradiance=irradiance, events=pairs,
-        super_normal=super_normal, init=init, options=options, diagnostics=diagnostics,
+        super_normal=super_normal, start_normal=start_normal, init=init, options=options, diagnostics=diagnostics,
     )

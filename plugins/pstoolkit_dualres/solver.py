@@ -34,7 +34,7 @@ from pstoolkit.plugin.options import format_assignments
 from pstoolkit.solve.tiled import solve_tiles
 from pstoolkit_dualres.consistency import event_gate
 from pstoolkit_dualres.fields import NeuralField, PyramidField
-from pstoolkit_dualres.preprocess import SCALE_RULES, Preprocessed, PreprocessOptions, preprocess
+from pstoolkit_dualres.preprocess import SCALE_RULES, STARTS, Preprocessed, PreprocessOptions, preprocess
 from pstoolkit_dualres.presets import OVERRIDES, PRESETS, Preset, resolve
 from pstoolkit_dualres.problem import Problem, build_problem, start_values
 from pstoolkit_dualres.reflectance import FitModel, reflects_indirect
@@ -140,6 +140,10 @@ class DualRes(Solver):
         Option("scale_rule", str, "windows",
                "where the irradiance scale s may change: windows (exposure-window bounds) or spikes (the strongest "
                "event bursts, at most three values per turn, as in the paper)", choices=SCALE_RULES),
+        Option("start", str, "auto",
+               "where the fit starts: closed (the closed form from the exposures, Lambertian), profile (each super "
+               "pixel's normal whose diffuse + GGX profile over the turn fits its events best), or auto (profile where "
+               "the profiles say the GGX lobe carries at least 75 % of the light, as on metals; otherwise closed)", choices=STARTS),
         Option("memory_gb", float, 0.0,
                "memory the run may use, GB: the capture is solved in tiles when it needs more (on this machine: this "
                "process and its local cluster together; with --scheduler, per worker); 0 = half the machine's",
@@ -199,7 +203,7 @@ class DualRes(Solver):
         started = time.perf_counter()
         clock = Stopwatch()
         progress(0.0, "preprocessing")
-        pre = preprocess(capture, PreprocessOptions(scale_rule=options["scale_rule"]),
+        pre = preprocess(capture, PreprocessOptions(scale_rule=options["scale_rule"], start=options["start"]),
                          lambda fraction, message: progress(PREPROCESS_SHARE * fraction, message))
         clock.lap("preprocess")
         # a detector that uses the surface starts from the closed form's: the fit's first stage then
