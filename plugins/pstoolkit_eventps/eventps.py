@@ -52,10 +52,14 @@ rejects most of them.
 Where this departs from the paper and its public code, and why:
 
 - Weights. The paper leaves them open and its code sums the raw v vᵀ; here each v is weighted by
-  1/|v|², so every pair counts once whatever the distance the light moved between its events, and
+  min(1, a/ā)/|v|², a the arc the light travelled between the relation's two ends (``relation_kernel.light_arcs``) and ā
+  the mean of its pixel's (``pair_weights`` "arc"): a highlight or a shadow edge fires a burst of short
+  relations that break the Lambertian relation, and where the rest of the turn fires only a few (a
+  shallow surface under the EVK4-like sensor's 0.5 ms refractory) the burst outvoted them; a relation
+  longer than the mean counts once, as a long silence spans a peak, a trough or an attached shadow,
+  where the relation is weakest. ``pair_weights`` "pairs" counts every relation once. Then
   ``reweight`` passes of iteratively reweighted least squares with Cauchy weights (scale
-  ``residual_scale`` on n·v/|v|) follow, as specular highlights and shadow edges give pairs that break
-  the Lambertian relation (``benchmarks/baselines.py`` measures the choice).
+  ``residual_scale`` on n·v/|v|) follow (``benchmarks/baselines.py`` measures the choices).
 - Pixels without a fit. The paper leaves them out; its code's solver (inverse power iteration on the
   adjugate with a small bias towards the camera axis, started at the axis) returns the axis for them.
   Here the swing or the neighbours give them a normal, marked in ``confidence``; ``fill=False`` leaves
@@ -90,8 +94,10 @@ from pstoolkit.events.relation import MIN_RANK_RATIO, constraint_vectors, grey_l
 from pstoolkit.events.rule import REFRACTORY_RULE, check_rule
 from pstoolkit.optics.lights import LightModel
 from pstoolkit_eventps import fill as eventfill
-from pstoolkit_eventps.relation_kernel import NO_EVENT, bounded_fit, pair_events, robust_fit
+from pstoolkit_eventps.relation_kernel import NO_EVENT, bounded_fit, capped_arc_weights, light_arcs, pair_events, robust_fit
 
+PAIR_WEIGHTS = ("arc", "pairs")
+"""How a relation counts in a pixel's fit (module docstring, "Weights")."""
 MAX_INTERVAL_PERIODS = 0.5
 """Default longest pair interval under "reset-at-end", as a share of the light period: a pixel near the
 ring's axis fires about once per half turn (its only pairs), while pairs that span a long attached
@@ -133,6 +139,7 @@ class Params:
     residual_scale: float = 0.03
     fill: bool = True
     balance: bool = True
+    pair_weights: str = "arc"
 
     def __post_init__(self) -> None:
         if not (self.contrast_pos > 0 and self.contrast_neg > 0):
@@ -140,6 +147,8 @@ class Params:
         if self.refractory_us < 0 or self.min_pairs < 2 or self.reweight < 0 or not self.residual_scale > 0:
             raise ValueError("refractory_us ≥ 0, min_pairs ≥ 2, reweight ≥ 0 and residual_scale > 0 are required")
         check_rule(self.refractory_rule, "eventps")
+        if self.pair_weights not in PAIR_WEIGHTS:
+            raise ValueError(f"pair_weights must be one of {', '.join(PAIR_WEIGHTS)}, got {self.pair_weights!r}")
 
     @property
     def rate_limited(self) -> bool:
@@ -282,20 +291,22 @@ the fits at the edge of a steep region inwards (blobs 128 px, rate-limited 2 ms:
 6.2° with 10 rounds, 5.55° with 100, 5.52° with 200; a 5×5 mean instead of 3×3 does worse)."""
 
 
-def _bounded(normal: np.ndarray, todo: np.ndarray, exact_pixel: np.ndarray, u: np.ndarray,
+def _bounded(normal: np.ndarray, todo: np.ndarray, exact_pixel: np.ndarray, u: np.ndarray, exact_weight: np.ndarray,
              bound_pixel: np.ndarray, w: np.ndarray, shape: tuple[int, int], scale: float) -> None:
     """Refines the filled normals (P, 3) of the pixels ``todo`` in place with their own exact
-    constraints (n·u = 0) and bounds (n·w ≥ 0) (``relation_kernel.bounded_fit``, Cauchy ``scale``), then
+    constraints (n·u = 0, weighted by ``exact_weight``) and bounds (n·w ≥ 0) (``relation_kernel.bounded_fit``,
+    Cauchy ``scale``), then
     ``BOUND_SMOOTHING`` times again from the mean of their neighbourhood (``eventfill.neighbour_mean``
     on the (H, W) grid ``shape``)."""
     exact_order, bound_order = np.argsort(exact_pixel, kind="stable"), np.argsort(bound_pixel, kind="stable")
     exact_pixel, u = exact_pixel[exact_order], np.ascontiguousarray(u[exact_order])
+    exact_weight = np.ascontiguousarray(exact_weight[exact_order])
     bound_pixel, w = bound_pixel[bound_order], np.ascontiguousarray(w[bound_order])
     neighbourhood = eventfill.neighbourhoods(todo, shape)
     for step in range(BOUND_SMOOTHING + 1):
         if step:
             normal[todo] = eventfill.neighbour_mean(normal, neighbourhood)
-        bounded_fit(normal, todo, exact_pixel, u, bound_pixel, w, BOUND_PRIOR, BOUND_PASSES, scale)
+        bounded_fit(normal, todo, exact_pixel, u, exact_weight, bound_pixel, w, BOUND_PRIOR, BOUND_PASSES, scale)
 
 
 class WindowSolver:
@@ -341,6 +352,15 @@ class WindowSolver:
         return PairedWindow(int(start_us), int(end_us), turns, len(events), int(pairs), constraint_pixel, reference,
                             later, crossed, bound, fired, swing)
 
+    def _weights(self, paired: PairedWindow, kept: np.ndarray, exact: np.ndarray) -> np.ndarray:
+        """The weight of each kept exact relation (``Params.pair_weights``): 1, or min(1, a/ā) with a the
+        light's arc between its ends (``relation_kernel.light_arcs``) and ā the mean arc of its pixel's."""
+        pixel = paired.constraint_pixel[kept][exact]
+        if self.params.pair_weights == "pairs" or not len(pixel):
+            return np.ones(len(pixel))
+        arc = light_arcs(paired.reference, paired.later)[kept][exact]
+        return capped_arc_weights(pixel, arc, self.width * self.height)
+
     def finish(self, paired: PairedWindow) -> NormalWindow:
         """The normals of a paired window: each pixel's own fit, and for the others the swing of the
         ring (from one turn of a light circling the axis) or their neighbours. Touches no state, so
@@ -361,8 +381,9 @@ class WindowSolver:
         exact = bound == 0
         bounded = not exact.all()
         constraint_pixel, u = (pixel[exact], vectors[exact]) if bounded else (pixel, vectors)
+        weight = self._weights(paired, kept, exact)
         normal, values, sums, count = robust_fit(
-            constraint_pixel, u, pixels, params.min_pairs, params.reweight, params.residual_scale, ADJUGATE_STEPS
+            constraint_pixel, u, weight, pixels, params.min_pairs, params.reweight, params.residual_scale, ADJUGATE_STEPS
         )
         fit = (count >= params.min_pairs) & (values[:, 1] > MIN_RANK_RATIO * values[:, 2])
         normal[~fit] = 0.0
@@ -387,7 +408,7 @@ class WindowSolver:
                     normal[need & ~found] = eventfill.AXIS
                     confidence[need & ~found] = eventfill.SWING
             if bounded:
-                _bounded(normal, np.flatnonzero(rest & (fired > 0)), constraint_pixel, u, pixel[~exact],
+                _bounded(normal, np.flatnonzero(rest & (fired > 0)), constraint_pixel, u, weight, pixel[~exact],
                          -bound[~exact, None] * vectors[~exact], (self.height, self.width), params.residual_scale)
             mean, outlier = eventfill.isolated_outliers(normal, fit, (self.height, self.width))
             normal[outlier] = mean[outlier]

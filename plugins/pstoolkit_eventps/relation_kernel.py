@@ -132,14 +132,16 @@ def pair_events(
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _pixel_sums(u: np.ndarray, lo: int, hi: int, nx: float, ny: float, nz: float, inv_scale2: float) -> tuple[float, float, float, float, float, float]:
-    """Σ w u uᵀ (its six unique entries) of the unit constraints ``u[lo:hi]`` with the Cauchy weight
-    w = 1 / (1 + (n·u)² / σ²) of the residual at n (w = 1 with ``inv_scale2`` = 0)."""
+def _pixel_sums(u: np.ndarray, weight: np.ndarray, lo: int, hi: int, nx: float, ny: float, nz: float,
+                inv_scale2: float) -> tuple[float, float, float, float, float, float]:
+    """Σ a·w u uᵀ (its six unique entries) of the unit constraints ``u[lo:hi]`` with their weights a
+    (``weight[lo:hi]``) and the Cauchy weight w = 1 / (1 + (n·u)² / σ²) of the residual at n (w = 1
+    with ``inv_scale2`` = 0)."""
     s0 = s1 = s2 = s3 = s4 = s5 = 0.0
     for j in range(lo, hi):
         x, y, z = u[j, 0], u[j, 1], u[j, 2]
         residual = nx * x + ny * y + nz * z
-        w = 1.0 / (1.0 + residual * residual * inv_scale2)
+        w = weight[j] / (1.0 + residual * residual * inv_scale2)
         wx, wy = w * x, w * y
         s0 += wx * x
         s1 += wx * y
@@ -204,14 +206,16 @@ def _smallest_by_adjugate(
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def robust_fit(
-    constraint_pixel: np.ndarray, u: np.ndarray, n_pixels: int, min_pairs: int, reweight: int, scale: float, steps: int
+    constraint_pixel: np.ndarray, u: np.ndarray, weight: np.ndarray, n_pixels: int, min_pairs: int, reweight: int,
+    scale: float, steps: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Each pixel's normal from its unit constraints (``constraint_pixel`` (m,), ``u`` (m, 3)) for pixels
-    with at least ``min_pairs``: the smallest eigenvector of Σ u uᵀ (``_smallest_by_adjugate``), then
+    """Each pixel's normal from its unit constraints (``constraint_pixel`` (m,), ``u`` (m, 3), weights
+    ``weight`` (m,)) for pixels with at least ``min_pairs``: the smallest eigenvector of Σ a u uᵀ
+    (``_smallest_by_adjugate``, a the weights), then
     up to ``reweight`` passes of iteratively reweighted least squares with Cauchy weights of scale
     ``scale`` on the residuals n·u, each moving n by ``steps`` adjugate power steps, until a pass moves
     it by less than √``SETTLED``; flipped to n_z ≥ 0. Returns normals (P, 3) (zero for the others),
-    the eigenvalues (P, 3) of Σ u uᵀ (for the rank test), its six unique entries (P, 6) (for every
+    the eigenvalues (P, 3) of Σ a u uᵀ (for the rank test), its six unique entries (P, 6) (for every
     pixel with a constraint, for the neighbours) and the number of constraints per pixel (P,)."""
     m = constraint_pixel.shape[0]
     count = np.zeros(n_pixels, np.int64)
@@ -222,10 +226,12 @@ def robust_fit(
         start[i + 1] = start[i] + count[i]
     # each pixel's constraints side by side, in event order (a stable counting sort)
     grouped = np.empty((m, 3))
+    grouped_weight = np.empty(m)
     fill = start[:n_pixels].copy()
     for j in range(m):
         i = constraint_pixel[j]
         grouped[fill[i], 0], grouped[fill[i], 1], grouped[fill[i], 2] = u[j, 0], u[j, 1], u[j, 2]
+        grouped_weight[fill[i]] = weight[j]
         fill[i] += 1
     normal = np.zeros((n_pixels, 3))
     values = np.zeros((n_pixels, 3))
@@ -235,13 +241,13 @@ def robust_fit(
         lo, hi = start[i], start[i + 1]
         if hi == lo:
             continue
-        s = _pixel_sums(grouped, lo, hi, 0.0, 0.0, 0.0, 0.0)
+        s = _pixel_sums(grouped, grouped_weight, lo, hi, 0.0, 0.0, 0.0, 0.0)
         sums[i, 0], sums[i, 1], sums[i, 2], sums[i, 3], sums[i, 4], sums[i, 5] = s
         if hi - lo < min_pairs:
             continue
         values[i, 0], values[i, 1], values[i, 2], x, y, z = _smallest_by_adjugate(s, steps)
         for _ in range(reweight):
-            nx, ny, nz = _adjugate_steps(_pixel_sums(grouped, lo, hi, x, y, z, inv_scale2), x, y, z, steps)
+            nx, ny, nz = _adjugate_steps(_pixel_sums(grouped, grouped_weight, lo, hi, x, y, z, inv_scale2), x, y, z, steps)
             moved = (nx - x) ** 2 + (ny - y) ** 2 + (nz - z) ** 2
             x, y, z = nx, ny, nz
             if moved < SETTLED:
@@ -252,11 +258,44 @@ def robust_fit(
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
+def light_arcs(reference: np.ndarray, later: np.ndarray) -> np.ndarray:
+    """(m,) angle (radians) between the light's directions at the two ends of each relation, from the
+    grey lights (direction × luma) at the reference (m, 3) and at the later event (m, 3): atan2 of
+    |a × b| and a·b, exact for small arcs, where arccos of a·b rounds to zero."""
+    m = reference.shape[0]
+    arc = np.zeros(m)
+    for j in range(m):
+        ax, ay, az = reference[j, 0], reference[j, 1], reference[j, 2]
+        bx, by, bz = later[j, 0], later[j, 1], later[j, 2]
+        cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+        arc[j] = math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), ax * bx + ay * by + az * bz)
+    return arc
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def capped_arc_weights(pixel: np.ndarray, arc: np.ndarray, n_pixels: int) -> np.ndarray:
+    """(m,) min(1, a/ā) of each relation's arc a (``arc`` (m,)) and the mean ā of its pixel's
+    (``pixel`` (m,))."""
+    total = np.zeros(n_pixels)
+    count = np.zeros(n_pixels)
+    for j in range(pixel.shape[0]):
+        total[pixel[j]] += arc[j]
+        count[pixel[j]] += 1.0
+    weight = np.ones(pixel.shape[0])
+    for j in range(pixel.shape[0]):
+        mean = total[pixel[j]] / count[pixel[j]]
+        if mean > 0.0 and arc[j] < mean:
+            weight[j] = arc[j] / mean
+    return weight
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def bounded_fit(
     normal: np.ndarray,
     todo: np.ndarray,
     exact_pixel: np.ndarray,
     u: np.ndarray,
+    exact_weight: np.ndarray,
     bound_pixel: np.ndarray,
     w: np.ndarray,
     prior: float,
@@ -264,9 +303,9 @@ def bounded_fit(
     scale: float,
 ) -> None:
     """Refines the normals (P, 3) of the pixels ``todo`` (k,) in place with their own constraints:
-    exact ones n·u = 0 (``exact_pixel`` (m,), unit ``u`` (m, 3)) and one-sided ones n·w ≥ 0
-    (``bound_pixel`` (b,), unit ``w`` (b, 3)). Each pass takes the smallest eigenvector of
-    Σ c u uᵀ + Σ c w wᵀ over the violated w + ``prior``·(I − n₀n₀ᵀ), n₀ the starting normal (the
+    exact ones n·u = 0 (``exact_pixel`` (m,), unit ``u`` (m, 3), weights a ``exact_weight`` (m,)) and
+    one-sided ones n·w ≥ 0 (``bound_pixel`` (b,), unit ``w`` (b, 3)). Each pass takes the smallest
+    eigenvector of Σ a·c u uᵀ + Σ c w wᵀ over the violated w + ``prior``·(I − n₀n₀ᵀ), n₀ the starting normal (the
     squared hinge, with a pull to the start where the constraints leave n free), with Cauchy weights
     c = 1 / (1 + r²/``scale``²) of the residuals r at the current normal (a noise event breaks the
     relations after it until the next exact event), for at most ``passes`` passes or until a pass
@@ -284,7 +323,7 @@ def bounded_fit(
         x0, y0, z0 = normal[i, 0], normal[i, 1], normal[i, 2]
         x, y, z = x0, y0, z0
         for _ in range(passes):
-            e = _pixel_sums(u, exact_start[k], exact_end[k], x, y, z, inv_scale2)
+            e = _pixel_sums(u, exact_weight, exact_start[k], exact_end[k], x, y, z, inv_scale2)
             s0 = e[0] + prior * (1.0 - x0 * x0)
             s1 = e[1] - prior * x0 * y0
             s2 = e[2] - prior * x0 * z0

@@ -70,6 +70,11 @@ class EventPS(Solver):
         Option("residual_scale", float, 0.03,
                "Cauchy scale of a constraint's residual n·v/|v| (the reweighting; also the bounded refinement under the rate-limited rule)",
                minimum=1e-6),
+        Option("pair_weights", str, "arc",
+               "how a relation counts in a pixel's fit: arc (by the arc the light travelled between its events, up to its "
+               "pixel's mean arc, so a burst of events at a highlight or shadow edge does not outvote the rest of the "
+               "turn) or pairs (each once)",
+               choices=eventps.PAIR_WEIGHTS),
         Option("fill", bool, True, "give pixels without their own fit a normal from the ring's swing or their neighbours"),
         Option("balance", bool, True, "set the ratio C⁺/C⁻ from the events' polarities over whole turns of a ring light (keeping the mean C)"),
         Option(
@@ -113,6 +118,7 @@ class EventPS(Solver):
             min_pairs=options["min_pairs"],
             reweight=options["reweight"],
             residual_scale=options["residual_scale"],
+            pair_weights=options["pair_weights"],
             fill=options["fill"],
             balance=options["balance"],
         )

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -111,17 +112,32 @@ def test_the_refractory_and_contrast_options_matter() -> None:
 def test_reweighting_rejects_a_pair_that_breaks_the_relation() -> None:
     """Nine events give eight exact pairs; flipping one event's polarity makes its pair an outlier
     (the reference of the next pair is unchanged). Plain least squares (reweight=0, the paper's) is
-    pulled off by degrees; the Cauchy reweighting lands within a tenth of a degree."""
+    pulled off by degrees; the Cauchy reweighting lands within a tenth of a degree. Each pair counts
+    once (``pair_weights=pairs``) so that only the reweighting differs."""
     times = 1000 + 10000 * np.arange(9)
     polarity = np.array([1, 1, -1, 1, -1, -1, 1, 1, -1])
     capture = hand_built_capture(times, polarity)
     corrupt = capture.events.data
     corrupt.p[4] = -corrupt.p[4]
     y, x = PIXEL_XY[1], PIXEL_XY[0]
-    plain = _solve(capture, "reweight=0").normal[y, x]
-    robust = _solve(capture).normal[y, x]
+    plain = _solve(capture, "reweight=0", "pair_weights=pairs").normal[y, x]
+    robust = _solve(capture, "pair_weights=pairs").normal[y, x]
     assert _angle(plain, NORMAL) > 2.0
     assert _angle(robust, NORMAL) < 0.1  # measured 0.045°: Cauchy weights never reach zero
+
+
+def test_arc_weights_keep_a_highlights_burst_from_outvoting_the_turn(tmp_path: Path) -> None:
+    """The specular relief (nearly flat, a few events a turn) through the EVK4-like sensor (0.5 ms
+    refractory, reset-at-end): a highlight fires a burst of short relations that break the Lambertian
+    relation, and counted once each they outvote the rest of the turn; weighted by the light's arc
+    (the default) they do not."""
+    path = tmp_path / "relief.h5"
+    simulate(SimulationConfig.with_preset("evk4", scene="relief", size=48, seed=0, event_scale=0.5,
+                                          refractory_rule="reset-at-end"), path)
+    relief = psfmt.load(path)
+    arc, pairs = _mae(_solve(relief).normal, relief), _mae(_solve(relief, "pair_weights=pairs").normal, relief)
+    # measured 5.25° against 9.53°
+    assert arc < 0.65 * pairs and arc < 6.5
 
 
 def test_windows_split_the_pairs_by_the_later_event() -> None:
@@ -233,7 +249,7 @@ def test_simulated_sphere(sphere: psfmt.Capture) -> None:
     gt = sphere.ground_truth
     assert result.normal.shape == (64, 64, 3)
     assert result.mask.all()  # the sensor sees the whole frame, and every event pixel gets a normal
-    # measured 1.07°: 0.97° on the 96 % with their own fit (most of it at the limb, where event
+    # measured 1.14°: 1.04° on the 96 % with their own fit (most of it at the limb, where event
     # pixels straddle the background), 3.4° on the pixels within 13° of the pole (swing)
     assert _mae(result.normal, sphere) < 1.3
     confidence = result.maps["confidence"]
@@ -254,7 +270,7 @@ def test_one_map_per_turn(sphere: psfmt.Capture) -> None:
     assert result.diagnostics["window_start_us"] == [0, int(period)]
     for normal in sequence:
         assert np.linalg.norm(normal, axis=-1).min() > 0.99  # every pixel of every window
-        assert _mae(normal, sphere) < 1.4  # measured 1.10° and 1.07°
+        assert _mae(normal, sphere) < 1.5  # measured 1.33° and 1.09°
 
 
 @pytest.fixture(scope="module")
@@ -274,7 +290,7 @@ def test_flat_regions_facing_the_camera_get_their_normal(blobs: psfmt.Capture) -
     result = _solve(blobs)
     errors = angular_error_deg(result.normal, gt.normal, gt.mask)
     assert errors[flat].max() < 5.0  # measured 0.5° at most
-    assert _mae(result.normal, blobs) < 2.5  # measured 1.6°; frameps with 24 lights 2.1°
+    assert _mae(result.normal, blobs) < 2.5  # measured 1.4°; frameps with 24 lights 2.1°
     plain = _solve(blobs, "fill=false")
     assert not plain.mask[flat].any()
 
@@ -336,8 +352,8 @@ def test_missing_calibration_is_one_clear_error() -> None:
 
 def test_the_per_pixel_fit_matches_lapack() -> None:
     """``robust_fit`` without reweighting solves each pixel by the adjugate (no trigonometry): the same
-    smallest eigenvector and eigenvalues as LAPACK on Σ u uᵀ of noisy constraints, and no normal for a
-    pixel below ``min_pairs`` or with parallel constraints."""
+    smallest eigenvector and eigenvalues as LAPACK on Σ a u uᵀ of noisy weighted constraints, and no
+    normal for a pixel below ``min_pairs`` or with parallel constraints."""
     from pstoolkit_eventps.relation_kernel import robust_fit
 
     rng = np.random.default_rng(5)
@@ -349,8 +365,9 @@ def test_the_per_pixel_fit_matches_lapack() -> None:
     pixel = np.repeat(np.arange(300), 6)
     pixel[-6:] = 301  # a pixel with parallel constraints: rank 1
     u[-1, :] = u[-1, -1]
-    normal, values, sums, count = robust_fit(pixel, u.reshape(-1, 3), 303, 3, 0, 0.03, eventps.ADJUGATE_STEPS)
-    ref_values, ref_vectors = np.linalg.eigh(np.einsum("bki,bkj->bij", u[:299], u[:299]))
+    weight = rng.uniform(0.1, 1.0, size=(300, 6))
+    normal, values, sums, count = robust_fit(pixel, u.reshape(-1, 3), weight.ravel(), 303, 3, 0, 0.03, eventps.ADJUGATE_STEPS)
+    ref_values, ref_vectors = np.linalg.eigh(np.einsum("bk,bki,bkj->bij", weight[:299], u[:299], u[:299]))
     np.testing.assert_allclose(values[:299], ref_values, rtol=1e-7, atol=1e-12)
     assert _angle(np.abs(np.sum(normal[:299] * ref_vectors[:, :, 0], axis=1))[:, None], np.ones((299, 1))).max() < 1e-4
     assert np.all(normal[:299, 2] >= 0)
@@ -409,12 +426,13 @@ def test_the_pairs_follow_the_captures_refractory_rule(blobs_rate_limited: psfmt
     assert np.array_equal(np.sort(paired.bound[~exact]), np.sort(p[seen & (gap <= 2001)]))
     result = _solve(blobs_rate_limited)
     assert result.diagnostics["refractory_rule"] == "rate-limited"
-    # measured 6.6° (own fits 1.5° on a quarter of the pixels; the steep flanks, which fire at the
-    # refractory rate all turn, are the rest); 35.9° with the pairs of "reset-at-end"
+    # measured 6.5° (own fits 1.5° on a quarter of the pixels; the steep flanks, which fire at the
+    # refractory rate all turn, are the rest); 19.4° with the pairs of "reset-at-end" (35.9° with
+    # pair_weights=pairs, as the arc weights damp the bursts of wrongly paired events)
     assert _mae(result.normal, blobs_rate_limited) < 8.0
     wrong = copy.copy(blobs_rate_limited)
     wrong.calibration = replace(wrong.calibration, refractory_rule="reset-at-end")
-    assert _mae(_solve(wrong).normal, wrong) > 30.0
+    assert _mae(_solve(wrong).normal, wrong) > 15.0
 
 
 def test_background_activity_hot_pixels_and_a_polarity_mismatch(blobs: psfmt.Capture) -> None:
@@ -426,9 +444,9 @@ def test_background_activity_hot_pixels_and_a_polarity_mismatch(blobs: psfmt.Cap
     result = _solve(noisy)
     assert result.diagnostics["hot_pixels"] == 2
     assert abs(result.diagnostics["contrast_pos"] - 0.15) < 0.003 and abs(result.diagnostics["contrast_neg"] - 0.15) < 0.003
-    # measured 1.93° (1.57° without the noise); 2.79° with the calibration's ratio (balance=false)
-    assert _mae(result.normal, noisy) < 2.3
-    assert _mae(_solve(noisy, "balance=false").normal, noisy) > 2.5
+    # measured 1.64° (1.36° without the noise); 2.41° with the calibration's ratio (balance=false)
+    assert _mae(result.normal, noisy) < 2.0
+    assert _mae(_solve(noisy, "balance=false").normal, noisy) > 2.2
 
 
 def test_hot_pixels_stand_out_from_their_neighbours() -> None:
