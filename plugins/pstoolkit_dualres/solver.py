@@ -13,8 +13,9 @@ brdf=NAME``, ``reflectance.FitModel``), with ``indirect`` an indirect-light map 
 Outputs: ``normal``; the BRDF's maps (``albedo``, ``f0``, ``roughness`` for ``ggx``; radiometric ones
 in frame units per unit light per second, the exposure gain folded in), the maps they imply in other
 workflows (``metallic`` and ``base_color`` for ``ggx``, computed on albedo and F0 relative to the
-capture's albedo scale), and ``cast_shadow`` (the share of each pixel's exposure time the final mask
-removed).
+capture's albedo scale), ``cast_shadow`` (the share of each pixel's exposure time the final mask
+removed) and ``unlit`` (1 where the normal continues the fitted surface over pixels no light reached,
+``unlit``).
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ from pstoolkit_dualres.problem import Problem, build_problem, start_values
 from pstoolkit_dualres.reflectance import FitModel, reflects_indirect
 from pstoolkit_dualres.tiling import plan
 from pstoolkit_dualres.train import StageConfig, train
+from pstoolkit_dualres.unlit import fill_unlit, unlit_pixels
 
 # The event gate's bound is at least this share of the smaller contrast threshold: the residual an
 # event's own quantisation leaves (consistency.event_gate).
@@ -140,6 +142,10 @@ class DualRes(Solver):
         Option("scale_rule", str, "windows",
                "where the irradiance scale s may change: windows (exposure-window bounds) or spikes (the strongest "
                "event bursts, at most three values per turn, as in the paper)", choices=SCALE_RULES),
+        Option("fill_unlit", bool, True,
+               "give the pixels dark in every exposure that the lit object encloses (a pit's bottom in cast shadow "
+               "all turn) the harmonic continuation of the fitted surface's slopes around them, marked in the unlit "
+               "map; false leaves them out"),
         Option("start", str, "auto",
                "where the fit starts: closed (the closed form from the exposures, Lambertian), profile (each super "
                "pixel's normal whose diffuse + GGX profile over the turn fits its events best), or auto (profile where "
@@ -254,7 +260,7 @@ class DualRes(Solver):
                 maps = {name: value.cpu().numpy() for name, value in model.maps(pixel_raw, smooth_raw).items()}
                 normal_np = normal.cpu().numpy()
         clock.lap("output")
-        return self._result(problem, model, normal_np, maps, {
+        return self._result(problem, model, normal_np, maps, options["fill_unlit"], {
             **problem.diagnostics, "preset": preset.record(), "brdf": model.name,
             "shadow_detector": detector_entry.name, "shadow_options": detector_options, "stages": stages, "indirect": model.indirect,
             "preprocess_seconds": seconds_pre, "seconds": clock.record(), "final_loss": history[-1] if history else None,
@@ -312,7 +318,7 @@ class DualRes(Solver):
         return np.flatnonzero(share >= 0.5)
 
     @staticmethod
-    def _result(problem: Problem, model: FitModel, normal: np.ndarray, maps: dict[str, np.ndarray],
+    def _result(problem: Problem, model: FitModel, normal: np.ndarray, maps: dict[str, np.ndarray], fill: bool,
                 diagnostics: dict[str, Any]) -> SolverResult:
         h, w, pixels = problem.geometry.height, problem.geometry.width, problem.geometry.pixels
 
@@ -329,6 +335,10 @@ class DualRes(Solver):
         # derived maps are computed on reflectances relative to the capture's albedo scale
         out.update({name: full(squeeze(value)) for name, value in model.brdf.derived_maps(maps).items()})
         out["cast_shadow"] = problem.shadow_fraction.astype(np.float32)
-        mask = np.zeros(h * w, dtype=bool)
-        mask[pixels] = True
-        return SolverResult(normal=full(normal), mask=mask.reshape(h, w), maps=out, diagnostics=diagnostics)
+        lit = np.zeros(h * w, dtype=bool)
+        lit[pixels] = True
+        lit = lit.reshape(h, w)
+        unlit = unlit_pixels(lit) if fill else np.zeros_like(lit)
+        out["unlit"] = unlit.astype(np.float32)
+        diagnostics["unlit_pixels"] = int(np.count_nonzero(unlit))
+        return SolverResult(normal=fill_unlit(full(normal), lit, unlit), mask=lit | unlit, maps=out, diagnostics=diagnostics)

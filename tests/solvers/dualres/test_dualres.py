@@ -61,7 +61,8 @@ def test_beats_its_closed_form_start_and_frameps_with_the_same_three_frames_with
     assert fitted.diagnostics["event_pairs"] > 1000
     assert fitted.frames_used is None
     maps = fitted.maps
-    assert set(maps) == {"albedo", "f0", "roughness", "indirect", "metallic", "base_color", "cast_shadow"}
+    assert set(maps) == {"albedo", "f0", "roughness", "indirect", "metallic", "base_color", "cast_shadow", "unlit"}
+    assert not maps["unlit"].any() and fitted.diagnostics["unlit_pixels"] == 0
     assert maps["indirect"].shape == (SIZE, SIZE) and np.all(maps["indirect"] >= 0) and fitted.diagnostics["indirect"]
     assert maps["albedo"].shape == maps["f0"].shape == maps["base_color"].shape == (SIZE, SIZE, 3)
     assert maps["roughness"].shape == maps["metallic"].shape == maps["cast_shadow"].shape == (SIZE, SIZE)
