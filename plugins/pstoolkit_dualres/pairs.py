@@ -7,9 +7,12 @@ is paired with the reference level taken at t_{k−1} + R, ln I(t_k) − ln I(t_
 with "rate-limited" consecutive events that fired at a crossing are paired with the sum of the
 thresholds of the events between them (``pstoolkit.events.rule.exact_pairs``). Pairs longer than
 ``max_pair_share`` of the period are dropped (a pixel that was dark that long carries no shading).
-The weight is min(1, Î/(dark_level·Î₉₉)) with Î the approximated irradiance at the pair's darker end
-(Î₉₉ its 99th percentile over all pairs): events in dark regions are sensitive to noise and
-unmodelled inter-reflections (main §3.3).
+The weight is min(1, Î/(dark_level·Î₅₀)) with Î the approximated irradiance at the pair's darker end
+and Î₅₀ its median over all pairs (``DARK_REFERENCE_PERCENTILE``): events in dark regions are sensitive
+to noise and to light the model does not have (main §3.3) — inter-reflection in a concavity that sits
+in cast shadow most of the turn, ambient light. The median is the scene's typical lit level whatever
+its highlights (a 99th percentile is a metal's highlight, against which its whole diffuse-free tail is
+dark); ``benchmarks/NOTES.md`` has the sweep.
 """
 
 from __future__ import annotations
@@ -21,6 +24,9 @@ import numpy as np
 import psfmt
 from pstoolkit.events.rule import exact_pairs
 from pstoolkit_dualres.irradiance import Irradiance
+
+DARK_REFERENCE_PERCENTILE = 50.0
+"""The percentile of the pairs' darker-end irradiance that ``dark_level`` is a share of."""
 
 
 @dataclass
@@ -69,10 +75,10 @@ def event_samples(
     t0_us, period_us
         Start of the irradiance's period and the light period, µs.
     confidence
-        "linear": the weight min(1, Î/(dark_level·Î₉₉)); any other value (``preprocess``'s "none"):
+        "linear": the weight min(1, Î/(dark_level·Î₅₀)); any other value (``preprocess``'s "none"):
         weight 1.
     dark_level
-        Share of Î₉₉ below which a pair's weight falls linearly.
+        Share of Î₅₀ below which a pair's weight falls linearly.
     max_pair_share
         Longest pair kept, as a share of the period.
 
@@ -92,7 +98,7 @@ def event_samples(
     pixel, t_ref, t, target = pairs.pixel[keep], pairs.t_ref_us[keep], t[keep], pairs.delta_log[keep]
     if confidence == "linear":
         darker = np.minimum(irradiance.value(pixel, t_ref - t0_us), irradiance.value(pixel, t - t0_us))
-        bright = float(np.percentile(darker, 99)) if darker.size else 0.0
+        bright = float(np.percentile(darker, DARK_REFERENCE_PERCENTILE)) if darker.size else 0.0
         level = dark_level * bright
         weight = np.clip(darker / level, 0.0, 1.0) if level > 0 else np.ones(len(t))
     else:

@@ -66,8 +66,8 @@ class PreprocessOptions:
     Sampling (eq. 23): ``sigma`` σ, the density (samples per √(saturation unit)), and
     ``max_step_deg``: no sample interval spans more than this sweep of the light.
 
-    Events: ``confidence`` "linear" weighs a pair by min(1, Î / (dark_level·Î₉₉)) with Î at its darker
-    end (Î₉₉ the 99th percentile of that over all pairs), "none" weighs all 1; ``max_pair_share``
+    Events: ``confidence`` "linear" weighs a pair by min(1, Î / (dark_level·Î₅₀)) with Î at its darker
+    end (Î₅₀ the median of that over all pairs, ``pairs``), "none" weighs all 1; ``max_pair_share``
     drops pairs longer than this share of the period.
 
     Closed-form start: ``init_iterations`` fixed-point steps of the attached-shadow clamp (at least 1),
@@ -82,7 +82,7 @@ class PreprocessOptions:
     max_step_deg: float = 5.0
     scale_rule: str = "windows"
     confidence: str = "linear"
-    dark_level: float = 0.05
+    dark_level: float = 0.8
     max_pair_share: float = 0.5
     init_iterations: int = 10
     light_samples: int = 64
