@@ -41,7 +41,7 @@ from pstoolkit.shadows.spikes import spike_threshold
 from pstoolkit_dualres.closed_form import ClosedFormStart, closed_form
 from pstoolkit_dualres.irradiance import Irradiance, approximate
 from pstoolkit_dualres.pairs import EventSamples, event_samples
-from pstoolkit_dualres.profile_start import PROFILE_START_WEIGHT, profile_normals, profiles, specular_weight
+from pstoolkit_dualres.profile_start import capture_start
 from pstoolkit_dualres.sampling import Samples, importance_samples
 from pstoolkit_dualres.super_pixel_normals import event_normals
 
@@ -242,31 +242,26 @@ def _with_start_normal(closed: ClosedFormStart, start_normal: np.ndarray | None,
 def _profile_start(irradiance: Irradiance, light: LightModel, view: np.ndarray, mask: np.ndarray,
                    super_pixel: np.ndarray, affine: np.ndarray, t0_us: float, period_us: float,
                    event_shape: tuple[int, int], rule: str) -> tuple[float | None, np.ndarray | None]:
-    """The specular weight of the profiles of the super pixels on the object (``profile_start``), and by
-    ``rule`` (``PreprocessOptions.start``) the profile start's normals at the frame pixels (H, W, 3) or
-    None; the weight is None where ``rule`` is "closed" or no super pixel sees light."""
+    """The specular weight of the profiles of the super pixels on the object, and by ``rule``
+    (``PreprocessOptions.start``) the profile start's normals at the frame pixels (H, W, 3) or None
+    (``profile_start.capture_start``); the weight is None where ``rule`` is "closed" or no super pixel
+    sees light."""
     if rule == "closed":
         return None, None
     event_height, event_width = event_shape
     height, width = mask.shape
     n_events_px = event_height * event_width
     on_object = np.unique(super_pixel[mask.ravel()])
-    y, grey = profiles(irradiance, light, t0_us, period_us, on_object)
-    lit = y.max(axis=1) > 0
-    if not lit.any():
-        return None, None
-    seen, y = on_object[lit], y[lit]
-    y = y / y.max(axis=1, keepdims=True)
-    weight, roughness = specular_weight(y, grey, view)
-    if rule == "auto" and weight < PROFILE_START_WEIGHT:
+    weight, normal = capture_start(irradiance, light, view, t0_us, period_us, on_object, rule)
+    if normal is None:
         return weight, None
     values = np.zeros((n_events_px, 3))
-    values[seen] = profile_normals(y, grey, view, weight, roughness)
+    values[on_object] = normal
     known = np.zeros(n_events_px, dtype=bool)
-    known[seen] = True
-    normal = to_frames(values, known, affine, height, width, event_height, event_width)[0]
-    length = np.linalg.norm(normal, axis=1, keepdims=True)
-    return weight, np.where(length > 0, normal / np.maximum(length, 1e-12), 0.0).reshape(height, width, 3)
+    known[on_object] = np.any(normal != 0, axis=1)
+    frame_normal = to_frames(values, known, affine, height, width, event_height, event_width)[0]
+    length = np.linalg.norm(frame_normal, axis=1, keepdims=True)
+    return weight, np.where(length > 0, frame_normal / np.maximum(length, 1e-12), 0.0).reshape(height, width, 3)
 
 
 def _where(capture: psfmt.Capture) -> str:

@@ -15,6 +15,9 @@ per pixel the lobe also fits profiles it did not make (a flat pixel's constant, 
 The simulator's plastics and path-traced rough plastic give w ≤ 0.1 (≤ 0.5 through the EVK4-like
 sensor, whose refractory sharpens the profiles), path-traced copper 0.9–1.
 
+``capture_start`` runs both for the solver: the weight from at most ``SELECT_PROFILES`` super pixels, the
+normals ``BLOCK`` super pixels at a time.
+
 ``profile_normals``: each super pixel's candidate normal (a Fibonacci grid of the hemisphere up to
 ``MAX_TILT_DEG``, ~3.5° apart) whose shape at that w and r fits its profile best. It is only a start, and
 only worth it where the lobe carries the light: on a Lambertian surface a profile's shape fixes the
@@ -49,12 +52,39 @@ BLOCK = 2048
 
 
 def profiles(irradiance: Irradiance, light: LightModel, t0_us: float, period_us: float, pixels: np.ndarray,
-             samples: int = PROFILE_SAMPLES) -> tuple[np.ndarray, np.ndarray]:
-    """Î at event pixels ``pixels`` (P,) and ``samples`` phases mid-way in equal steps over the period:
-    (P, samples) float64 (saturation units per second), and the grey light l(t)·luma (samples, 3)."""
+             samples: int = PROFILE_SAMPLES) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Î at event pixels ``pixels`` (P,) and ``samples`` phases mid-way in equal steps over the period,
+    each profile scaled to peak 1: (P, samples) float64, the (P,) bool of the profiles that see light
+    (the others are zero), and the grey light l(t)·luma (samples, 3)."""
     phase = (np.arange(samples) + 0.5) * (period_us / samples)
-    values = irradiance.value(np.asarray(pixels, dtype=np.int64)[:, None], phase[None, :])
-    return np.asarray(values, dtype=np.float64), grey_light(light, phase + t0_us).T
+    values = np.asarray(irradiance.value(np.asarray(pixels, dtype=np.int64)[:, None], phase[None, :]), dtype=np.float64)
+    peak = values.max(axis=1) if len(values) else np.zeros(0)
+    lit = peak > 0
+    values[lit] /= peak[lit, None]
+    values[~lit] = 0.0
+    return values, lit, grey_light(light, phase + t0_us).T
+
+
+def capture_start(irradiance: Irradiance, light: LightModel, view: np.ndarray, t0_us: float, period_us: float,
+                  pixels: np.ndarray, rule: str) -> tuple[float | None, np.ndarray | None]:
+    """The specular weight of the event pixels ``pixels`` (P,) (``specular_weight`` on at most
+    ``SELECT_PROFILES`` of them, evenly spread) and, by ``rule`` ("auto": where the weight reaches
+    ``PROFILE_START_WEIGHT``; "profile": always), their profile normals (P, 3) (zero where a profile
+    sees no light), else None. The weight is None where no profile sees light. Profiles are made
+    ``BLOCK`` pixels at a time, so memory does not grow with the capture."""
+    chosen = pixels[np.unique(np.linspace(0, len(pixels) - 1, min(len(pixels), SELECT_PROFILES)).astype(np.int64))]
+    y, lit, grey = profiles(irradiance, light, t0_us, period_us, chosen)
+    if not lit.any():
+        return None, None
+    weight, roughness = specular_weight(y[lit], grey, view)
+    if rule == "auto" and weight < PROFILE_START_WEIGHT:
+        return weight, None
+    normal = np.zeros((len(pixels), 3))
+    for start in range(0, len(pixels), BLOCK):
+        y, lit, grey = profiles(irradiance, light, t0_us, period_us, pixels[start:start + BLOCK])
+        if lit.any():
+            normal[start:start + BLOCK][lit] = profile_normals(y[lit], grey, view, weight, roughness)
+    return weight, normal
 
 
 def _bases(normal: np.ndarray, light: np.ndarray, view: np.ndarray, roughness: float) -> tuple[np.ndarray, np.ndarray]:
