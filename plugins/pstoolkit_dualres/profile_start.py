@@ -124,13 +124,12 @@ def _residuals(y: np.ndarray, shapes: np.ndarray) -> np.ndarray:
 def specular_weight(y: np.ndarray, light: np.ndarray, view: np.ndarray) -> tuple[float, float]:
     """The weight w of ``SPECULAR_WEIGHTS`` and roughness of ``ROUGHNESSES`` whose profile family fits
     the profiles ``y`` (P, T) best, each profile at its best normal among ``SELECT_CANDIDATES`` (the mean
-    relative residual over at most ``SELECT_PROFILES`` profiles evenly spread in ``y``)."""
-    chosen = y[np.unique(np.linspace(0, len(y) - 1, min(len(y), SELECT_PROFILES)).astype(np.int64))]
+    relative residual over the profiles; ``capture_start`` gives it at most ``SELECT_PROFILES``)."""
     candidates = candidate_normals(SELECT_CANDIDATES)
     best = (np.inf, 0.0, ROUGHNESSES[0])
     for r in ROUGHNESSES:
         for w, shapes in zip(SPECULAR_WEIGHTS, _mixtures(candidates, light, view, r, SPECULAR_WEIGHTS)):
-            residual = float(_residuals(chosen, shapes).min(axis=1).mean())
+            residual = float(_residuals(y, shapes).min(axis=1).mean())
             if residual < best[0]:
                 best = (residual, w, r)
     return best[1], best[2]

@@ -352,10 +352,10 @@ class WindowSolver:
         return PairedWindow(int(start_us), int(end_us), turns, len(events), int(pairs), constraint_pixel, reference,
                             later, crossed, bound, fired, swing)
 
-    def _weights(self, paired: PairedWindow, kept: np.ndarray, exact: np.ndarray) -> np.ndarray:
-        """The weight of each kept exact relation (``Params.pair_weights``): 1, or min(1, a/ā) with a the
-        light's arc between its ends (``relation_kernel.light_arcs``) and ā the mean arc of its pixel's."""
-        pixel = paired.constraint_pixel[kept][exact]
+    def _weights(self, paired: PairedWindow, kept: np.ndarray, exact: np.ndarray, pixel: np.ndarray) -> np.ndarray:
+        """The weight of each kept exact relation, at flat pixels ``pixel`` (``Params.pair_weights``): 1, or
+        min(1, a/ā) with a the light's arc between its ends (``relation_kernel.light_arcs``) and ā the mean
+        arc of its pixel's."""
         if self.params.pair_weights == "pairs" or not len(pixel):
             return np.ones(len(pixel))
         arc = light_arcs(paired.reference, paired.later)[kept][exact]
@@ -381,7 +381,7 @@ class WindowSolver:
         exact = bound == 0
         bounded = not exact.all()
         constraint_pixel, u = (pixel[exact], vectors[exact]) if bounded else (pixel, vectors)
-        weight = self._weights(paired, kept, exact)
+        weight = self._weights(paired, kept, exact, constraint_pixel)
         normal, values, sums, count = robust_fit(
             constraint_pixel, u, weight, pixels, params.min_pairs, params.reweight, params.residual_scale, ADJUGATE_STEPS
         )
