@@ -196,7 +196,8 @@ class TruthDetector(GeometryDetector):
 
     def detect(self, evidence: ShadowEvidence, options: dict[str, Any]) -> ShadowMask:
         assert TruthDetector.normal is not None
-        return super().detect(evidence.with_normal(TruthDetector.normal), options)
+        # the true surface's own height: nothing to calibrate
+        return super().detect(evidence.with_normal(TruthDetector.normal), {**options, "height_scale": 1.0})
 
 
 def register_truth() -> None:

@@ -226,7 +226,8 @@ class DualRes(Solver):
         seconds_pre = time.perf_counter() - started
         gated = options["event_gate"] > 0
         bounds = _stage_bounds(preset, detector, gated)
-        stages: list[dict[str, Any]] = [{"epoch": 0, "shadow_intervals": len(shadows), "cast_shadow_share": problem.diagnostics["cast_shadow_share"]}]
+        stages: list[dict[str, Any]] = [{"epoch": 0, "shadow_intervals": len(shadows), "cast_shadow_share": problem.diagnostics["cast_shadow_share"],
+                                         **shadows.diagnostics}]
         history: list[dict[str, float]] = []
         with deterministic(warn_only=str(self.device) != "cpu"):
             field = build_field(preset, problem, model)
@@ -237,7 +238,8 @@ class DualRes(Solver):
                     if detector.uses_surface:
                         shadows = self._detect_again(detector, detector_options, pre, problem, field, model)
                         clock.lap(f"redetect_{stage}")
-                        record.update(shadow_intervals=len(shadows), cast_shadow_share=problem.diagnostics["cast_shadow_share"])
+                        record.update(shadow_intervals=len(shadows), cast_shadow_share=problem.diagnostics["cast_shadow_share"],
+                                      **shadows.diagnostics)
                     if gated:
                         gate = event_gate(problem, field, model, pre.event_height * pre.event_width, options["event_gate"],
                                           GATE_FLOOR * min(pre.contrast_pos, pre.contrast_neg))

@@ -18,7 +18,7 @@ surface estimate (``evidence.normal``) if the detector sets ``uses_surface``.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -34,11 +34,13 @@ class ShadowMask:
     """When each frame pixel is in a cast shadow: intervals of the light's phase in ``table``, keyed
     by ``cell`` (H·W,) int64 — the frame pixel's own index for a frame-resolution mask, or the event
     pixel covering it for an event-resolution one. Times are absolute µs; the phase origin is
-    ``t0_us`` and the light repeats every ``table.period_us``."""
+    ``t0_us`` and the light repeats every ``table.period_us``. ``diagnostics``: what the detector
+    chose on the way, JSON-ready (the ``geometry`` detectors' height scale), for a solver to record."""
 
     table: ShadowTable
     cell: np.ndarray
     t0_us: float
+    diagnostics: dict[str, Any] = field(default_factory=dict)
 
     @property
     def period_us(self) -> float:

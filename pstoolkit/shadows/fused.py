@@ -11,15 +11,17 @@ solver has a surface the detector returns no mask.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any, ClassVar
 
 import numpy as np
 
 from pstoolkit.plugin.options import Option
 from pstoolkit.shadows.base import ShadowDetector, ShadowEvidence, ShadowMask
-from pstoolkit.shadows.geometry import GEOMETRY_OPTIONS, surface_height, surface_shadow_blocks
+from pstoolkit.shadows.geometry import GEOMETRY_OPTIONS, shadow_height
 from pstoolkit.shadows.intervals import RunCollector, rasterize
 from pstoolkit.shadows.silences import dark_spans, min_gap_us
+from pstoolkit.shadows.surface_sweep import surface_shadow_blocks
 
 
 def event_darkness(evidence: ShadowEvidence, steps: int, min_gap: float) -> np.ndarray:
@@ -48,7 +50,7 @@ class FusedDetector(ShadowDetector):
         steps = options["time_steps"]
         pixels = np.flatnonzero(np.asarray(evidence.mask).ravel())
         # the height first: its solve is the detector's peak memory, better without the dark map beside it
-        height = surface_height(evidence)
+        height, chosen = shadow_height(evidence, options)
         dark = event_darkness(evidence, steps, min_gap_us(options["min_gap_ms"], evidence.refractory_us, 1.0))
         covering = evidence.super_pixel[pixels]
         runs = RunCollector(pixels.size)
@@ -59,4 +61,4 @@ class FusedDetector(ShadowDetector):
             block &= np.take(dark[start : start + len(block)], covering, axis=1)
             runs.feed(block)
             start += len(block)
-        return evidence.frame_mask(runs.intervals(evidence.period_us, pixels))
+        return replace(evidence.frame_mask(runs.intervals(evidence.period_us, pixels)), diagnostics=chosen)

@@ -129,12 +129,14 @@ def test_the_shadow_mask_counts_and_the_detector_comes_from_the_registry(blobs: 
     assert fused.diagnostics["shadow_detector"] == "fused" and [s["epoch"] for s in stages] == [0, 16]
     # the first mask comes from the closed form's surface, the second from the fit's
     assert stages[0]["shadow_intervals"] > 100 and stages[1]["shadow_intervals"] > 100
+    # each mask records the height scale it was marched at and the agreement of every scale tried
+    assert all(s["height_scale"] in s["scales"] and len(s["matched"]) == len(s["scales"]) for s in stages)
     assert 0.02 < fused.maps["cast_shadow"][capture.ground_truth.mask].mean() < 0.1
     assert none.diagnostics["stages"] == [{"epoch": 0, "shadow_intervals": 0, "cast_shadow_share": 0.0}]
     assert not none.maps["cast_shadow"].any()
     # a detector option reaches the detector
-    tight = _solve(capture, "dualres", "epochs=40", "shadow.margin_px=3")
-    assert tight.diagnostics["shadow_options"]["margin_px"] == 3.0
+    tight = _solve(capture, "dualres", "epochs=40", "shadow.margin_px=3", "shadow.height_scale=1")
+    assert tight.diagnostics["shadow_options"]["margin_px"] == 3.0 and tight.diagnostics["stages"][1]["height_scale"] == 1
     assert tight.diagnostics["stages"][1]["cast_shadow_share"] < 0.5 * stages[1]["cast_shadow_share"]
 
 

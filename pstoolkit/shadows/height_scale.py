@@ -1,0 +1,221 @@
+"""The height scale at which the estimated surface's cast shadows start and end when the events say.
+
+A height map integrated from photometric normals comes out too shallow wherever the normals are
+flattened — the classic effect of inter-reflection in a concavity, where light from the opposite wall
+tilts a wall towards the camera — and its cast shadows then come out too short. The events know better
+when a shadow starts and ends: its edge takes the direct light at once, so the pixel's next run of events
+starts there, whatever light fills the shadow afterwards. A height map scaled by s predicts, at each
+super pixel, the times its shadowed share crosses ``SHARE_THRESHOLD``; ``calibrate`` scores each s by
+Cohen's kappa of those crossings against the events' onsets (``onsets``): an entry meets a falling onset
+within the tolerance, an exit a rising one, beyond the chance the onsets around it give. The scale moves
+from 1 only where another clearly agrees better (``_choose``): a surface already right keeps s = 1 (its
+edges match and a taller one's do not), and so does one whose events carry no edges (a rate-limited
+pixel that fires every refractory period starts no run at a shadow) or that casts too few shadows to
+count.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from pstoolkit.shadows.base import ShadowEvidence
+from pstoolkit.shadows.period_profile import Profile
+from pstoolkit.shadows.silences import RUN_TOLERANCE_US
+from pstoolkit.shadows.surface_sweep import surface_shadow_blocks
+
+# Share of a super pixel's frame pixels in shadow at which its events see the edge: an edge that
+# takes most of the direct light drops the super pixel's mean by one contrast threshold about there.
+SHARE_THRESHOLD = 0.3
+# Shortest quiet time before an onset when the refractory period is shorter: a burst's events (R = 0)
+# follow each other within it.
+MIN_QUIET_US = 200.0
+# Fewest predicted edges a scale needs for its agreement to count.
+MIN_EDGES = 50
+# Width, in tolerances, of the span around an edge whose onsets set the chance of a match.
+CHANCE_SPAN = 5.0
+# Least agreement (Cohen's kappa) with the onsets a changed scale must reach, and least gain over 1's.
+MIN_AGREEMENT = 0.35
+MIN_GAIN = 0.05
+# Standard errors of an agreement (binomial) a gain must exceed, and within which of the best a scale
+# nearer 1 is taken instead.
+SIGNIFICANCE = 2.0
+# Scales tried first: a geometric grid from 1/2 to 2^1.5, 1 among them; the best is then refined
+# halfway (in log) to each neighbour.
+COARSE_SCALES = tuple(float(2.0 ** (k / 4.0)) for k in range(-4, 7))
+# Light directions per period of the calibration's sweeps (2° of the turn: the tolerance is several).
+CALIBRATION_STEPS = 180
+
+
+@dataclass(frozen=True)
+class HeightScale:
+    """The chosen ``scale``, and per scale tried (increasing) the predicted edges and their agreement
+    with the onsets (``matched``, Cohen's kappa)."""
+
+    scale: float
+    scales: tuple[float, ...]
+    edges: tuple[int, ...]
+    matched: tuple[float, ...]
+
+    def record(self) -> dict[str, object]:
+        return {"height_scale": round(self.scale, 4), "scales": [round(s, 4) for s in self.scales], "edges": list(self.edges),
+                "matched": [round(m, 4) for m in self.matched]}
+
+
+def onsets(profile: Profile, refractory_us: float) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted keys of the events that start a run, falling and rising apart: an event whose pixel's
+    previous event (cyclically) has the other polarity or lies more than one refractory period (at least
+    ``MIN_QUIET_US``, and ``RUN_TOLERANCE_US``) before it. A key is pixel·3T + T + phase (T the period), each onset entered
+    three times, a period early, on time and a period late, so a search near either end of the period
+    finds the onsets across it."""
+    period = profile.period_us
+    index = np.arange(len(profile))
+    previous = profile.neighbour(index, -1)
+    gap = np.mod(profile.t_us - profile.t_us[previous], period)
+    start = (profile.p != profile.p[previous]) | (gap > max(refractory_us, MIN_QUIET_US) + RUN_TOLERANCE_US) | (profile.count == 1)
+    key = profile.pixel * 3.0 * period + period + profile.t_us
+    copies = (-period, 0.0, period)
+    return tuple(np.sort(np.concatenate([key[start & (profile.p * sign > 0)] + c for c in copies])) for sign in (-1, 1))
+
+
+def _within(keys: np.ndarray, pixel: np.ndarray, phase_us: np.ndarray, period_us: float, half_width_us: float) -> np.ndarray:
+    """(n,) int: the onsets of ``keys`` (``onsets``) of each pixel within ``half_width_us`` of its phase."""
+    centre = pixel * 3.0 * period_us + period_us + phase_us
+    return np.searchsorted(keys, centre + half_width_us, side="right") - np.searchsorted(keys, centre - half_width_us)
+
+
+def _matches(keys: np.ndarray, pixel: np.ndarray, phase_us: np.ndarray, period_us: float, tolerance_us: float
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Whether an onset lies within ``tolerance_us`` of each (pixel, phase), and the chance of that at
+    a random time nearby: onsets arriving at the rate of those within ``CHANCE_SPAN`` tolerances around
+    it, leaving out the tolerance itself (Poisson)."""
+    near = _within(keys, pixel, phase_us, period_us, tolerance_us)
+    around = _within(keys, pixel, phase_us, period_us, CHANCE_SPAN * tolerance_us) - near
+    chance = 1.0 - np.exp(-around / (CHANCE_SPAN - 1.0))
+    return near > 0, chance
+
+
+def _super_pixel_states(evidence: ShadowEvidence, height: np.ndarray, time_steps: int, margin_px: float
+                        ) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+    """The surface's shadows at super-pixel level, a block of times at a time: (first time bin of the
+    block, (n, E') bool — the super pixel's shadowed share at least ``SHARE_THRESHOLD`` — and the E'
+    super pixels that cover the mask, increasing). The state arrays are new for each block; besides the
+    sweep's own buffers a block holds a byte per frame pixel and time."""
+    pixels = np.flatnonzero(np.asarray(evidence.mask).ravel())
+    covering = evidence.super_pixel[pixels]
+    # the masked frame pixels grouped by the super pixel covering them
+    order = np.argsort(covering, kind="stable")
+    used, starts, count = np.unique(covering[order], return_index=True, return_counts=True)
+    step = 0
+    for block in surface_shadow_blocks(evidence, height, time_steps, margin_px):
+        shadowed = np.add.reduceat(np.take(block, order, axis=1).view(np.uint8), starts, axis=1, dtype=np.int32)
+        yield step, shadowed >= SHARE_THRESHOLD * count, used
+        step += len(block)
+
+
+def _edges(evidence: ShadowEvidence, height: np.ndarray, time_steps: int, margin_px: float
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every edge of the super pixels' shadows over the period: (time bin where the new state starts,
+    super pixel, entering), in time order."""
+    bins, pixel, entering = [], [], []
+    first = last = used = None
+    for step, state, used in _super_pixel_states(evidence, height, time_steps, margin_px):
+        if first is None:
+            first = state[0]
+        before = np.vstack([state[:1] if last is None else last[None], state[:-1]])
+        k, e = np.nonzero(state != before)
+        bins.append(step + k)
+        pixel.append(used[e])
+        entering.append(state[k, e])
+        last = state[-1]
+    if first is None:
+        empty = np.empty(0, dtype=np.int64)
+        return empty, empty, np.empty(0, dtype=bool)
+    # the period wraps: the first bin follows the last
+    wrap = np.flatnonzero(first != last)
+    bins.insert(0, np.zeros(wrap.size, dtype=np.int64))
+    pixel.insert(0, used[wrap])
+    entering.insert(0, first[wrap])
+    return np.concatenate(bins), np.concatenate(pixel), np.concatenate(entering)
+
+
+def _edge_matches(falling: np.ndarray, rising: np.ndarray, phase_us: np.ndarray, pixel: np.ndarray, entering: np.ndarray,
+                  period_us: float, tolerance_us: float) -> tuple[np.ndarray, np.ndarray]:
+    """``_matches`` of each edge against the onsets of its polarity: falling for an entry, rising for an exit."""
+    met = np.zeros(len(pixel), dtype=bool)
+    chance = np.zeros(len(pixel))
+    for keys, which in ((falling, entering), (rising, ~entering)):
+        met[which], chance[which] = _matches(keys, pixel[which], phase_us[which], period_us, tolerance_us)
+    return met, chance
+
+
+def calibrate(evidence: ShadowEvidence, height: np.ndarray, *, margin_px: float, tolerance_deg: float = 10.0,
+              time_steps: int = CALIBRATION_STEPS) -> HeightScale:
+    """The height scale whose shadows' edges the events confirm best (module docstring).
+
+    Parameters
+    ----------
+    evidence
+        The capture's evidence (its events' ``profile``, super pixels, light, mask).
+    height
+        (H, W) height map in pixels of the current surface (``surface_sweep.surface_height``).
+    margin_px
+        The sweep's occluder margin (``surface_sweep.surface_shadow_blocks``).
+    tolerance_deg
+        How far, in degrees of the light's turn, an onset may lie from a predicted edge.
+    time_steps
+        Light directions per period the shadows are marched towards.
+
+    Returns
+    -------
+    HeightScale
+        The chosen scale (``_choose``) and the figures of every scale tried, in increasing order.
+    """
+    falling, rising = onsets(evidence.profile, evidence.refractory_us)
+    period = evidence.period_us
+    tolerance_us = tolerance_deg / 360.0 * period
+    tried: dict[float, tuple[int, float]] = {}
+
+    def agreement(scale: float) -> None:
+        bins, pixel, entering = _edges(evidence, height * np.float32(scale), time_steps, margin_px)
+        met, luck = _edge_matches(falling, rising, bins * (period / time_steps), pixel, entering, period, tolerance_us)
+        # Cohen's kappa of the edges against the onsets: the matches beyond chance, as a share of what chance leaves
+        tried[scale] = (int(bins.size), float(np.sum(met - luck) / max(np.sum(1.0 - luck), 1e-9)))
+
+    for scale in COARSE_SCALES:
+        agreement(scale)
+    counted = [s for s in COARSE_SCALES if tried[s][0] >= MIN_EDGES]
+    if counted:
+        best = max(counted, key=lambda s: tried[s][1])
+        for neighbour in (best / 2.0 ** 0.125, best * 2.0 ** 0.125):
+            if COARSE_SCALES[0] < neighbour < COARSE_SCALES[-1]:
+                agreement(neighbour)
+    scales = tuple(sorted(tried))
+    edges = [tried[s][0] for s in scales]
+    matched = [tried[s][1] for s in scales]
+    return HeightScale(scale=_choose(scales, edges, matched), scales=scales, edges=tuple(edges), matched=tuple(matched))
+
+
+def _choose(scales: tuple[float, ...], edges: list[int], matched: list[float]) -> float:
+    """1, unless some scale's agreement reaches ``MIN_AGREEMENT`` and beats 1's (0 when 1 predicts
+    under ``MIN_EDGES`` edges) by ``MIN_GAIN`` and ``SIGNIFICANCE`` standard errors, and the best is not
+    at either end of ``scales``; then, among the scales that beat it, the one nearest 1 whose agreement
+    is within that many standard errors of the best's: a taller or flatter surface must earn its change."""
+    def error(i: int) -> float:
+        rate = min(max(matched[i], 0.0), 1.0)
+        return float(np.sqrt(rate * (1.0 - rate) / max(edges[i], 1)))
+
+    counted = [i for i, n in enumerate(edges) if n >= MIN_EDGES]
+    reference = next((matched[i] for i in counted if scales[i] == 1.0), 0.0)
+    better = [i for i in counted if matched[i] >= MIN_AGREEMENT
+              and matched[i] - reference >= max(MIN_GAIN, SIGNIFICANCE * error(i))]
+    if not better:
+        return 1.0
+    best = max(better, key=lambda i: matched[i])
+    if best in (0, len(scales) - 1):
+        # the rate still rises at the end of the range: its best lies beyond, or nowhere
+        return 1.0
+    close = [i for i in better if matched[i] >= matched[best] - SIGNIFICANCE * error(best)]
+    return float(scales[min(close, key=lambda i: abs(np.log(scales[i])))])
