@@ -16,22 +16,18 @@ count.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
 from pstoolkit.shadows.base import ShadowEvidence
 from pstoolkit.shadows.period_profile import Profile
-from pstoolkit.shadows.silences import RUN_TOLERANCE_US
+from pstoolkit.shadows.silences import RUN_TOLERANCE_US, min_gap_us
 from pstoolkit.shadows.surface_sweep import surface_shadow_blocks
 
 # Share of a super pixel's frame pixels in shadow at which its events see the edge: an edge that
 # takes most of the direct light drops the super pixel's mean by one contrast threshold about there.
 SHARE_THRESHOLD = 0.3
-# Shortest quiet time before an onset when the refractory period is shorter: a burst's events (R = 0)
-# follow each other within it.
-MIN_QUIET_US = 200.0
 # Fewest predicted edges a scale needs for its agreement to count.
 MIN_EDGES = 50
 # Width, in tolerances, of the span around an edge whose onsets set the chance of a match.
@@ -67,14 +63,13 @@ class HeightScale:
 def onsets(profile: Profile, refractory_us: float) -> tuple[np.ndarray, np.ndarray]:
     """Sorted keys of the events that start a run, falling and rising apart: an event whose pixel's
     previous event (cyclically) has the other polarity or lies more than one refractory period (at least
-    ``MIN_QUIET_US``, and ``RUN_TOLERANCE_US``) before it. A key is pixel·3T + T + phase (T the period), each onset entered
+    200 µs, ``silences.min_gap_us``: a burst's events, R = 0, follow each other within it; and
+    ``RUN_TOLERANCE_US``) before it. A key is pixel·3T + T + phase (T the period), each onset entered
     three times, a period early, on time and a period late, so a search near either end of the period
     finds the onsets across it."""
     period = profile.period_us
-    index = np.arange(len(profile))
-    previous = profile.neighbour(index, -1)
-    gap = np.mod(profile.t_us - profile.t_us[previous], period)
-    start = (profile.p != profile.p[previous]) | (gap > max(refractory_us, MIN_QUIET_US) + RUN_TOLERANCE_US) | (profile.count == 1)
+    previous, gap = profile.previous()
+    start = (profile.p != profile.p[previous]) | (gap > min_gap_us(-1.0, refractory_us, 1.0) + RUN_TOLERANCE_US)
     key = profile.pixel * 3.0 * period + period + profile.t_us
     copies = (-period, 0.0, period)
     return tuple(np.sort(np.concatenate([key[start & (profile.p * sign > 0)] + c for c in copies])) for sign in (-1, 1))
@@ -97,46 +92,53 @@ def _matches(keys: np.ndarray, pixel: np.ndarray, phase_us: np.ndarray, period_u
     return near > 0, chance
 
 
-def _super_pixel_states(evidence: ShadowEvidence, height: np.ndarray, time_steps: int, margin_px: float
-                        ) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
-    """The surface's shadows at super-pixel level, a block of times at a time: (first time bin of the
-    block, (n, E') bool — the super pixel's shadowed share at least ``SHARE_THRESHOLD`` — and the E'
-    super pixels that cover the mask, increasing). The state arrays are new for each block; besides the
-    sweep's own buffers a block holds a byte per frame pixel and time."""
-    pixels = np.flatnonzero(np.asarray(evidence.mask).ravel())
-    covering = evidence.super_pixel[pixels]
-    # the masked frame pixels grouped by the super pixel covering them
-    order = np.argsort(covering, kind="stable")
-    used, starts, count = np.unique(covering[order], return_index=True, return_counts=True)
+@dataclass(frozen=True)
+class _SuperPixels:
+    """The masked frame pixels grouped by the super pixel covering them: ``order`` (P,) sorts them so,
+    ``starts`` (E',) is where each group begins in that order, ``count`` (E',) its size, ``used`` (E',)
+    the super pixels, increasing."""
+
+    order: np.ndarray
+    starts: np.ndarray
+    count: np.ndarray
+    used: np.ndarray
+
+    @classmethod
+    def of(cls, evidence: ShadowEvidence) -> _SuperPixels:
+        covering = evidence.super_pixel[np.flatnonzero(np.asarray(evidence.mask).ravel())]
+        order = np.argsort(covering, kind="stable")
+        used, starts, count = np.unique(covering[order], return_index=True, return_counts=True)
+        return cls(order, starts, count, used)
+
+
+def _edges(evidence: ShadowEvidence, groups: _SuperPixels, height: np.ndarray, time_steps: int, margin_px: float
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every edge of the super pixels' shadows over the period — where a super pixel's shadowed share of
+    ``groups`` crosses ``SHARE_THRESHOLD`` — as (time bin where the new state starts, super pixel,
+    entering), in time order. Besides the sweep's own buffers a block of directions holds a byte per
+    frame pixel and direction."""
+    bins, pixel, entering = [], [], []
+    first = last = None
     step = 0
     for block in surface_shadow_blocks(evidence, height, time_steps, margin_px):
-        shadowed = np.add.reduceat(np.take(block, order, axis=1).view(np.uint8), starts, axis=1, dtype=np.int32)
-        yield step, shadowed >= SHARE_THRESHOLD * count, used
-        step += len(block)
-
-
-def _edges(evidence: ShadowEvidence, height: np.ndarray, time_steps: int, margin_px: float
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every edge of the super pixels' shadows over the period: (time bin where the new state starts,
-    super pixel, entering), in time order."""
-    bins, pixel, entering = [], [], []
-    first = last = used = None
-    for step, state, used in _super_pixel_states(evidence, height, time_steps, margin_px):
+        shadowed = np.add.reduceat(np.take(block, groups.order, axis=1).view(np.uint8), groups.starts, axis=1, dtype=np.int32)
+        state = shadowed >= SHARE_THRESHOLD * groups.count
         if first is None:
             first = state[0]
         before = np.vstack([state[:1] if last is None else last[None], state[:-1]])
         k, e = np.nonzero(state != before)
         bins.append(step + k)
-        pixel.append(used[e])
+        pixel.append(groups.used[e])
         entering.append(state[k, e])
         last = state[-1]
+        step += len(block)
     if first is None:
         empty = np.empty(0, dtype=np.int64)
         return empty, empty, np.empty(0, dtype=bool)
     # the period wraps: the first bin follows the last
     wrap = np.flatnonzero(first != last)
     bins.insert(0, np.zeros(wrap.size, dtype=np.int64))
-    pixel.insert(0, used[wrap])
+    pixel.insert(0, groups.used[wrap])
     entering.insert(0, first[wrap])
     return np.concatenate(bins), np.concatenate(pixel), np.concatenate(entering)
 
@@ -176,10 +178,11 @@ def calibrate(evidence: ShadowEvidence, height: np.ndarray, *, margin_px: float,
     falling, rising = onsets(evidence.profile, evidence.refractory_us)
     period = evidence.period_us
     tolerance_us = tolerance_deg / 360.0 * period
+    groups = _SuperPixels.of(evidence)
     tried: dict[float, tuple[int, float]] = {}
 
     def agreement(scale: float) -> None:
-        bins, pixel, entering = _edges(evidence, height * np.float32(scale), time_steps, margin_px)
+        bins, pixel, entering = _edges(evidence, groups, height * np.float32(scale), time_steps, margin_px)
         met, luck = _edge_matches(falling, rising, bins * (period / time_steps), pixel, entering, period, tolerance_us)
         # Cohen's kappa of the edges against the onsets: the matches beyond chance, as a share of what chance leaves
         tried[scale] = (int(bins.size), float(np.sum(met - luck) / max(np.sum(1.0 - luck), 1e-9)))

@@ -44,6 +44,13 @@ class Profile:
         local = index - self.first[index]
         return self.first[index] + np.mod(local + offset, self.count[index])
 
+    def previous(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each sample's predecessor in its pixel (cyclically) and the time since it, µs: the whole
+        period for a pixel's only sample."""
+        previous = self.neighbour(np.arange(len(self)), -1)
+        gap = np.where(self.count == 1, self.period_us, np.mod(self.t_us - self.t_us[previous], self.period_us))
+        return previous, gap
+
 
 def group_by_pixel(events: EventArray, width: int, t0_us: float, period_us: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Events of [t0_us, t0_us + period_us) as (pixel, phase µs float64, polarity), grouped by pixel

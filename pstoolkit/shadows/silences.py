@@ -72,8 +72,7 @@ def dark_spans(
         return ShadowIntervals.empty()
     period = profile.period_us
     k = np.arange(n)
-    prev = profile.neighbour(k, -1)
-    gap = np.where(profile.count == 1, period, np.mod(profile.t_us - profile.t_us[prev], period))
+    prev, gap = profile.previous()
     # an event continues a run when it and its predecessor are negative and one refractory period apart
     runs_on = (profile.p < 0) & (profile.p[prev] < 0) & (gap <= refractory_us + tolerance_us) & (profile.count > 1)
     local = k - profile.first

@@ -41,7 +41,7 @@ def test_onsets_are_the_first_events_of_runs() -> None:
     # each onset is also entered a period early and late, so a search across the period's ends finds it
     assert len(falling) == 3 * 2 and np.all(np.diff(falling) > 0)
     falling, _ = onsets(profile, 0.0)
-    assert _phases(falling, 1) == [5000.0]  # the burst's events lie within MIN_QUIET_US of each other
+    assert _phases(falling, 1) == [5000.0]  # the burst's events lie within 200 µs of each other
 
 
 def test_the_choice_keeps_1_unless_another_scale_earns_it() -> None:
