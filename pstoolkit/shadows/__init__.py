@@ -10,7 +10,8 @@ the light's phase. Built in (registered by the ``core`` plugin):
   shadow edges as bursts, which a refractory period longer than about 0.3 ms (at C = 0.15) hides;
 - ``silences``: dark spans of the event polarity pattern, for any refractory period and rule;
 - ``geometry``: shadows of the solver's surface, integrated and ray-marched;
-- ``fused``: ``geometry`` confirmed by the dark spans of ``silences`` (dualres's default).
+- ``fused``: ``geometry`` confirmed by the dark spans of ``silences`` or, where light fills a shadow,
+  by the events' fall and rise at its edges (``edge_seen``); dualres's default.
 
 ``pstoolkit.shadows.score`` rates a mask against the truth of a simulated capture. This package
 imports neither torch nor numba; the sweeps load them when first used.

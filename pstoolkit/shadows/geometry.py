@@ -29,8 +29,8 @@ GEOMETRY_OPTIONS: tuple[Option, ...] = (
     Option("margin_px", float, 0.225, "an occluder must rise this many pixels above a ray to shadow it", minimum=-10.0, maximum=10.0),
     Option("height_scale", float, 0.0, "factor on the integrated height before the sweep; 0 = the scale whose shadow "
            "edges the events' onsets confirm best (pstoolkit.shadows.height_scale)", minimum=0.0, maximum=10.0),
-    Option("edge_tolerance_deg", float, 10.0, "height_scale 0: how far (degrees of the turn) an onset may lie from a "
-           "predicted shadow edge", minimum=0.1, maximum=90.0),
+    Option("edge_tolerance_deg", float, 10.0, "how far (degrees of the turn) the events that confirm a predicted shadow "
+           "edge may lie from it (height_scale 0; fused's edge_share)", minimum=0.1, maximum=90.0),
 )
 
 

@@ -75,8 +75,9 @@ def onsets(profile: Profile, refractory_us: float) -> tuple[np.ndarray, np.ndarr
     return tuple(np.sort(np.concatenate([key[start & (profile.p * sign > 0)] + c for c in copies])) for sign in (-1, 1))
 
 
-def _within(keys: np.ndarray, pixel: np.ndarray, phase_us: np.ndarray, period_us: float, half_width_us: float) -> np.ndarray:
-    """(n,) int: the onsets of ``keys`` (``onsets``) of each pixel within ``half_width_us`` of its phase."""
+def within(keys: np.ndarray, pixel: np.ndarray, phase_us: np.ndarray, period_us: float, half_width_us: float) -> np.ndarray:
+    """(n,) int: the events of ``keys`` (``onsets``, ``edge_seen.signed_keys``) of each pixel within
+    ``half_width_us`` of its phase."""
     centre = pixel * 3.0 * period_us + period_us + phase_us
     return np.searchsorted(keys, centre + half_width_us, side="right") - np.searchsorted(keys, centre - half_width_us)
 
@@ -86,14 +87,14 @@ def _matches(keys: np.ndarray, pixel: np.ndarray, phase_us: np.ndarray, period_u
     """Whether an onset lies within ``tolerance_us`` of each (pixel, phase), and the chance of that at
     a random time nearby: onsets arriving at the rate of those within ``CHANCE_SPAN`` tolerances around
     it, leaving out the tolerance itself (Poisson)."""
-    near = _within(keys, pixel, phase_us, period_us, tolerance_us)
-    around = _within(keys, pixel, phase_us, period_us, CHANCE_SPAN * tolerance_us) - near
+    near = within(keys, pixel, phase_us, period_us, tolerance_us)
+    around = within(keys, pixel, phase_us, period_us, CHANCE_SPAN * tolerance_us) - near
     chance = 1.0 - np.exp(-around / (CHANCE_SPAN - 1.0))
     return near > 0, chance
 
 
 @dataclass(frozen=True)
-class _SuperPixels:
+class SuperPixels:
     """The masked frame pixels grouped by the super pixel covering them: ``order`` (P,) sorts them so,
     ``starts`` (E',) is where each group begins in that order, ``count`` (E',) its size, ``used`` (E',)
     the super pixels, increasing."""
@@ -104,23 +105,26 @@ class _SuperPixels:
     used: np.ndarray
 
     @classmethod
-    def of(cls, evidence: ShadowEvidence) -> _SuperPixels:
+    def of(cls, evidence: ShadowEvidence) -> SuperPixels:
         covering = evidence.super_pixel[np.flatnonzero(np.asarray(evidence.mask).ravel())]
         order = np.argsort(covering, kind="stable")
         used, starts, count = np.unique(covering[order], return_index=True, return_counts=True)
         return cls(order, starts, count, used)
 
 
-def _edges(evidence: ShadowEvidence, groups: _SuperPixels, height: np.ndarray, time_steps: int, margin_px: float
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def super_pixel_edges(evidence: ShadowEvidence, groups: SuperPixels, height: np.ndarray, time_steps: int, margin_px: float
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Every edge of the super pixels' shadows over the period — where a super pixel's shadowed share of
     ``groups`` crosses ``SHARE_THRESHOLD`` — as (time bin where the new state starts, super pixel,
-    entering), in time order. Besides the sweep's own buffers a block of directions holds a byte per
-    frame pixel and direction."""
+    entering), in time order, and (P,) int32 the time bins each masked frame pixel is in the surface's
+    shadow. Besides the sweep's own buffers a block of directions holds a byte per frame pixel and
+    direction."""
     bins, pixel, entering = [], [], []
     first = last = None
     step = 0
+    pixel_bins = np.zeros(groups.order.size, dtype=np.int32)
     for block in surface_shadow_blocks(evidence, height, time_steps, margin_px):
+        pixel_bins += np.count_nonzero(block, axis=0).astype(np.int32)
         shadowed = np.add.reduceat(np.take(block, groups.order, axis=1).view(np.uint8), groups.starts, axis=1, dtype=np.int32)
         state = shadowed >= SHARE_THRESHOLD * groups.count
         if first is None:
@@ -134,13 +138,13 @@ def _edges(evidence: ShadowEvidence, groups: _SuperPixels, height: np.ndarray, t
         step += len(block)
     if first is None:
         empty = np.empty(0, dtype=np.int64)
-        return empty, empty, np.empty(0, dtype=bool)
+        return empty, empty, np.empty(0, dtype=bool), pixel_bins
     # the period wraps: the first bin follows the last
     wrap = np.flatnonzero(first != last)
     bins.insert(0, np.zeros(wrap.size, dtype=np.int64))
     pixel.insert(0, groups.used[wrap])
     entering.insert(0, first[wrap])
-    return np.concatenate(bins), np.concatenate(pixel), np.concatenate(entering)
+    return np.concatenate(bins), np.concatenate(pixel), np.concatenate(entering), pixel_bins
 
 
 def _edge_matches(falling: np.ndarray, rising: np.ndarray, phase_us: np.ndarray, pixel: np.ndarray, entering: np.ndarray,
@@ -178,11 +182,11 @@ def calibrate(evidence: ShadowEvidence, height: np.ndarray, *, margin_px: float,
     falling, rising = onsets(evidence.profile, evidence.refractory_us)
     period = evidence.period_us
     tolerance_us = tolerance_deg / 360.0 * period
-    groups = _SuperPixels.of(evidence)
+    groups = SuperPixels.of(evidence)
     tried: dict[float, tuple[int, float]] = {}
 
     def agreement(scale: float) -> None:
-        bins, pixel, entering = _edges(evidence, groups, height * np.float32(scale), time_steps, margin_px)
+        bins, pixel, entering, _ = super_pixel_edges(evidence, groups, height * np.float32(scale), time_steps, margin_px)
         met, luck = _edge_matches(falling, rising, bins * (period / time_steps), pixel, entering, period, tolerance_us)
         # Cohen's kappa of the edges against the onsets: the matches beyond chance, as a share of what chance leaves
         tried[scale] = (int(bins.size), float(np.sum(met - luck) / max(np.sum(1.0 - luck), 1e-9)))

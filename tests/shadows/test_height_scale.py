@@ -112,4 +112,4 @@ def test_where_the_onsets_carry_no_edges_the_surface_stays(blobs: dict) -> None:
     chosen = calibrate(evidence, surface_height(evidence), margin_px=0.225)
     assert chosen.scale == 1.0 and max(chosen.matched) < MIN_AGREEMENT  # measured at most 0.16
     fixed = get_registries().shadow_detectors.get("fused")
-    assert fixed.obj().detect(evidence, fixed.parse_options(["height_scale=1.5"])).diagnostics == {"height_scale": 1.5}
+    assert fixed.obj().detect(evidence, fixed.parse_options(["height_scale=1.5", "edge_share=0"])).diagnostics == {"height_scale": 1.5}

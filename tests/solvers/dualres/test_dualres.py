@@ -131,6 +131,8 @@ def test_the_shadow_mask_counts_and_the_detector_comes_from_the_registry(blobs: 
     assert stages[0]["shadow_intervals"] > 100 and stages[1]["shadow_intervals"] > 100
     # each mask records the height scale it was marched at and the agreement of every scale tried
     assert all(s["height_scale"] in s["scales"] and len(s["matched"]) == len(s["scales"]) for s in stages)
+    # and how many of its predicted shadows the events' edges confirmed
+    assert all(0 <= s["edge_seen"] <= s["edge_runs"] and s["edge_runs"] > 0 for s in stages)
     assert 0.02 < fused.maps["cast_shadow"][capture.ground_truth.mask].mean() < 0.1
     assert none.diagnostics["stages"] == [{"epoch": 0, "shadow_intervals": 0, "cast_shadow_share": 0.0}]
     assert not none.maps["cast_shadow"].any()
