@@ -4,13 +4,12 @@ what a run does; single options override a preset's value.
 - ``fast`` (default): ``fields.PyramidField`` started from the closed form, 150 full-batch epochs on
   8 samples per frame of a time grid shared by all pixels, a strong event loss (λ_e = 8: the pyramid
   shares information between pixels far less than a network, so the events must weigh more), and a
-  surface-based shadow detector run again after the first 40 % of the epochs, with the pixels it
-  puts in shadow restarted from the closed form under the new mask.
+  surface-based shadow detector run again after the first 40 % of the epochs, the fit carrying on
+  under the new mask from where it is.
 - ``paper``: the paper's coordinate MLP (``fields.NeuralField``) trained from scratch for 1200 epochs
   on the importance samples of eq. 21/23 in mini-batches of 512 pixels (8 × 8 tiles), Adam at 1e-3
   decaying to 1e-4, λ_e = 0.05 (supplement §2.4, as LL22a trains); a surface-based detector runs again
-  after a quarter and after half of the epochs (a network cannot restart single pixels, so only the
-  mask changes).
+  after a quarter and after half of the epochs.
 
 A run records the preset it used, overrides applied (``resolve``), under ``preset`` in its
 diagnostics (``Preset.record``), which ``result.json`` carries.

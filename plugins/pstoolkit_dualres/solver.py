@@ -4,10 +4,11 @@ Pipeline: ``preprocess`` → the shadow detector of the registry (``--set shadow
 that uses the surface, ``geometry`` or ``fused``, on the closed-form start's normals) → the closed form
 again under its mask → ``problem.build_problem`` with the mask → Adam on the frame, event and TV losses
 (eq. 24–26, ``train``) in stages: a detector that uses the surface runs again on the
-fitted normals between stages (``presets.Preset.detect_at``), the mask is applied to the frames and
-events, and the pixels it puts in shadow restart from the closed form under it; with ``event_gate``
-κ the event pixels whose pairs the fit cannot explain weigh less from then on and their frame pixels
-restart too (``consistency``). The reflectance model is a BRDF of the registry (``--set
+fitted normals between stages (``presets.Preset.detect_at``) and its mask is applied to the frames and
+events, the fit carrying on from where it is (restarting the pixels it shadows from the closed form
+under it cost path-traced concavities 0.1–0.3°: under inter-reflection the closed form is the worse
+start, ``benchmarks/NOTES.md``); with ``event_gate`` κ the event pixels whose pairs the fit cannot
+explain weigh less from then on and their frame pixels restart from the closed form (``consistency``). The reflectance model is a BRDF of the registry (``--set
 brdf=NAME``, ``reflectance.FitModel``), with ``indirect`` an indirect-light map beside it.
 
 Outputs: ``normal``; the BRDF's maps (``albedo``, ``f0``, ``roughness`` for ``ggx``; radiometric ones
@@ -236,7 +237,7 @@ class DualRes(Solver):
                 if stage > 0:
                     record: dict[str, Any] = {"epoch": first}
                     if detector.uses_surface:
-                        shadows = self._detect_again(detector, detector_options, pre, problem, field, model)
+                        shadows = self._detect_again(detector, detector_options, pre, problem, field)
                         clock.lap(f"redetect_{stage}")
                         record.update(shadow_intervals=len(shadows), cast_shadow_share=problem.diagnostics["cast_shadow_share"],
                                       **shadows.diagnostics)
@@ -281,9 +282,8 @@ class DualRes(Solver):
 
     @staticmethod
     def _detect_again(detector: ShadowDetector, detector_options: dict[str, Any], pre: Preprocessed, problem: Problem,
-                      field: nn.Module, model: FitModel) -> ShadowMask:
-        """The detector on the current normals; the mask into the problem, and (a pyramid field) the
-        pixels it shadows restarted from the closed form under it."""
+                      field: nn.Module) -> ShadowMask:
+        """The detector on the current normals, its mask into the problem."""
         with torch.no_grad():
             normal = field()[0].cpu().numpy()
         h, w, pixels = problem.geometry.height, problem.geometry.width, problem.geometry.pixels
@@ -291,8 +291,6 @@ class DualRes(Solver):
         full[pixels] = normal
         shadows = detector.detect(pre.evidence.with_normal(full.reshape(h, w, 3)), detector_options)
         problem.apply_mask(shadows)
-        if len(shadows):
-            DualRes._restart(pre, problem, field, model, shadows, np.flatnonzero(shadows.coverage()[pixels] > 0))
         return shadows
 
     @staticmethod
