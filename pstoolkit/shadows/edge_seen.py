@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pstoolkit.shadows.base import ShadowEvidence
-from pstoolkit.shadows.height_scale import SuperPixels, super_pixel_edges, within
+from pstoolkit.shadows.height_scale import EdgeTracker, SuperPixels, super_pixel_edges, within
 from pstoolkit.shadows.intervals import ShadowIntervals, rasterize
 from pstoolkit.shadows.period_profile import Profile
 
@@ -54,18 +54,22 @@ def signed_keys(profile: Profile) -> tuple[np.ndarray, np.ndarray]:
 def seen_shadows(evidence: ShadowEvidence, height: np.ndarray, time_steps: int, margin_px: float, tolerance_deg: float
                  ) -> SeenShadows:
     """The shadows of the surface of ``height`` (pixels) whose edges the events of ``evidence`` see
-    (module docstring).
+    (module docstring), marched at ``time_steps`` light directions per period with the occluder margin
+    ``margin_px`` (``surface_sweep.surface_shadow_blocks``); ``seen_edges`` on its ``EdgeTracker``."""
+    tracker = super_pixel_edges(evidence, SuperPixels.of(evidence), height, time_steps, margin_px)
+    return seen_edges(evidence, tracker, tolerance_deg)
+
+
+def seen_edges(evidence: ShadowEvidence, tracker: EdgeTracker, tolerance_deg: float) -> SeenShadows:
+    """The predicted shadows of ``tracker`` (fed a whole period) whose edges the events of ``evidence``
+    see.
 
     Parameters
     ----------
     evidence
-        The capture's evidence (its events' ``profile``, super pixels, light, mask).
-    height
-        (H, W) float32 height map the shadows are marched on.
-    time_steps
-        Light directions per period, the bins of ``intervals.grid_times``.
-    margin_px
-        The sweep's occluder margin (``surface_sweep.surface_shadow_blocks``).
+        The capture's evidence (its events' ``profile``, super pixels, period).
+    tracker
+        The super pixels' shadow edges on the time grid of its ``steps`` bins per period.
     tolerance_deg
         How far, in degrees of the turn, the events that show an edge may lie from the predicted one.
 
@@ -74,11 +78,11 @@ def seen_shadows(evidence: ShadowEvidence, height: np.ndarray, time_steps: int, 
     SeenShadows
         The seen shadows on the time grid, for the event pixels that have any.
     """
-    period = evidence.period_us
-    groups = SuperPixels.of(evidence)
-    bins, pixel, entering, pixel_bins = super_pixel_edges(evidence, groups, height, time_steps, margin_px)
+    period, time_steps = evidence.period_us, tracker.steps
+    bins, pixel, entering = tracker.edges()
+    pixel_share = tracker.pixel_bins / float(max(time_steps, 1))
     if bins.size == 0:
-        return SeenShadows(np.empty(0, dtype=np.int64), np.zeros((time_steps, 0), dtype=bool), pixel_bins / float(time_steps), 0, 0)
+        return SeenShadows(np.empty(0, dtype=np.int64), np.zeros((time_steps, 0), dtype=bool), pixel_share, 0, 0)
     # a super pixel's edges alternate in time: each entry's exit is the super pixel's next edge, cyclically
     order = np.lexsort((bins, pixel))
     bins, pixel, entering = bins[order], pixel[order], entering[order]
@@ -97,4 +101,4 @@ def seen_shadows(evidence: ShadowEvidence, height: np.ndarray, time_steps: int, 
     seen = (net(falling, rising, entry_us) > 0) & (net(rising, falling, exit_us) > 0)
     columns, column = np.unique(owner[seen], return_inverse=True)
     grid = rasterize(ShadowIntervals(column, entry_us[seen], exit_us[seen]), columns.size, period, time_steps)
-    return SeenShadows(columns, grid, pixel_bins / float(time_steps), int(owner.size), int(np.count_nonzero(seen)))
+    return SeenShadows(columns, grid, pixel_share, int(owner.size), int(np.count_nonzero(seen)))

@@ -25,11 +25,16 @@ import numpy as np
 
 from pstoolkit.plugin.options import Option
 from pstoolkit.shadows.base import ShadowDetector, ShadowEvidence, ShadowMask
-from pstoolkit.shadows.edge_seen import seen_shadows
+from pstoolkit.shadows.edge_seen import SeenShadows, seen_edges
 from pstoolkit.shadows.geometry import GEOMETRY_OPTIONS, shadow_height
-from pstoolkit.shadows.intervals import RunCollector, rasterize
+from pstoolkit.shadows.height_scale import EdgeTracker, SuperPixels
+from pstoolkit.shadows.intervals import RunCollector, ShadowIntervals, intervals_from_grid, rasterize
 from pstoolkit.shadows.silences import dark_spans, min_gap_us
 from pstoolkit.shadows.surface_sweep import surface_shadow_blocks
+
+# Frame pixels at a time whose surface shadows are checked against the seen ones: a (steps, chunk) grid
+# of bytes (5.9 MB at 720 steps).
+SEEN_CHUNK = 8192
 
 
 def event_darkness(evidence: ShadowEvidence, steps: int, min_gap: float) -> np.ndarray:
@@ -64,24 +69,50 @@ class FusedDetector(ShadowDetector):
         height, chosen = shadow_height(evidence, options)
         dark = event_darkness(evidence, steps, min_gap_us(options["min_gap_ms"], evidence.refractory_us, 1.0))
         covering = evidence.super_pixel[pixels]
-        seen = None
-        if options["edge_share"] > 0:
-            seen = seen_shadows(evidence, height, steps, options["margin_px"], options["edge_tolerance_deg"])
-            chosen = {**chosen, **seen.record()}
-            # the frame pixels a seen shadow may confirm, and the column of ``seen.seen`` covering each
-            column = np.full(evidence.event_shape[0] * evidence.event_shape[1], -1, dtype=np.int64)
-            column[seen.columns] = np.arange(seen.columns.size)
-            taking = np.flatnonzero((column[covering] >= 0) & (seen.pixel_share <= options["edge_share"]))
-            taken = column[covering[taking]]
-        runs = RunCollector(pixels.size)
+        confirmed = RunCollector(pixels.size)
+        edges = options["edge_share"] > 0
+        if edges:
+            tracker = EdgeTracker(SuperPixels.of(evidence))
+            surface = RunCollector(pixels.size)
         start = 0
-        # a block of times at a time: no (steps, P) map of the surface's shadows is ever whole
+        # one sweep, a block of times at a time: no (steps, P) map of the surface's shadows is ever whole
         for block in surface_shadow_blocks(evidence, height, steps, options["margin_px"]):
+            if edges:
+                tracker.feed(block)
+                surface.feed(block)
             # np.take gathers a block's columns 5× faster than indexing with an index array
-            confirmed = np.take(dark[start : start + len(block)], covering, axis=1)
-            if seen is not None:
-                confirmed[:, taking] |= np.take(seen.seen[start : start + len(block)], taken, axis=1)
-            block &= confirmed
-            runs.feed(block)
+            confirmed.feed(block & np.take(dark[start : start + len(block)], covering, axis=1))
             start += len(block)
-        return replace(evidence.frame_mask(runs.intervals(evidence.period_us, pixels)), diagnostics=chosen)
+        shadows = confirmed.intervals(evidence.period_us, pixels)
+        if edges:
+            seen = seen_edges(evidence, tracker, options["edge_tolerance_deg"])
+            chosen = {**chosen, **seen.record()}
+            extra = _seen_at_pixels(evidence, seen, surface.intervals(evidence.period_us), pixels, options["edge_share"])
+            # the table merges what overlaps or touches: the union of both kinds of confirmation
+            shadows = ShadowIntervals(*(np.concatenate([getattr(shadows, name), getattr(extra, name)])
+                                        for name in ("pixel", "t0_us", "t1_us")))
+        return replace(evidence.frame_mask(shadows), diagnostics=chosen)
+
+
+def _seen_at_pixels(evidence: ShadowEvidence, seen: SeenShadows, surface: ShadowIntervals, pixels: np.ndarray,
+                    edge_share: float) -> ShadowIntervals:
+    """The surface's shadows where the events saw their super pixel's edges, at the frame pixels the
+    surface shadows for at most ``edge_share`` of the period. ``surface``: the surface's shadows of the
+    masked frame pixels ``pixels`` (P,), keyed by their position among them; the result is keyed by
+    flat pixel. Worked through SEEN_CHUNK pixels at a time on the time grid of ``seen``."""
+    steps = seen.seen.shape[0]
+    covering = evidence.super_pixel[pixels]
+    column = np.full(evidence.event_shape[0] * evidence.event_shape[1], -1, dtype=np.int64)
+    column[seen.columns] = np.arange(seen.columns.size)
+    taking = np.flatnonzero((column[covering] >= 0) & (seen.pixel_share <= edge_share))
+    keep = np.isin(surface.pixel, taking)
+    owner, t0, t1 = surface.pixel[keep], surface.t0_us[keep], surface.t1_us[keep]
+    parts = [ShadowIntervals.empty()]
+    for first in range(0, taking.size, SEEN_CHUNK):
+        part = taking[first : first + SEEN_CHUNK]
+        inside = (owner >= part[0]) & (owner <= part[-1])
+        local = np.searchsorted(part, owner[inside])
+        grid = rasterize(ShadowIntervals(local, t0[inside], t1[inside]), part.size, evidence.period_us, steps)
+        grid &= np.take(seen.seen, column[covering[part]], axis=1)
+        parts.append(intervals_from_grid(grid, evidence.period_us, pixels[part]))
+    return ShadowIntervals(*(np.concatenate([getattr(p, name) for p in parts]) for name in ("pixel", "t0_us", "t1_us")))

@@ -112,39 +112,59 @@ class SuperPixels:
         return cls(order, starts, count, used)
 
 
-def super_pixel_edges(evidence: ShadowEvidence, groups: SuperPixels, height: np.ndarray, time_steps: int, margin_px: float
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Every edge of the super pixels' shadows over the period — where a super pixel's shadowed share of
-    ``groups`` crosses ``SHARE_THRESHOLD`` — as (time bin where the new state starts, super pixel,
-    entering), in time order, and (P,) int32 the time bins each masked frame pixel is in the surface's
-    shadow. Besides the sweep's own buffers a block of directions holds a byte per frame pixel and
-    direction."""
-    bins, pixel, entering = [], [], []
-    first = last = None
-    step = 0
-    pixel_bins = np.zeros(groups.order.size, dtype=np.int32)
-    for block in surface_shadow_blocks(evidence, height, time_steps, margin_px):
-        pixel_bins += np.count_nonzero(block, axis=0).astype(np.int32)
+class EdgeTracker:
+    """The edges of the super pixels' shadows, fed the surface's shadow blocks (``surface_sweep.
+    surface_shadow_blocks``) in time order: where a super pixel's shadowed share of ``groups`` crosses
+    ``SHARE_THRESHOLD``. Also counts the time bins each masked frame pixel is shadowed. Holds a byte per
+    frame pixel and direction of a block besides its edges."""
+
+    def __init__(self, groups: SuperPixels) -> None:
+        self.groups = groups
+        self.pixel_bins = np.zeros(groups.order.size, dtype=np.int32)
+        self._bins: list[np.ndarray] = []
+        self._pixel: list[np.ndarray] = []
+        self._entering: list[np.ndarray] = []
+        self._first: np.ndarray | None = None
+        self._last: np.ndarray | None = None
+        self.steps = 0
+
+    def feed(self, block: np.ndarray) -> None:
+        """The next (n, P) bool rows of the surface's shadows."""
+        groups = self.groups
+        self.pixel_bins += np.count_nonzero(block, axis=0).astype(np.int32)
         shadowed = np.add.reduceat(np.take(block, groups.order, axis=1).view(np.uint8), groups.starts, axis=1, dtype=np.int32)
         state = shadowed >= SHARE_THRESHOLD * groups.count
-        if first is None:
-            first = state[0]
-        before = np.vstack([state[:1] if last is None else last[None], state[:-1]])
+        if self._first is None:
+            self._first = state[0]
+        before = np.vstack([state[:1] if self._last is None else self._last[None], state[:-1]])
         k, e = np.nonzero(state != before)
-        bins.append(step + k)
-        pixel.append(groups.used[e])
-        entering.append(state[k, e])
-        last = state[-1]
-        step += len(block)
-    if first is None:
-        empty = np.empty(0, dtype=np.int64)
-        return empty, empty, np.empty(0, dtype=bool), pixel_bins
-    # the period wraps: the first bin follows the last
-    wrap = np.flatnonzero(first != last)
-    bins.insert(0, np.zeros(wrap.size, dtype=np.int64))
-    pixel.insert(0, groups.used[wrap])
-    entering.insert(0, first[wrap])
-    return np.concatenate(bins), np.concatenate(pixel), np.concatenate(entering), pixel_bins
+        self._bins.append(self.steps + k)
+        self._pixel.append(groups.used[e])
+        self._entering.append(state[k, e])
+        self._last = state[-1]
+        self.steps += len(block)
+
+    def edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every edge over the period as (time bin where the new state starts, super pixel, entering),
+        in time order, the period's wrap included."""
+        if self._first is None:
+            empty = np.empty(0, dtype=np.int64)
+            return empty, empty, np.empty(0, dtype=bool)
+        # the period wraps: the first bin follows the last
+        wrap = np.flatnonzero(self._first != self._last)
+        bins = np.concatenate([np.zeros(wrap.size, dtype=np.int64), *self._bins])
+        pixel = np.concatenate([self.groups.used[wrap], *self._pixel])
+        entering = np.concatenate([self._first[wrap], *self._entering])
+        return bins, pixel, entering
+
+
+def super_pixel_edges(evidence: ShadowEvidence, groups: SuperPixels, height: np.ndarray, time_steps: int, margin_px: float
+                      ) -> EdgeTracker:
+    """The ``EdgeTracker`` of the surface of ``height`` marched at ``time_steps`` directions."""
+    tracker = EdgeTracker(groups)
+    for block in surface_shadow_blocks(evidence, height, time_steps, margin_px):
+        tracker.feed(block)
+    return tracker
 
 
 def _edge_matches(falling: np.ndarray, rising: np.ndarray, phase_us: np.ndarray, pixel: np.ndarray, entering: np.ndarray,
@@ -186,7 +206,7 @@ def calibrate(evidence: ShadowEvidence, height: np.ndarray, *, margin_px: float,
     tried: dict[float, tuple[int, float]] = {}
 
     def agreement(scale: float) -> None:
-        bins, pixel, entering, _ = super_pixel_edges(evidence, groups, height * np.float32(scale), time_steps, margin_px)
+        bins, pixel, entering = super_pixel_edges(evidence, groups, height * np.float32(scale), time_steps, margin_px).edges()
         met, luck = _edge_matches(falling, rising, bins * (period / time_steps), pixel, entering, period, tolerance_us)
         # Cohen's kappa of the edges against the onsets: the matches beyond chance, as a share of what chance leaves
         tried[scale] = (int(bins.size), float(np.sum(met - luck) / max(np.sum(1.0 - luck), 1e-9)))
