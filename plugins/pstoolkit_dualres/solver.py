@@ -8,8 +8,9 @@ fitted normals between stages (``presets.Preset.detect_at``) and its mask is app
 events, the fit carrying on from where it is (restarting the pixels it shadows from the closed form
 under it cost path-traced concavities 0.1–0.3°: under inter-reflection the closed form is the worse
 start, ``benchmarks/NOTES.md``); with ``event_gate`` κ the event pixels whose pairs the fit cannot
-explain weigh less from then on and their frame pixels restart from the closed form (``consistency``). The reflectance model is a BRDF of the registry (``--set
-brdf=NAME``, ``reflectance.FitModel``), with ``indirect`` an indirect-light map beside it.
+explain weigh less from then on and their frame pixels restart from the closed form (``consistency``).
+The reflectance model is a BRDF of the registry (``--set brdf=NAME``, ``reflectance.FitModel``), with
+``indirect`` an indirect-light map beside it.
 
 Outputs: ``normal``; the BRDF's maps (``albedo``, ``f0``, ``roughness`` for ``ggx``; radiometric ones
 in frame units per unit light per second, the exposure gain folded in), the maps they imply in other

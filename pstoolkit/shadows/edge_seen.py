@@ -19,9 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from pstoolkit.shadows.base import ShadowEvidence
-from pstoolkit.shadows.height_scale import EdgeTracker, SuperPixels, super_pixel_edges, within
+from pstoolkit.shadows.height_scale import EdgeTracker, SuperPixels, period_keys, super_pixel_edges, within
 from pstoolkit.shadows.intervals import ShadowIntervals, rasterize
-from pstoolkit.shadows.period_profile import Profile
 
 
 @dataclass(frozen=True)
@@ -39,16 +38,6 @@ class SeenShadows:
 
     def record(self) -> dict[str, int]:
         return {"edge_runs": self.runs, "edge_seen": self.confirmed}
-
-
-def signed_keys(profile: Profile) -> tuple[np.ndarray, np.ndarray]:
-    """Sorted keys pixel·3T + T + phase (T the period) of every falling and every rising event, each
-    entered a period early, on time and a period late, so a search near either end of the period finds
-    the events across it."""
-    period = profile.period_us
-    key = profile.pixel * 3.0 * period + period + profile.t_us
-    copies = (-period, 0.0, period)
-    return tuple(np.sort(np.concatenate([key[profile.p * sign > 0] + c for c in copies])) for sign in (-1, 1))
 
 
 def seen_shadows(evidence: ShadowEvidence, height: np.ndarray, time_steps: int, margin_px: float, tolerance_deg: float
@@ -91,7 +80,7 @@ def seen_edges(evidence: ShadowEvidence, tracker: EdgeTracker, tolerance_deg: fl
     following[np.r_[starts[1:], bins.size] - 1] = starts
     step_us = period / time_steps
     entry_us, exit_us, owner = bins[entering] * step_us, bins[following[entering]] * step_us, pixel[entering]
-    falling, rising = signed_keys(evidence.profile)
+    falling, rising = period_keys(evidence.profile)
     tolerance_us = tolerance_deg / 360.0 * period
 
     def net(toward: np.ndarray, against: np.ndarray, phase_us: np.ndarray) -> np.ndarray:

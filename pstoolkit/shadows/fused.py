@@ -89,8 +89,7 @@ class FusedDetector(ShadowDetector):
             chosen = {**chosen, **seen.record()}
             extra = _seen_at_pixels(evidence, seen, surface.intervals(evidence.period_us), pixels, options["edge_share"])
             # the table merges what overlaps or touches: the union of both kinds of confirmation
-            shadows = ShadowIntervals(*(np.concatenate([getattr(shadows, name), getattr(extra, name)])
-                                        for name in ("pixel", "t0_us", "t1_us")))
+            shadows = ShadowIntervals.concatenate([shadows, extra])
         return replace(evidence.frame_mask(shadows), diagnostics=chosen)
 
 
@@ -107,7 +106,7 @@ def _seen_at_pixels(evidence: ShadowEvidence, seen: SeenShadows, surface: Shadow
     taking = np.flatnonzero((column[covering] >= 0) & (seen.pixel_share <= edge_share))
     keep = np.isin(surface.pixel, taking)
     owner, t0, t1 = surface.pixel[keep], surface.t0_us[keep], surface.t1_us[keep]
-    parts = [ShadowIntervals.empty()]
+    parts = []
     for first in range(0, taking.size, SEEN_CHUNK):
         part = taking[first : first + SEEN_CHUNK]
         inside = (owner >= part[0]) & (owner <= part[-1])
@@ -115,4 +114,4 @@ def _seen_at_pixels(evidence: ShadowEvidence, seen: SeenShadows, surface: Shadow
         grid = rasterize(ShadowIntervals(local, t0[inside], t1[inside]), part.size, evidence.period_us, steps)
         grid &= np.take(seen.seen, column[covering[part]], axis=1)
         parts.append(intervals_from_grid(grid, evidence.period_us, pixels[part]))
-    return ShadowIntervals(*(np.concatenate([getattr(p, name) for p in parts]) for name in ("pixel", "t0_us", "t1_us")))
+    return ShadowIntervals.concatenate(parts)

@@ -60,24 +60,30 @@ class HeightScale:
                 "matched": [round(m, 4) for m in self.matched]}
 
 
-def onsets(profile: Profile, refractory_us: float) -> tuple[np.ndarray, np.ndarray]:
-    """Sorted keys of the events that start a run, falling and rising apart: an event whose pixel's
-    previous event (cyclically) has the other polarity or lies more than one refractory period (at least
-    200 µs, ``silences.min_gap_us``: a burst's events, R = 0, follow each other within it; and
-    ``RUN_TOLERANCE_US``) before it. A key is pixel·3T + T + phase (T the period), each onset entered
-    three times, a period early, on time and a period late, so a search near either end of the period
-    finds the onsets across it."""
+def period_keys(profile: Profile, chosen: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted keys of the ``chosen`` (N,) bool events of ``profile`` (default all), falling and rising
+    apart, as ``within`` searches them: pixel·3T + T + phase (T the period), each event entered three
+    times, a period early, on time and a period late, so a search near either end of the period finds the
+    events across it."""
     period = profile.period_us
-    previous, gap = profile.previous()
-    start = (profile.p != profile.p[previous]) | (gap > min_gap_us(-1.0, refractory_us, 1.0) + RUN_TOLERANCE_US)
     key = profile.pixel * 3.0 * period + period + profile.t_us
+    chosen = np.ones(len(profile), dtype=bool) if chosen is None else chosen
     copies = (-period, 0.0, period)
-    return tuple(np.sort(np.concatenate([key[start & (profile.p * sign > 0)] + c for c in copies])) for sign in (-1, 1))
+    return tuple(np.sort(np.concatenate([key[chosen & (profile.p * sign > 0)] + c for c in copies])) for sign in (-1, 1))
+
+
+def onsets(profile: Profile, refractory_us: float) -> tuple[np.ndarray, np.ndarray]:
+    """``period_keys`` of the events that start a run: an event whose pixel's previous event
+    (cyclically) has the other polarity or lies more than one refractory period (at least 200 µs,
+    ``silences.min_gap_us``: a burst's events, R = 0, follow each other within it; and
+    ``RUN_TOLERANCE_US``) before it."""
+    previous, gap = profile.previous()
+    return period_keys(profile, (profile.p != profile.p[previous]) | (gap > min_gap_us(-1.0, refractory_us, 1.0) + RUN_TOLERANCE_US))
 
 
 def within(keys: np.ndarray, pixel: np.ndarray, phase_us: np.ndarray, period_us: float, half_width_us: float) -> np.ndarray:
-    """(n,) int: the events of ``keys`` (``onsets``, ``edge_seen.signed_keys``) of each pixel within
-    ``half_width_us`` of its phase."""
+    """(n,) int: the events of ``keys`` (``period_keys``) of each pixel within ``half_width_us`` of its
+    phase."""
     centre = pixel * 3.0 * period_us + period_us + phase_us
     return np.searchsorted(keys, centre + half_width_us, side="right") - np.searchsorted(keys, centre - half_width_us)
 

@@ -33,6 +33,12 @@ class ShadowIntervals:
     def empty(cls) -> ShadowIntervals:
         return cls(np.empty(0, np.int64), np.empty(0), np.empty(0))
 
+    @classmethod
+    def concatenate(cls, parts: list[ShadowIntervals]) -> ShadowIntervals:
+        if not parts:
+            return cls.empty()
+        return cls(*(np.concatenate([getattr(p, name) for p in parts]) for name in ("pixel", "t0_us", "t1_us")))
+
 
 @dataclass
 class ShadowTable:

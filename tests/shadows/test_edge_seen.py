@@ -12,8 +12,8 @@ from helpers.event_rows import event_stream
 import psfmt
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.shadows import ShadowEvidence, interval_profile
-from pstoolkit.shadows.edge_seen import seen_shadows, signed_keys
-from pstoolkit.shadows.height_scale import within
+from pstoolkit.shadows.edge_seen import seen_shadows
+from pstoolkit.shadows.height_scale import period_keys, within
 from pstoolkit.shadows.intervals import grid_times
 from pstoolkit.shadows.score import score, true_shadows
 from pstoolkit.shadows.surface_sweep import surface_height
@@ -30,7 +30,7 @@ FILL_US = 1000.0
 def test_the_keys_count_each_polarity_across_the_period_ends() -> None:
     rows = [[(500.0, -1), (600.0, -1), (700.0, 1)], [(33_000.0, 1)]]
     profile = interval_profile(event_stream(rows), 2, t0_us=0.0, period_us=T, contrast_pos=0.15, contrast_neg=0.15)
-    falling, rising = signed_keys(profile)
+    falling, rising = period_keys(profile)
     assert len(falling) == 3 * 2 and len(rising) == 3 * 2 and np.all(np.diff(falling) > 0)
     # around pixel 0's phase 600 µs: two falls, one rise; pixel 1's rise at 33 000 µs is 433 µs before phase 100
     assert within(falling, np.array([0]), np.array([600.0]), T, 200.0)[0] == 2
@@ -66,9 +66,8 @@ def lit_shadows(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
     width = evidence.event_shape[1]
     events = capture.events.read()
     fill = psfmt.EventArray(e % width, e // width, np.round(times[k]).astype(np.int64), np.where(k % 2 == 0, 1, -1))
-    merged = [np.concatenate([getattr(events, name), getattr(fill, name)]) for name in ("x", "y", "t", "p")]
-    order = np.argsort(merged[2], kind="stable")
-    stream = psfmt.EventArray(*(column[order] for column in merged))
+    merged = psfmt.EventArray.concatenate([events, fill])
+    stream = merged[np.argsort(merged.t, kind="stable")]
     profile = interval_profile(stream, width, t0_us=pre.t0_us, period_us=pre.period_us,
                                contrast_pos=evidence.contrast_pos, contrast_neg=evidence.contrast_neg)
     return {"evidence": evidence, "filled": replace(evidence, profile=profile), "truth": truth, "mask": gt.mask,
