@@ -45,20 +45,21 @@ def seen_shadows(evidence: ShadowEvidence, height: np.ndarray, time_steps: int, 
     """The shadows of the surface of ``height`` (pixels) whose edges the events of ``evidence`` see
     (module docstring), marched at ``time_steps`` light directions per period with the occluder margin
     ``margin_px`` (``surface_sweep.surface_shadow_blocks``); ``seen_edges`` on its ``EdgeTracker``."""
-    tracker = super_pixel_edges(evidence, SuperPixels.of(evidence), height, time_steps, margin_px)
+    tracker = super_pixel_edges(evidence, SuperPixels.of(evidence), height, time_steps, margin_px, count_pixels=True)
     return seen_edges(evidence, tracker, tolerance_deg)
 
 
 def seen_edges(evidence: ShadowEvidence, tracker: EdgeTracker, tolerance_deg: float) -> SeenShadows:
-    """The predicted shadows of ``tracker`` (fed a whole period) whose edges the events of ``evidence``
-    see.
+    """The predicted shadows of ``tracker`` (fed a whole period, counting its pixels' bins) whose edges
+    the events of ``evidence`` see.
 
     Parameters
     ----------
     evidence
         The capture's evidence (its events' ``profile``, super pixels, period).
     tracker
-        The super pixels' shadow edges on the time grid of its ``steps`` bins per period.
+        The super pixels' shadow edges on the time grid of its ``steps`` bins per period, made with
+        ``count_pixels``.
     tolerance_deg
         How far, in degrees of the turn, the events that show an edge may lie from the predicted one.
 
@@ -69,6 +70,8 @@ def seen_edges(evidence: ShadowEvidence, tracker: EdgeTracker, tolerance_deg: fl
     """
     period, time_steps = evidence.period_us, tracker.steps
     bins, pixel, entering = tracker.edges()
+    if tracker.pixel_bins is None:
+        raise ValueError("seen_edges needs an EdgeTracker made with count_pixels")
     pixel_share = tracker.pixel_bins / float(max(time_steps, 1))
     if bins.size == 0:
         return SeenShadows(np.empty(0, dtype=np.int64), np.zeros((time_steps, 0), dtype=bool), pixel_share, 0, 0)

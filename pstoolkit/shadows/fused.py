@@ -72,7 +72,7 @@ class FusedDetector(ShadowDetector):
         confirmed = RunCollector(pixels.size)
         edges = options["edge_share"] > 0
         if edges:
-            tracker = EdgeTracker(SuperPixels.of(evidence))
+            tracker = EdgeTracker(SuperPixels.of(evidence), count_pixels=True)
             surface = RunCollector(pixels.size)
         start = 0
         # one sweep, a block of times at a time: no (steps, P) map of the surface's shadows is ever whole

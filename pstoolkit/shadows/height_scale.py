@@ -24,6 +24,7 @@ from pstoolkit.shadows.base import ShadowEvidence
 from pstoolkit.shadows.period_profile import Profile
 from pstoolkit.shadows.silences import RUN_TOLERANCE_US, min_gap_us
 from pstoolkit.shadows.surface_sweep import surface_shadow_blocks
+from pstoolkit.shadows.sweep_kernels import reached
 
 # Share of a super pixel's frame pixels in shadow at which its events see the edge: an edge that
 # takes most of the direct light drops the super pixel's mean by one contrast threshold about there.
@@ -101,32 +102,31 @@ def _matches(keys: np.ndarray, pixel: np.ndarray, phase_us: np.ndarray, period_u
 
 @dataclass(frozen=True)
 class SuperPixels:
-    """The masked frame pixels grouped by the super pixel covering them: ``order`` (P,) sorts them so,
-    ``starts`` (E',) is where each group begins in that order, ``count`` (E',) its size, ``used`` (E',)
-    the super pixels, increasing."""
+    """The super pixels covering the masked frame pixels: ``used`` (G,) the event pixels, increasing;
+    ``group`` (P,) int32 the position in ``used`` of each masked frame pixel's (flat order); ``needed``
+    (G,) int32 how many of a super pixel's frame pixels make the ``SHARE_THRESHOLD`` share."""
 
-    order: np.ndarray
-    starts: np.ndarray
-    count: np.ndarray
     used: np.ndarray
+    group: np.ndarray
+    needed: np.ndarray
 
     @classmethod
     def of(cls, evidence: ShadowEvidence) -> SuperPixels:
         covering = evidence.super_pixel[np.flatnonzero(np.asarray(evidence.mask).ravel())]
-        order = np.argsort(covering, kind="stable")
-        used, starts, count = np.unique(covering[order], return_index=True, return_counts=True)
-        return cls(order, starts, count, used)
+        used, group, count = np.unique(covering, return_inverse=True, return_counts=True)
+        # a whole count s reaches the share x = threshold·count exactly when it reaches ceil(x)
+        return cls(used, group.astype(np.int32), np.ceil(SHARE_THRESHOLD * count).astype(np.int32))
 
 
 class EdgeTracker:
     """The edges of the super pixels' shadows, fed the surface's shadow blocks (``surface_sweep.
     surface_shadow_blocks``) in time order: where a super pixel's shadowed share of ``groups`` crosses
-    ``SHARE_THRESHOLD``. Also counts the time bins each masked frame pixel is shadowed. Holds a byte per
-    frame pixel and direction of a block besides its edges."""
+    ``SHARE_THRESHOLD``. With ``count_pixels``, also counts the time bins each masked frame pixel is
+    shadowed (``pixel_bins``). Holds a byte per super pixel and direction of a block besides its edges."""
 
-    def __init__(self, groups: SuperPixels) -> None:
+    def __init__(self, groups: SuperPixels, *, count_pixels: bool = False) -> None:
         self.groups = groups
-        self.pixel_bins = np.zeros(groups.order.size, dtype=np.int32)
+        self.pixel_bins = np.zeros(groups.group.size, dtype=np.int32) if count_pixels else None
         self._bins: list[np.ndarray] = []
         self._pixel: list[np.ndarray] = []
         self._entering: list[np.ndarray] = []
@@ -137,13 +137,18 @@ class EdgeTracker:
     def feed(self, block: np.ndarray) -> None:
         """The next (n, P) bool rows of the surface's shadows."""
         groups = self.groups
-        self.pixel_bins += np.count_nonzero(block, axis=0).astype(np.int32)
-        shadowed = np.add.reduceat(np.take(block, groups.order, axis=1).view(np.uint8), groups.starts, axis=1, dtype=np.int32)
-        state = shadowed >= SHARE_THRESHOLD * groups.count
+        if self.pixel_bins is not None:
+            self.pixel_bins += np.count_nonzero(block, axis=0).astype(np.int32)
+        state = np.empty((len(block), groups.used.size), dtype=bool)
+        reached(np.ascontiguousarray(block).view(np.uint8), groups.group, groups.needed, state)
         if self._first is None:
             self._first = state[0]
         before = np.vstack([state[:1] if self._last is None else self._last[None], state[:-1]])
-        k, e = np.nonzero(state != before)
+        change = state != before
+        # few super pixels change within a block: np.nonzero over the whole block took longer than the sweep
+        changing = np.flatnonzero(change.any(axis=0))
+        k, e = np.nonzero(change[:, changing])
+        e = changing[e]
         self._bins.append(self.steps + k)
         self._pixel.append(groups.used[e])
         self._entering.append(state[k, e])
@@ -164,10 +169,10 @@ class EdgeTracker:
         return bins, pixel, entering
 
 
-def super_pixel_edges(evidence: ShadowEvidence, groups: SuperPixels, height: np.ndarray, time_steps: int, margin_px: float
-                      ) -> EdgeTracker:
+def super_pixel_edges(evidence: ShadowEvidence, groups: SuperPixels, height: np.ndarray, time_steps: int, margin_px: float,
+                      *, count_pixels: bool = False) -> EdgeTracker:
     """The ``EdgeTracker`` of the surface of ``height`` marched at ``time_steps`` directions."""
-    tracker = EdgeTracker(groups)
+    tracker = EdgeTracker(groups, count_pixels=count_pixels)
     for block in surface_shadow_blocks(evidence, height, time_steps, margin_px):
         tracker.feed(block)
     return tracker

@@ -11,6 +11,7 @@ import numpy as np
 
 from pstoolkit.shadows.base import ShadowEvidence
 from pstoolkit.shadows.intervals import grid_times
+from pstoolkit.shadows.sweep_kernels import shadowed_columns
 
 # Light directions swept at once: bounds the (chunk, H, W) float32 margins held in memory.
 SWEEP_CHUNK = 32
@@ -40,14 +41,10 @@ def surface_shadow_blocks(evidence: ShadowEvidence, height: np.ndarray, time_ste
     # one caster (the height map in its four sweep orientations) and one set of buffers for all blocks
     caster = ShadowCaster(height, mask)
     margin = np.empty((min(SWEEP_CHUNK, time_steps), *mask.shape), dtype=np.float32)
-    above = np.empty((len(margin), mask.size), dtype=bool)
     out = np.empty((len(margin), inside.size), dtype=bool)
     for start in range(0, time_steps, SWEEP_CHUNK):
         block = directions[start : start + SWEEP_CHUNK]
         n = len(block)
         caster.margins(block, margin[:n])
-        # compared first, then the object's columns taken: a byte per cell moves instead of four, and
-        # np.take by index is several times faster than a boolean mask or np.compress along axis 1
-        np.greater(margin[:n].reshape(n, -1), margin_px, out=above[:n])
-        np.take(above[:n], inside, axis=1, out=out[:n])
+        shadowed_columns(margin[:n].reshape(n, -1), margin_px, inside, out[:n])
         yield out[:n]
