@@ -32,13 +32,17 @@ DARK_REFERENCE_PERCENTILE = 50.0
 @dataclass
 class EventSamples:
     """Pairs at event pixels ``pixel`` (E,): the log irradiance at ``t_us`` (E,) float64 exceeds the
-    one at ``t_ref_us`` (E,) float64 by ``target`` (E,) log units; ``weight`` (E,) float32 ≥ 0."""
+    one at ``t_ref_us`` (E,) float64 by ``target`` (E,) log units, ``rise`` − ``fall``: the nominal
+    thresholds of its positive and of its negative events, (E,) float64 each; ``weight`` (E,) float32
+    ≥ 0."""
 
     pixel: np.ndarray
     t_ref_us: np.ndarray
     t_us: np.ndarray
     target: np.ndarray
     weight: np.ndarray
+    rise: np.ndarray
+    fall: np.ndarray
 
 
 def event_samples(
@@ -96,6 +100,7 @@ def event_samples(
     t = pairs.t_us.astype(np.float64)
     keep = t - pairs.t_ref_us <= max_pair_share * period_us
     pixel, t_ref, t, target = pairs.pixel[keep], pairs.t_ref_us[keep], t[keep], pairs.delta_log[keep]
+    rise, fall = pairs.n_pos[keep] * float(contrast_pos), pairs.n_neg[keep] * float(contrast_neg)
     if confidence == "linear":
         darker = np.minimum(irradiance.value(pixel, t_ref - t0_us), irradiance.value(pixel, t - t0_us))
         bright = float(np.percentile(darker, DARK_REFERENCE_PERCENTILE)) if darker.size else 0.0
@@ -103,4 +108,4 @@ def event_samples(
         weight = np.clip(darker / level, 0.0, 1.0) if level > 0 else np.ones(len(t))
     else:
         weight = np.ones(len(t))
-    return EventSamples(pixel=pixel, t_ref_us=t_ref, t_us=t, target=target, weight=weight.astype(np.float32))
+    return EventSamples(pixel=pixel, t_ref_us=t_ref, t_us=t, target=target, weight=weight.astype(np.float32), rise=rise, fall=fall)

@@ -134,8 +134,9 @@ class EventTerms:
     ``weight`` (E,) its confidence ≥ 0; ``usable`` (U,) int64 the pairs the loss may draw under the
     current mask. ``source`` holds the numpy copies the mask is applied from: ``frame_taps`` (E, F)
     flat frame indices, ``area`` (E, F), ``t_us``/``t_ref_us`` (E,) µs and ``usable`` (E,) bool
-    without a mask, and ``pixel`` (E,) each pair's event pixel with ``weight`` (E,) its confidence
-    before any ``apply_gate``."""
+    without a mask, ``pixel`` (E,) each pair's event pixel with ``weight`` (E,) its confidence
+    before any ``apply_gate``, and ``rise``/``fall`` (E,) the nominal thresholds of its positive and
+    negative events (``target`` = rise − fall until ``apply_thresholds``)."""
 
     taps: Tensor
     tap_weight_now: Tensor
@@ -172,6 +173,13 @@ class EventTerms:
     def pixel(self) -> np.ndarray:
         """(E,) int64 the event pixel of each pair."""
         return self.source["pixel"]
+
+    def apply_thresholds(self, gain_pos: np.ndarray, gain_neg: np.ndarray) -> None:
+        """Set each pair's ``target`` to its positive events' thresholds times its event pixel's entry
+        of ``gain_pos`` (He·We,) minus its negative ones' times that of ``gain_neg``
+        (``thresholds.fit_thresholds``)."""
+        src, pixel = self.source, self.source["pixel"]
+        self.target = _like(src["rise"] * gain_pos[pixel] - src["fall"] * gain_neg[pixel], self.target)
 
     def apply_gate(self, pixel_weight: np.ndarray) -> None:
         """Weigh each pair's confidence by its event pixel's entry of ``pixel_weight`` (He·We,)
@@ -332,7 +340,8 @@ def build_problem(pre: Preprocessed, view: np.ndarray, *, device: str, frame_sam
         target=tensor(pairs.target), weight=tensor(pairs.weight),
         usable=torch.as_tensor(np.flatnonzero(usable), dtype=torch.int64, device=device),
         source={"frame_taps": frame_taps, "area": area, "t_us": pairs.t_us, "t_ref_us": pairs.t_ref_us, "usable": usable,
-                "pixel": np.asarray(pairs.pixel, dtype=np.int64), "weight": np.asarray(pairs.weight, dtype=np.float64)},
+                "pixel": np.asarray(pairs.pixel, dtype=np.int64), "weight": np.asarray(pairs.weight, dtype=np.float64),
+                "rise": np.asarray(pairs.rise, dtype=np.float64), "fall": np.asarray(pairs.fall, dtype=np.float64)},
     )
 
     v, u = np.divmod(pixels, w)

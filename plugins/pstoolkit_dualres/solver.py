@@ -41,6 +41,7 @@ from pstoolkit_dualres.preprocess import SCALE_RULES, STARTS, Preprocessed, Prep
 from pstoolkit_dualres.presets import OVERRIDES, PRESETS, Preset, resolve
 from pstoolkit_dualres.problem import Problem, build_problem, start_values
 from pstoolkit_dualres.reflectance import FitModel, reflects_indirect
+from pstoolkit_dualres.thresholds import REFIT_EVERY, ThresholdGains, fit_thresholds
 from pstoolkit_dualres.tiling import plan
 from pstoolkit_dualres.train import StageConfig, train
 from pstoolkit_dualres.unlit import fill_unlit, unlit_pixels
@@ -94,6 +95,16 @@ def build_field(preset: Preset, problem: Problem, model: FitModel) -> nn.Module:
     )
 
 
+def threshold_sigma(capture: psfmt.Capture, option: float) -> float:
+    """The spread of the event pixels' thresholds the fit assumes (log units): ``option``, or where it
+    is −1 the capture's sensor record's ``contrast_sigma`` (0 when it records none)."""
+    if option >= 0:
+        return option
+    record = capture.calibration.sensor_model or {}
+    recorded = record.get("contrast_sigma")
+    return float(recorded) if recorded is not None and np.isfinite(recorded) and recorded > 0 else 0.0
+
+
 def _stage_bounds(preset: Preset, detector: ShadowDetector, gated: bool) -> list[int]:
     """Epochs at which the stages start, then the last epoch: at the preset's ``detect_at`` when the
     detector uses the surface or the events are gated (``consistency``), else one stage."""
@@ -124,6 +135,11 @@ class DualRes(Solver):
                "κ of the event pixels' consistency gate between stages: a pixel whose events the fit leaves with a residual "
                "scale above κ times the typical one (and above half the contrast threshold) weighs (bound/scale)², its frame "
                "pixels restart from the closed form below one half (0 = off)", minimum=0.0),
+        Option("threshold_sigma", float, 0.0,
+               "spread σ of the event pixels' contrast thresholds around the nominal C⁺ and C⁻, log units: every 10 epochs "
+               "the fit estimates each event pixel's two thresholds with this prior, relative to its neighbours' "
+               "(0 = the nominal thresholds; −1 = the capture's sensor record, the nominal ones when it has none)",
+               minimum=-1.0, maximum=1.0),
         Option("indirect", bool, True,
                "fit an indirect-light map b (smooth, ≥ 0): light from other parts of the object that the diffuse albedo "
                "reflects and no cast shadow removes (inter-reflection in concavities, a room's ambient light); with a BRDF "
@@ -231,6 +247,14 @@ class DualRes(Solver):
         stages: list[dict[str, Any]] = [{"epoch": 0, "shadow_intervals": len(shadows), "cast_shadow_share": problem.diagnostics["cast_shadow_share"],
                                          **shadows.diagnostics}]
         history: list[dict[str, float]] = []
+        sigma = threshold_sigma(capture, options["threshold_sigma"])
+        gains: list[ThresholdGains] = []
+
+        def refit(epoch: int) -> None:
+            if epoch > 0 and epoch % REFIT_EVERY == 0:
+                gains.append(fit_thresholds(problem, field, model, (pre.event_height, pre.event_width), sigma, pre.contrast_pos,
+                                            pre.contrast_neg))
+                problem.events.apply_thresholds(gains[-1].gain_pos, gains[-1].gain_neg)
         with deterministic(warn_only=str(self.device) != "cpu"):
             field = build_field(preset, problem, model)
             clock.lap("field")
@@ -256,7 +280,8 @@ class DualRes(Solver):
                     done = (first + fraction * (last - first)) / max(preset.epochs, 1)
                     progress(PREPROCESS_SHARE + (1.0 - PREPROCESS_SHARE) * done, message)
 
-                history += train(problem, field, model, config, report)
+                history += train(problem, field, model, config, report,
+                                 before_epoch=(lambda epoch, first=first: refit(first + epoch)) if sigma > 0 else None)
                 clock.lap(f"train_{stage}")
             self.shadows = shadows
             with torch.no_grad():
@@ -267,6 +292,7 @@ class DualRes(Solver):
         return self._result(problem, model, normal_np, maps, options["fill_unlit"], {
             **problem.diagnostics, "preset": preset.record(), "brdf": model.name,
             "shadow_detector": detector_entry.name, "shadow_options": detector_options, "stages": stages, "indirect": model.indirect,
+            "threshold_sigma": sigma, "thresholds": gains[-1].record() if gains else None,
             "preprocess_seconds": seconds_pre, "seconds": clock.record(), "final_loss": history[-1] if history else None,
             "device": str(self.device), "preprocess": pre.diagnostics,
         })

@@ -10,6 +10,7 @@ super pixels anchored in its tiles, and the TV pairs inside it (as LL22a trains)
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -180,7 +181,7 @@ def _event_sample(problem: Problem, config: StageConfig, generator: torch.Genera
 
 
 def train(problem: Problem, field: nn.Module, model: FitModel, config: StageConfig, progress: Progress,
-          warm_start: bool = False) -> list[dict[str, float]]:
+          warm_start: bool = False, before_epoch: Callable[[int], None] | None = None) -> list[dict[str, float]]:
     """Adam over ``config.epochs`` epochs on eq. 26, the learning rates decaying exponentially to
     ``LR_DECAY`` of their first.
 
@@ -194,6 +195,9 @@ def train(problem: Problem, field: nn.Module, model: FitModel, config: StageConf
         ``progress(fraction, message)``, called at every PROGRESS_EVERY-th epoch and the last.
     warm_start
         Skips the TV warm-up (a later stage).
+    before_epoch
+        Called with each epoch's index (within the stage) before its batches: what the solver
+        re-estimates from the fit as it goes (``thresholds``).
 
     Returns
     -------
@@ -212,6 +216,8 @@ def train(problem: Problem, field: nn.Module, model: FitModel, config: StageConf
     history: list[dict[str, float]] = []
     warmup = max(config.tv_fraction * config.epochs, 1e-9)
     for epoch in range(config.epochs):
+        if before_epoch is not None:
+            before_epoch(epoch)
         if tiling is None:
             batches = [full_batch(problem, _event_sample(problem, config, generator))]
         else:
