@@ -41,7 +41,7 @@ from pstoolkit_dualres.preprocess import SCALE_RULES, STARTS, Preprocessed, Prep
 from pstoolkit_dualres.presets import OVERRIDES, PRESETS, Preset, resolve
 from pstoolkit_dualres.problem import Problem, build_problem, start_values
 from pstoolkit_dualres.reflectance import FitModel, reflects_indirect
-from pstoolkit_dualres.thresholds import REFIT_EVERY, ThresholdGains, fit_thresholds
+from pstoolkit_dualres.thresholds import REFIT_EVERY, THRESHOLD_FITS, ThresholdGains, fit_thresholds
 from pstoolkit_dualres.tiling import plan
 from pstoolkit_dualres.train import StageConfig, train
 from pstoolkit_dualres.unlit import fill_unlit, unlit_pixels
@@ -97,8 +97,8 @@ def build_field(preset: Preset, problem: Problem, model: FitModel) -> nn.Module:
 
 def threshold_sigma(capture: psfmt.Capture, option: float) -> float:
     """The spread of the event pixels' thresholds the fit assumes (log units): ``option``, or where it
-    is −1 the capture's sensor record's ``contrast_sigma`` (0 when it records none)."""
-    if option >= 0:
+    is 0 the capture's sensor record's ``contrast_sigma`` (0 when it records none)."""
+    if option > 0:
         return option
     record = capture.calibration.sensor_model or {}
     recorded = record.get("contrast_sigma")
@@ -135,11 +135,15 @@ class DualRes(Solver):
                "κ of the event pixels' consistency gate between stages: a pixel whose events the fit leaves with a residual "
                "scale above κ times the typical one (and above half the contrast threshold) weighs (bound/scale)², its frame "
                "pixels restart from the closed form below one half (0 = off)", minimum=0.0),
+        Option("thresholds", str, "balance",
+               "what the fit estimates of each event pixel's contrast thresholds every 10 epochs, with the prior of "
+               "threshold_sigma: balance (the ratio of its C⁺ to its C⁻, which shading cannot imitate: rises and falls "
+               "pass the same levels over a turn), both (also their common scale, relative to its 3×3 neighbours': "
+               "light a concavity reflects into itself imitates part of that), or nominal (neither)", choices=THRESHOLD_FITS),
         Option("threshold_sigma", float, 0.0,
-               "spread σ of the event pixels' contrast thresholds around the nominal C⁺ and C⁻, log units: every 10 epochs "
-               "the fit estimates each event pixel's two thresholds with this prior, relative to its neighbours' "
-               "(0 = the nominal thresholds; −1 = the capture's sensor record, the nominal ones when it has none)",
-               minimum=-1.0, maximum=1.0),
+               "spread σ of the event pixels' thresholds around the nominal C⁺ and C⁻, log units, the prior of "
+               "`thresholds` (0 = the capture's sensor record; the nominal thresholds where it records none)",
+               minimum=0.0, maximum=1.0),
         Option("indirect", bool, True,
                "fit an indirect-light map b (smooth, ≥ 0): light from other parts of the object that the diffuse albedo "
                "reflects and no cast shadow removes (inter-reflection in concavities, a room's ambient light); with a BRDF "
@@ -247,13 +251,13 @@ class DualRes(Solver):
         stages: list[dict[str, Any]] = [{"epoch": 0, "shadow_intervals": len(shadows), "cast_shadow_share": problem.diagnostics["cast_shadow_share"],
                                          **shadows.diagnostics}]
         history: list[dict[str, float]] = []
-        sigma = threshold_sigma(capture, options["threshold_sigma"])
+        sigma = threshold_sigma(capture, options["threshold_sigma"]) if options["thresholds"] != "nominal" else 0.0
         gains: list[ThresholdGains] = []
 
         def refit(epoch: int) -> None:
             if epoch > 0 and epoch % REFIT_EVERY == 0:
                 gains.append(fit_thresholds(problem, field, model, (pre.event_height, pre.event_width), sigma, pre.contrast_pos,
-                                            pre.contrast_neg))
+                                            pre.contrast_neg, common=options["thresholds"] == "both"))
                 problem.events.apply_thresholds(gains[-1].gain_pos, gains[-1].gain_neg)
         with deterministic(warn_only=str(self.device) != "cpu"):
             field = build_field(preset, problem, model)

@@ -27,8 +27,9 @@ from pstoolkit_dualres.thresholds import NEIGHBOURHOOD, fit_thresholds
 
 def test_the_pixels_thresholds_are_found_relative_to_their_neighbours(sphere_48: Path) -> None:
     """The sphere fitted at its true normals, every event pixel's C⁺ and C⁻ drawn 13 % apart (its
-    pairs' nominal thresholds 1/g of what the light did): the fitted gains follow the drawn ones taken
-    relative to their 3 × 3 neighbourhood's median, and the targets follow the gains."""
+    pairs' nominal thresholds 1/g of what the light did): the balance the fit finds follows the drawn
+    one; with the common scale too, the gains follow the drawn ones taken relative to their 3 × 3
+    neighbourhood's median; the targets follow the gains."""
     capture = psfmt.read(sphere_48)
     pre = preprocess(capture, PreprocessOptions())
     problem = build_problem(pre, capture.calibration.view_direction, device="cpu")
@@ -42,15 +43,22 @@ def test_the_pixels_thresholds_are_found_relative_to_their_neighbours(sphere_48:
     src = events.source
     src["rise"], src["fall"] = src["rise"] / drawn[0][src["pixel"]], src["fall"] / drawn[1][src["pixel"]]
     events.apply_thresholds(np.ones(drawn.shape[1]), np.ones(drawn.shape[1]))
-    gains = fit_thresholds(problem, field, model, shape, 0.03, pre.contrast_pos, pre.contrast_neg)
     usable = events.usable.numpy()
-    for fitted, true, part in ((gains.gain_pos, drawn[0], "rise"), (gains.gain_neg, drawn[1], "fall")):
+    seen = [np.bincount(src["pixel"][usable][src[part][usable] > 0], minlength=drawn.shape[1]) >= 3 for part in ("rise", "fall")]
+    both = seen[0] & seen[1]
+    assert both.sum() > 100
+    # balance: g⁺ = e^d, g⁻ = e^−d with d half the log ratio the sensor drew
+    balance = fit_thresholds(problem, field, model, shape, 0.03, pre.contrast_pos, pre.contrast_neg)
+    d, true_d = np.log(balance.gain_pos), 0.5 * np.log(drawn[0] / drawn[1])
+    np.testing.assert_allclose(balance.gain_pos * balance.gain_neg, 1.0)
+    assert np.corrcoef(d[both], true_d[both])[0, 1] > 0.9
+    assert np.median(np.abs(d[both] - true_d[both])) < 0.04
+    # both: each gain, relative to its neighbourhood's median
+    gains = fit_thresholds(problem, field, model, shape, 0.03, pre.contrast_pos, pre.contrast_neg, common=True)
+    for fitted, true, known in ((gains.gain_pos, drawn[0], seen[0]), (gains.gain_neg, drawn[1], seen[1])):
         relative = np.exp(np.log(true) - median_filter(np.log(true).reshape(shape), size=NEIGHBOURHOOD, mode="nearest").ravel())
-        seen = np.bincount(src["pixel"][usable][src[part][usable] > 0], minlength=true.size) >= 3
-        assert seen.sum() > 100
-        assert np.corrcoef(fitted[seen], relative[seen])[0, 1] > 0.9
-        assert np.median(np.abs(fitted[seen] - relative[seen])) < 0.05
-        assert np.all(fitted[~seen & (np.bincount(src["pixel"], minlength=true.size) == 0)] == pytest.approx(1.0, abs=0.2))
+        assert np.corrcoef(fitted[known], relative[known])[0, 1] > 0.9
+        assert np.median(np.abs(fitted[known] - relative[known])) < 0.05
     events.apply_thresholds(gains.gain_pos, gains.gain_neg)
     pixel = src["pixel"]
     np.testing.assert_allclose(events.target.numpy(), src["rise"] * gains.gain_pos[pixel] - src["fall"] * gains.gain_neg[pixel],
@@ -60,10 +68,13 @@ def test_the_pixels_thresholds_are_found_relative_to_their_neighbours(sphere_48:
 def test_the_spread_comes_from_the_option_or_the_captures_record(blobs_48: Path) -> None:
     capture = psfmt.read(blobs_48)
     assert threshold_sigma(capture, 0.02) == 0.02
-    assert threshold_sigma(capture, -1.0) == float((capture.calibration.sensor_model or {}).get("contrast_sigma") or 0.0) == 0.0
+    assert (capture.calibration.sensor_model or {}).get("contrast_sigma", 0.0) == 0.0
+    assert threshold_sigma(capture, 0.0) == 0.0
     recorded = replace(capture, calibration=replace(capture.calibration, sensor_model={"name": "evk4", "contrast_sigma": 0.03}))
-    assert threshold_sigma(recorded, -1.0) == 0.03
-    assert threshold_sigma(recorded, 0.0) == 0.0
+    assert threshold_sigma(recorded, 0.0) == 0.03
+    assert threshold_sigma(recorded, 0.05) == 0.05
+    crafted = replace(capture, calibration=replace(capture.calibration, sensor_model={"name": "x", "contrast_sigma": float("nan")}))
+    assert threshold_sigma(crafted, 0.0) == 0.0
 
 
 @pytest.fixture(scope="module")
@@ -76,15 +87,18 @@ def spread_48(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_fitting_the_thresholds_undoes_their_spread(spread_48: Path) -> None:
-    """With the capture's recorded spread the fit estimates the pixels' thresholds, and the normals'
-    error falls well below the fit's with the nominal ones."""
+    """With the capture's recorded spread the fit estimates the pixels' thresholds — their balance by
+    default, their common scale too with ``thresholds=both`` — and the normals' error falls below the
+    fit's with the nominal ones."""
     capture = psfmt.read(spread_48)
     truth = capture.ground_truth
-    errors = {}
-    for sigma in (0.0, -1.0):
-        result = solve_capture(capture, "dualres", threshold_sigma=sigma, epochs=80)
-        errors[sigma] = float(np.mean(angular_error_deg(result.normal, truth.normal, truth.mask)[np.asarray(truth.mask)]))
-        assert result.diagnostics["threshold_sigma"] == (0.0 if sigma == 0.0 else 0.03)
-    spread = result.diagnostics["thresholds"]
-    assert spread["gain_pos_p95"] - spread["gain_pos_p5"] > 0.2
-    assert errors[-1.0] < 0.85 * errors[0.0]
+    errors, spreads = {}, {}
+    for fit in ("nominal", "balance", "both"):
+        result = solve_capture(capture, "dualres", thresholds=fit, epochs=80)
+        errors[fit] = float(np.mean(angular_error_deg(result.normal, truth.normal, truth.mask)[np.asarray(truth.mask)]))
+        assert result.diagnostics["threshold_sigma"] == (0.0 if fit == "nominal" else 0.03)
+        spreads[fit] = result.diagnostics["thresholds"]
+    assert spreads["nominal"] is None
+    assert spreads["balance"]["gain_pos_p95"] - spreads["balance"]["gain_pos_p5"] > 0.15
+    assert errors["balance"] < 0.93 * errors["nominal"]
+    assert errors["both"] < 0.85 * errors["nominal"]
