@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import pytest
 from helpers.captures import sample_capture, sample_events
+from helpers.interrupt import interruptible
 
 import psfmt
 from psfmt.atomic import commit
@@ -189,7 +190,7 @@ def test_real_ctrl_c_in_a_writing_process(tmp_path: Path, existing: bool) -> Non
     if existing:
         psfmt.write(sample_capture("events", seed=4), path)
         before = path.read_bytes()
-    child = subprocess.Popen([sys.executable, "-c", CHILD, str(path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    child = interruptible([sys.executable, "-c", CHILD, str(path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
         assert child.stdout is not None and child.stdout.readline() == b"writing\n"
         child.send_signal(signal.SIGINT)

@@ -27,6 +27,7 @@ import numpy as np
 import pytest
 from distributed import Client
 from helpers.batch import session_captures
+from helpers.interrupt import interruptible
 
 from pstoolkit.cli import main
 from pstoolkit.errors import UserError
@@ -304,7 +305,7 @@ def test_ctrl_c_on_a_running_batch_is_one_line(captures: list[Path], tmp_path: P
     group); the workers ignore it, the command cancels and closes the cluster and says one line."""
     out = tmp_path / "out"
     command = [*_command(), "batch", *map(str, captures), "--solver", "frameps", "--solver", "eventps", "-o", str(out), "--workers", "2"]
-    child = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    child = interruptible(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and child.poll() is None and not any(out.glob("*")):
         time.sleep(0.05)  # a pair is being written: the workers run

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import SIZE, get, serve
+from helpers.interrupt import interruptible
 
 from pstoolkit.cli import main
 from pstoolkit.errors import UserError
@@ -66,7 +67,7 @@ def test_server_refuses_non_loopback_unless_allowed(ggx_folder: Path) -> None:
 
 def test_cli_serves_until_interrupted(ggx_folder: Path) -> None:
     """The real command: prints its address, serves index.json, stops cleanly (exit 0) at Ctrl-C."""
-    process = subprocess.Popen(
+    process = interruptible(
         [sys.executable, "-c", "from pstoolkit.cli import main; main()", "view", str(ggx_folder), "--port", "0", "--no-browser"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
