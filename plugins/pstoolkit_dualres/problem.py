@@ -90,7 +90,8 @@ class FrameTerms:
     frame's ∫ e dt × albedo scale over its window, no mask applied (what indirect light is reflected
     under). ``source`` holds the numpy
     copies the mask is applied from: ``shared_t``/``shared_dt_us`` (K·S,) µs, or ``sample_t`` (M,) µs,
-    ``sample_dt_s`` (M,) s and ``sample_weight`` (M, 3) without the mask."""
+    ``sample_dt_s`` (M,) s and ``sample_weight`` (M, 3) without the mask; and ``measured`` as built
+    once ``apply_bounce`` has changed it."""
 
     count: int
     exposure_s: float
@@ -121,6 +122,13 @@ class FrameTerms:
         self.sample_weight = _like(src["sample_weight"] * lit[:, None], self.measured)
         return np.bincount(src["sample_pixel"], weights=src["sample_dt_s"] * ~lit, minlength=pixels.size)
 
+    def apply_bounce(self, offset: np.ndarray) -> np.ndarray:
+        """Set ``measured`` to the frames as built minus ``offset`` (K·P, 3), the light inter-reflection
+        adds (``interreflection.frame_offsets``); returns the frames as built."""
+        built = self.source.setdefault("measured", self.measured.detach().cpu().numpy().copy())
+        self.measured = _like(built - offset, self.measured)
+        return built
+
 
 @dataclass
 class EventTerms:
@@ -136,7 +144,9 @@ class EventTerms:
     flat frame indices, ``area`` (E, F), ``t_us``/``t_ref_us`` (E,) µs and ``usable`` (E,) bool
     without a mask, ``pixel`` (E,) each pair's event pixel with ``weight`` (E,) its confidence
     before any ``apply_gate``, and ``rise``/``fall`` (E,) the nominal thresholds of its positive and
-    negative events (``target`` = rise − fall until ``apply_thresholds``)."""
+    negative events (``target`` = rise − fall until ``apply_thresholds``); the three ``apply_`` methods
+    after the mask keep what they set there (``steps``, ``gate``, ``bounce_*``), so that each composes
+    with the others."""
 
     taps: Tensor
     tap_weight_now: Tensor
@@ -179,12 +189,33 @@ class EventTerms:
         of ``gain_pos`` (He·We,) minus its negative ones' times that of ``gain_neg``
         (``thresholds.fit_thresholds``)."""
         src, pixel = self.source, self.source["pixel"]
-        self.target = _like(src["rise"] * gain_pos[pixel] - src["fall"] * gain_neg[pixel], self.target)
+        src["steps"] = src["rise"] * gain_pos[pixel] - src["fall"] * gain_neg[pixel]
+        self._set_targets()
 
     def apply_gate(self, pixel_weight: np.ndarray) -> None:
         """Weigh each pair's confidence by its event pixel's entry of ``pixel_weight`` (He·We,)
         (``consistency.event_gate``), from the confidences the pairs were built with."""
-        self.weight = _like(self.source["weight"] * pixel_weight[self.pixel], self.weight)
+        self.source["gate"] = pixel_weight[self.pixel]
+        self._set_weights()
+
+    def apply_bounce(self, shift: np.ndarray, keep: np.ndarray, bounce_now: np.ndarray, bounce_ref: np.ndarray) -> None:
+        """Add ``shift`` (E,) to each pair's log step and leave out the pairs not in ``keep`` (E,) bool:
+        what inter-reflection changes of the direct shading's steps (``interreflection.remove_bounce``);
+        ``bounce_now``/``bounce_ref`` (E,) the bounce's grey irradiance at its two times, kept for
+        ``interreflection.unexplained``. Zero shifts, all kept and no bounce undo it."""
+        src = self.source
+        src["bounce_shift"], src["bounce_keep"], src["bounce_now"], src["bounce_ref"] = shift, keep, bounce_now, bounce_ref
+        self._set_targets()
+        self._set_weights()
+
+    def _set_targets(self) -> None:
+        src = self.source
+        steps = src["steps"] if "steps" in src else src["rise"] - src["fall"]
+        self.target = _like(steps + src.get("bounce_shift", 0.0), self.target)
+
+    def _set_weights(self) -> None:
+        src = self.source
+        self.weight = _like(src["weight"] * src.get("gate", 1.0) * src.get("bounce_keep", 1.0), self.weight)
 
 
 @dataclass

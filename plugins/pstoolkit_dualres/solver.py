@@ -9,6 +9,12 @@ events, the fit carrying on from where it is (restarting the pixels it shadows f
 under it cost path-traced concavities 0.1–0.3°: under inter-reflection the closed form is the worse
 start, ``benchmarks/NOTES.md``); with ``event_gate`` κ the event pixels whose pairs the fit cannot
 explain weigh less from then on and their frame pixels restart from the closed form (``consistency``).
+From the first re-detection on, the light one diffuse bounce of inter-reflection adds
+(``interreflection``, reflectance ``bounce_reflectance``) is predicted from the fitted surface and taken
+out of the frames and events; with ``interreflection=auto`` (the default) the fit goes on both with the
+bounce and without, and keeps the bounce unless that fit leaves more than ``BOUNCE_TOLERANCE`` more of
+the measurements unexplained (``interreflection.unexplained``): a renderer without inter-reflection, or
+a surface whose bounce the model predicts wrongly, contradicts it there.
 The reflectance model is a BRDF of the registry (``--set brdf=NAME``, ``reflectance.FitModel``), with
 ``indirect`` an indirect-light map beside it.
 
@@ -22,9 +28,11 @@ removed) and ``unlit`` (1 where the normal continues the fitted surface over pix
 
 from __future__ import annotations
 
+import copy
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -37,6 +45,7 @@ from pstoolkit.plugin.options import format_assignments
 from pstoolkit.solve.tiled import solve_tiles
 from pstoolkit_dualres.consistency import event_gate
 from pstoolkit_dualres.fields import NeuralField, PyramidField
+from pstoolkit_dualres.interreflection import remove_bounce, unexplained
 from pstoolkit_dualres.preprocess import SCALE_RULES, STARTS, Preprocessed, PreprocessOptions, preprocess
 from pstoolkit_dualres.presets import OVERRIDES, PRESETS, Preset, resolve
 from pstoolkit_dualres.problem import Problem, build_problem, start_values
@@ -51,6 +60,48 @@ from pstoolkit_dualres.unlit import fill_unlit, unlit_pixels
 GATE_FLOOR = 0.5
 # Share of the progress bar given to preprocessing.
 PREPROCESS_SHARE = 0.1
+# The choices of ``interreflection``, and the default γ of its bounce: about a bright plastic's or paint's
+# diffuse reflectance.
+BOUNCE_MODES = ("auto", "on", "off")
+BOUNCE_REFLECTANCE = 0.6
+# ``interreflection=auto`` keeps the bounce when the fit with it leaves at most this share more of the
+# frames and events as measured unexplained (``interreflection.unexplained``) than the fit without.
+BOUNCE_TOLERANCE = 0.1
+# A bounce below this share of the measured frames is not worth a second fit (a convex object, a metal).
+MIN_BOUNCE_SHARE = 0.002
+
+
+@dataclass
+class FitState:
+    """A fit at one point, to come back to: copies of the field's and the model's parameters, the
+    problem's terms (their tensors are replaced, never changed in place, by every ``apply_``), the mask
+    and the threshold fits."""
+
+    parameters: tuple[dict[str, Any], list[torch.Tensor]]
+    terms: tuple[dict[str, Any], dict[str, Any], dict[str, Any]]
+    shadows: ShadowMask
+    gains: list[ThresholdGains]
+
+    @classmethod
+    def take(cls, problem: Problem, field: nn.Module, model: FitModel, shadows: ShadowMask, gains: list[ThresholdGains]) -> FitState:
+        return cls(parameters=(copy.deepcopy(field.state_dict()), [p.detach().clone() for p in model.parameters()]),
+                   terms=({**vars(problem.frames), "source": dict(problem.frames.source)},
+                          {**vars(problem.events), "source": dict(problem.events.source)},
+                          {"shadow_fraction": problem.shadow_fraction, "diagnostics": dict(problem.diagnostics)}),
+                   shadows=shadows, gains=list(gains))
+
+    def restore(self, problem: Problem, field: nn.Module, model: FitModel, gains: list[ThresholdGains]) -> None:
+        """Put the fit back as it was taken (``gains`` is refilled in place)."""
+        field.load_state_dict(self.parameters[0])
+        with torch.no_grad():
+            for parameter, value in zip(model.parameters(), self.parameters[1]):
+                parameter.copy_(value)
+        frames, events, rest = self.terms
+        vars(problem.frames).update({**frames, "source": dict(frames["source"])})
+        vars(problem.events).update({**events, "source": dict(events["source"])})
+        problem.shadow_fraction = rest["shadow_fraction"]
+        problem.diagnostics = dict(rest["diagnostics"])
+        gains[:] = self.gains
 
 
 @contextmanager
@@ -105,10 +156,11 @@ def threshold_sigma(capture: psfmt.Capture, option: float) -> float:
     return float(recorded) if recorded is not None and np.isfinite(recorded) and recorded > 0 else 0.0
 
 
-def _stage_bounds(preset: Preset, detector: ShadowDetector, gated: bool) -> list[int]:
+def _stage_bounds(preset: Preset, detector: ShadowDetector, between: bool) -> list[int]:
     """Epochs at which the stages start, then the last epoch: at the preset's ``detect_at`` when the
-    detector uses the surface or the events are gated (``consistency``), else one stage."""
-    cuts = sorted({int(round(share * preset.epochs)) for share in preset.detect_at}) if detector.uses_surface or gated else []
+    detector uses the surface or something else runs ``between`` stages (the event gate of
+    ``consistency``, the bounce of ``interreflection``), else one stage."""
+    cuts = sorted({int(round(share * preset.epochs)) for share in preset.detect_at}) if detector.uses_surface or between else []
     return [0, *[c for c in cuts if 0 < c < preset.epochs], preset.epochs]
 
 
@@ -148,6 +200,14 @@ class DualRes(Solver):
                "fit an indirect-light map b (smooth, ≥ 0): light from other parts of the object that the diffuse albedo "
                "reflects and no cast shadow removes (inter-reflection in concavities, a room's ambient light); with a BRDF "
                "that has an RGB diffuse albedo"),
+        Option("interreflection", str, "auto",
+               "one diffuse bounce of inter-reflection, predicted from the fitted surface and taken out of the frames and "
+               "events at each re-detection: auto (from the first re-detection on the fit goes on with it and without, and "
+               f"keeps it unless it leaves more than {100 * BOUNCE_TOLERANCE:g} % more of the measurements unexplained), on "
+               "or off", choices=BOUNCE_MODES),
+        Option("bounce_reflectance", float, BOUNCE_REFLECTANCE,
+               "γ of interreflection: the reflectance of the capture's bright albedo (the fitted albedo is relative to it; "
+               "about a bright plastic's or paint's diffuse reflectance)", minimum=0.01, maximum=2.0),
         Option("indirect_sparsity", float, 0.05, "weight of the L1 penalty that keeps b at 0 where the direct light "
                "explains the frames", minimum=0.0),
         Option("tv_weight", float, -1.0, "λ_tv, weight of the TV warm-up (−1 = the preset's)", minimum=-1.0),
@@ -201,6 +261,9 @@ class DualRes(Solver):
                 f"dualres: option smoothness={options['smoothness']:g} cannot apply with preset={named.name}: "
                 "it weighs the pyramid's finer levels, and this preset's field is an MLP (no pyramid)"
             )
+        if options["interreflection"] == "off" and options["bounce_reflectance"] != BOUNCE_REFLECTANCE:
+            raise UserError(f"dualres: option bounce_reflectance={options['bounce_reflectance']:g} cannot apply with "
+                            "interreflection=off: it is the reflectance of the bounce that option takes out")
         preset = resolve(options)
         detector = get_registries().shadow_detectors.get(options["shadow_detector"])
         shadow = format_assignments(detector.parse_options(options["shadow"]), detector.options)
@@ -247,7 +310,13 @@ class DualRes(Solver):
         clock.lap("problem")
         seconds_pre = time.perf_counter() - started
         gated = options["event_gate"] > 0
-        bounds = _stage_bounds(preset, detector, gated)
+        mode, gamma = options["interreflection"], options["bounce_reflectance"]
+        if mode == "on" and model.diffuse is None:
+            raise UserError(f"dualres: BRDF {options['brdf']!r} has no RGB diffuse albedo to reflect inter-reflected light "
+                            "(interreflection=on)")
+        bouncing = mode != "off" and model.diffuse is not None
+        bounds = _stage_bounds(preset, detector, gated or bouncing)
+        spans = list(zip(bounds[:-1], bounds[1:]))
         stages: list[dict[str, Any]] = [{"epoch": 0, "shadow_intervals": len(shadows), "cast_shadow_share": problem.diagnostics["cast_shadow_share"],
                                          **shadows.diagnostics}]
         history: list[dict[str, float]] = []
@@ -259,34 +328,98 @@ class DualRes(Solver):
                 gains.append(fit_thresholds(problem, field, model, (pre.event_height, pre.event_width), sigma, pre.contrast_pos,
                                             pre.contrast_neg, common=options["thresholds"] == "both"))
                 problem.events.apply_thresholds(gains[-1].gain_pos, gains[-1].gain_neg)
+
+        def between(stage: int, reflectance: float) -> dict[str, Any]:
+            """What runs before ``stage`` > 0: the detector again, the gate, the bounce of ``reflectance``."""
+            nonlocal shadows
+            record: dict[str, Any] = {"epoch": spans[stage][0]}
+            if detector.uses_surface:
+                shadows = self._detect_again(detector, detector_options, pre, problem, field)
+                clock.lap(f"redetect_{stage}")
+                record.update(shadow_intervals=len(shadows), cast_shadow_share=problem.diagnostics["cast_shadow_share"],
+                              **shadows.diagnostics)
+            if gated:
+                gate = event_gate(problem, field, model, pre.event_height * pre.event_width, options["event_gate"],
+                                  GATE_FLOOR * min(pre.contrast_pos, pre.contrast_neg))
+                problem.events.apply_gate(gate.weight)
+                self._restart(pre, problem, field, model, shadows, self._gated_pixels(problem, gate.restart))
+                clock.lap(f"gate_{stage}")
+                record.update(gate.record())
+            if reflectance > 0:
+                record.update(self._bounce(pre, problem, field, model, shadows, reflectance))
+                clock.lap(f"bounce_{stage}")
+            return record
+
+        def fit_from(stage: int, reflectance: float, bar: tuple[float, float], until: int | None = None
+                     ) -> tuple[list[dict[str, Any]], list[dict[str, float]]]:
+            """Train ``stage`` and the ones after it up to ``until`` (default: all; ``between`` each but the
+            first), the progress bar going over ``bar`` (shares of the run); their records and history."""
+            records: list[dict[str, Any]] = []
+            fitted: list[dict[str, float]] = []
+            until = len(spans) if until is None else until
+            for index in range(stage, until):
+                first, last = spans[index]
+                if index > stage:
+                    records.append(between(index, reflectance))
+                config = self._stage(preset, options, last - first, options["seed"] + index)
+                length = max(spans[until - 1][1] - spans[stage][0], 1)
+                done_from = bar[0] + (bar[1] - bar[0]) * (first - spans[stage][0]) / length
+                done_to = bar[0] + (bar[1] - bar[0]) * (last - spans[stage][0]) / length
+
+                def report(fraction: float, message: str, lo: float = done_from, hi: float = done_to) -> None:
+                    progress(PREPROCESS_SHARE + (1.0 - PREPROCESS_SHARE) * (lo + fraction * (hi - lo)), message)
+
+                fitted += train(problem, field, model, config, report,
+                                before_epoch=(lambda epoch, first=first: refit(first + epoch)) if sigma > 0 else None)
+                clock.lap(f"train_{index}")
+            return records, fitted
+
+        def with_or_without_bounce(bar: tuple[float, float]) -> tuple[list[dict[str, Any]], list[dict[str, float]], dict[str, Any]]:
+            """From stage 1 on, the fit with a bounce of reflectance γ and the fit without, each over
+            half of ``bar``; the one kept (module docstring) is left in place. Its records and history,
+            and what the choice saw."""
+            nonlocal shadows
+            middle = 0.5 * (bar[0] + bar[1])
+            start = FitState.take(problem, field, model, shadows, gains)
+            seen = self._bounce(pre, problem, field, model, shadows, gamma)
+            clock.lap("bounce_1")
+            if seen["bounce_frame_share"] < MIN_BOUNCE_SHARE:
+                start.restore(problem, field, model, gains)
+                records, fitted = fit_from(1, 0.0, bar)
+                return records, fitted, {"kept": False, **seen}
+            records_b, fitted_b = fit_from(1, gamma, (bar[0], middle))
+            bounced = FitState.take(problem, field, model, shadows, gains)
+            left_b = self._unexplained(problem, field, model, options)
+            clock.lap("unexplained")
+            start.restore(problem, field, model, gains)
+            shadows = start.shadows
+            records_a, fitted_a = fit_from(1, 0.0, (middle, bar[1]))
+            left_a = self._unexplained(problem, field, model, options)
+            clock.lap("unexplained")
+            chosen = {**seen, "unexplained_without": left_a, "unexplained_with": left_b}
+            if left_b <= (1.0 + BOUNCE_TOLERANCE) * left_a:
+                bounced.restore(problem, field, model, gains)
+                shadows = bounced.shadows
+                return records_b, fitted_b, {"kept": True, **chosen}
+            return records_a, fitted_a, {"kept": False, **chosen}
+
         with deterministic(warn_only=str(self.device) != "cpu"):
             field = build_field(preset, problem, model)
             clock.lap("field")
-            for stage, (first, last) in enumerate(zip(bounds[:-1], bounds[1:])):
-                if stage > 0:
-                    record: dict[str, Any] = {"epoch": first}
-                    if detector.uses_surface:
-                        shadows = self._detect_again(detector, detector_options, pre, problem, field)
-                        clock.lap(f"redetect_{stage}")
-                        record.update(shadow_intervals=len(shadows), cast_shadow_share=problem.diagnostics["cast_shadow_share"],
-                                      **shadows.diagnostics)
-                    if gated:
-                        gate = event_gate(problem, field, model, pre.event_height * pre.event_width, options["event_gate"],
-                                          GATE_FLOOR * min(pre.contrast_pos, pre.contrast_neg))
-                        problem.events.apply_gate(gate.weight)
-                        self._restart(pre, problem, field, model, shadows, self._gated_pixels(problem, gate.restart))
-                        clock.lap(f"gate_{stage}")
-                        record.update(gate.record())
-                    stages.append(record)
-                config = self._stage(preset, options, last - first, options["seed"] + stage)
-
-                def report(fraction: float, message: str, first: int = first, last: int = last) -> None:
-                    done = (first + fraction * (last - first)) / max(preset.epochs, 1)
-                    progress(PREPROCESS_SHARE + (1.0 - PREPROCESS_SHARE) * done, message)
-
-                history += train(problem, field, model, config, report,
-                                 before_epoch=(lambda epoch, first=first: refit(first + epoch)) if sigma > 0 else None)
-                clock.lap(f"train_{stage}")
+            total = max(preset.epochs, 1)
+            records, fitted = fit_from(0, 0.0, (0.0, spans[0][1] / total), until=1)
+            stages += records
+            history += fitted
+            if len(spans) > 1:
+                fixed = gamma if bouncing and mode == "on" else 0.0
+                record = between(1, fixed)
+                rest = (spans[1][0] / total, 1.0)
+                if bouncing and mode == "auto":
+                    records, fitted, record["interreflection"] = with_or_without_bounce(rest)
+                else:
+                    records, fitted = fit_from(1, fixed, rest)
+                stages += [record, *records]
+                history += fitted
             self.shadows = shadows
             with torch.no_grad():
                 normal, pixel_raw, smooth_raw = field()
@@ -300,6 +433,24 @@ class DualRes(Solver):
             "preprocess_seconds": seconds_pre, "seconds": clock.record(), "final_loss": history[-1] if history else None,
             "device": str(self.device), "preprocess": pre.diagnostics,
         })
+
+    @staticmethod
+    def _bounce(pre: Preprocessed, problem: Problem, field: nn.Module, model: FitModel, shadows: ShadowMask,
+                reflectance: float) -> dict[str, float]:
+        """``interreflection.remove_bounce`` of the current fit at ``reflectance``."""
+        with torch.no_grad():
+            normal, pixel_raw, smooth_raw = field()
+            maps = model.maps(pixel_raw, smooth_raw)
+        return remove_bounce(problem, model, normal, maps, shadows, pre.light, pre.t0_us, pre.period_us, reflectance)
+
+    @staticmethod
+    def _unexplained(problem: Problem, field: nn.Module, model: FitModel, options: dict[str, Any]) -> float:
+        """``interreflection.unexplained`` of the current fit, with the preset's loss weights."""
+        preset = resolve(options)
+        with torch.no_grad():
+            normal, pixel_raw, smooth_raw = field()
+            maps = model.maps(pixel_raw, smooth_raw)
+        return unexplained(problem, model, normal, maps, options["frame_weight"], preset.event_weight, options["event_huber"])
 
     @staticmethod
     def _stage(preset: Preset, options: dict[str, Any], epochs: int, seed: int) -> StageConfig:

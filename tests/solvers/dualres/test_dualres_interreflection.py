@@ -1,0 +1,181 @@
+"""One bounce of inter-reflection from the fitted surface (``pstoolkit_dualres.interreflection``,
+option ``interreflection``)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import psfmt
+from pstoolkit.errors import UserError
+from pstoolkit.sim.config import SimulationConfig
+from pstoolkit.sim.simulator import simulate
+from pstoolkit.solve.api import solve_capture
+from pstoolkit_dualres.interreflection import MIN_NZ, one_bounce
+from pstoolkit_dualres.preprocess import PreprocessOptions, preprocess
+from pstoolkit_dualres.problem import build_problem
+
+
+def _groove(size: int, depth_per_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """A V-groove along y: height −depth·(size/2 − |x − centre|) in pixels, and its unit normals."""
+    x = np.arange(size) - (size - 1) / 2.0
+    slope = np.where(x < 0, -depth_per_px, depth_per_px)
+    height = np.tile(depth_per_px * np.abs(x) - depth_per_px * size / 2.0, (size, 1))
+    normal = np.zeros((size, size, 3))
+    normal[..., 0] = -np.tile(slope, (size, 1))
+    normal[..., 2] = 1.0
+    return height, normal / np.linalg.norm(normal, axis=-1, keepdims=True)
+
+
+def _visible(height: np.ndarray, a: tuple[int, int], b: tuple[int, int]) -> bool:
+    """The height field's visibility between cells ``a`` and ``b`` (row, column): no cell the segment
+    passes over (sampled once per cell of its longer side) is more than half a cell above it."""
+    steps = max(abs(b[0] - a[0]), abs(b[1] - a[1]))
+    for s in range(1, steps):
+        f = s / steps
+        v, u = int(round(a[0] + f * (b[0] - a[0]))), int(round(a[1] + f * (b[1] - a[1])))
+        if height[v, u] > height[a] + f * (height[b] - height[a]) + 0.5:
+            return False
+    return True
+
+
+def _brute_force(normal: np.ndarray, albedo: np.ndarray, height: np.ndarray, direct: np.ndarray, radius: int) -> np.ndarray:
+    """The module docstring's sum, written out pair by pair."""
+    h, w = height.shape
+    out = np.zeros((direct.shape[-1], h * w, 3))
+    cells = [(v, u) for v in range(h) for u in range(w)]
+    for i, (v, u) in enumerate(cells):
+        for j, (vy, uy) in enumerate(cells):
+            if i == j or (vy - v) ** 2 + (uy - u) ** 2 > radius * radius or not _visible(height, (v, u), (vy, uy)):
+                continue
+            offset = np.array([uy - u, -(vy - v), height[vy, uy] - height[v, u]], dtype=np.float64)
+            r2 = float(offset @ offset)
+            cos_x = float(offset @ normal[v, u]) / math.sqrt(r2)
+            cos_y = -float(offset @ normal[vy, uy]) / math.sqrt(r2)
+            if cos_x <= 0 or cos_y <= 0:
+                continue
+            k = cos_x * cos_y / (math.pi * r2) / max(normal[vy, uy, 2], MIN_NZ)
+            out[:, i] += k * direct[vy, uy][:, None] * albedo[vy, uy][None, :]
+    return out
+
+
+def test_the_bounce_is_the_sum_it_states_on_a_groove_and_nothing_on_a_plane() -> None:
+    size = 12
+    height, normal = _groove(size, 2.0)  # walls steeper than the light: one wall dark at each phase
+    mask = np.ones((size, size), dtype=bool)
+    albedo = np.random.default_rng(3).uniform(0.2, 0.9, (size, size, 3))
+    phase = np.array([0.25, 0.75]) * 1000.0
+    directions = np.array([[0.6, 0.0, 0.8], [-0.6, 0.0, 0.8]])
+    lit = np.ones((2, size * size), dtype=bool)
+    bounce = one_bounce(normal, albedo, height, mask, lit, directions, phase, 1000.0)
+    direct = np.clip(normal @ directions.T, 0.0, None)
+    expected = _brute_force(normal, albedo, height, direct, radius=32)
+    np.testing.assert_allclose(bounce.value, expected, rtol=1e-5, atol=1e-9)
+    # light from +x lights the left wall (normals towards +x) only: its light reaches the right wall
+    left, right = slice(0, size // 2), slice(size // 2, size)
+    at_plus = bounce.value[0].reshape(size, size, 3)
+    assert at_plus[:, right].min() > 0.0
+    assert np.all(at_plus[:, left] == 0.0)
+    # halfway between the two phases, cyclically, the mean of both, at one pixel or at all
+    halfway = 0.5 * bounce.value[0] + 0.5 * bounce.value[1]
+    np.testing.assert_allclose(bounce.everywhere(500.0), halfway, rtol=1e-6)
+    np.testing.assert_allclose(bounce.everywhere(0.0), halfway, rtol=1e-6)
+    np.testing.assert_allclose(bounce.at(np.array([500.0, 250.0]), np.array([7, 7])), [halfway[7], bounce.value[0, 7]], rtol=1e-6)
+    flat = one_bounce(np.dstack([np.zeros((size, size, 2)), np.ones((size, size))]), albedo, np.zeros((size, size)), mask, lit,
+                      directions, phase, 1000.0)
+    assert np.all(flat.value == 0.0)
+
+
+def test_a_wall_between_two_patches_blocks_their_exchange() -> None:
+    """Two walls facing each other across a ridge taller than both see nothing of each other."""
+    size = 12
+    height, normal = _groove(size, 0.8)
+    open_bounce = one_bounce(normal, np.ones((size, size, 3)), height, np.ones((size, size), bool), np.ones((1, size * size), bool),
+                             np.array([[0.6, 0.0, 0.8]]), np.array([250.0]), 1000.0).value
+    walled = height.copy()
+    walled[:, size // 2 - 1 : size // 2 + 1] = 50.0
+    blocked = one_bounce(normal, np.ones((size, size, 3)), walled, np.ones((size, size), bool), np.ones((1, size * size), bool),
+                         np.array([[0.6, 0.0, 0.8]]), np.array([250.0]), 1000.0).value
+    right = (np.arange(size * size) % size) >= size // 2 + 1
+    assert open_bounce[0, right].sum() > 0.0
+    assert np.all(blocked[0, right] == 0.0)
+
+
+def test_the_terms_compose_their_thresholds_gate_and_bounce(sphere_48: Path) -> None:
+    """Targets are the thresholds' steps plus the bounce's shift, weights the built ones times the gate
+    times the bounce's keep, whatever the order; a zero bounce gives the terms back; the frames as
+    built minus the offset."""
+    capture = psfmt.read(sphere_48)
+    pre = preprocess(capture, PreprocessOptions())
+    problem = build_problem(pre, capture.calibration.view_direction, device="cpu")
+    events, frames = problem.events, problem.frames
+    src = events.source
+    built_target, built_weight = events.target.clone(), events.weight.clone()
+    n_pixels = pre.event_height * pre.event_width
+    rng = np.random.default_rng(5)
+    gain_pos, gain_neg, gate = rng.uniform(0.9, 1.1, n_pixels), rng.uniform(0.9, 1.1, n_pixels), rng.uniform(0.5, 1.0, n_pixels)
+    count = events.target.shape[0]
+    shift, keep = rng.normal(0.0, 0.05, count), rng.uniform(size=count) > 0.2
+    steps = src["rise"] * gain_pos[src["pixel"]] - src["fall"] * gain_neg[src["pixel"]]
+    expected_target = steps + shift
+    expected_weight = src["weight"] * gate[src["pixel"]] * keep
+    for order in ((0, 1, 2), (2, 0, 1), (1, 2, 0)):
+        events.apply_bounce(np.zeros(count), np.ones(count, bool), np.zeros(count), np.zeros(count))
+        events.apply_gate(np.ones(n_pixels))
+        events.apply_thresholds(np.ones(n_pixels), np.ones(n_pixels))
+        np.testing.assert_allclose(events.target.numpy(), built_target.numpy(), atol=1e-6)
+        np.testing.assert_array_equal(events.weight.numpy(), built_weight.numpy())
+        steps_in = (lambda: events.apply_thresholds(gain_pos, gain_neg), lambda: events.apply_gate(gate),
+                    lambda: events.apply_bounce(shift, keep, np.ones(count), np.ones(count)))
+        for index in order:
+            steps_in[index]()
+        np.testing.assert_allclose(events.target.numpy(), expected_target, rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(events.weight.numpy(), expected_weight, rtol=1e-6)
+    measured = frames.measured.clone()
+    offset = rng.uniform(0.0, 0.01, measured.shape)
+    built = frames.apply_bounce(offset)
+    np.testing.assert_array_equal(built, measured.numpy())
+    np.testing.assert_allclose(frames.measured.numpy(), measured.numpy() - offset, rtol=1e-6, atol=1e-7)
+    frames.apply_bounce(np.zeros_like(offset))
+    np.testing.assert_array_equal(frames.measured.numpy(), measured.numpy())
+
+
+@pytest.fixture(scope="module")
+def hollows_48(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The simulator's hollows (direct light only) at 48 px: a concavity whose bounce the model predicts."""
+    path = tmp_path_factory.mktemp("hollows_48") / "hollows.h5"
+    simulate(SimulationConfig(scene="hollows", size=48, seed=0), path)
+    return path
+
+
+def test_a_bounce_the_measurements_do_not_have_is_tried_and_left_out(hollows_48: Path) -> None:
+    """The simulator renders no inter-reflection: with the default (auto) the fit with the bounce explains
+    the measurements worse, so the fit without is kept, exactly as with the bounce off; a bounce forced
+    on changes the normals and records what it took out."""
+    auto = solve_capture(hollows_48, "dualres", epochs=30)
+    off = solve_capture(hollows_48, "dualres", epochs=30, interreflection="off")
+    forced = solve_capture(hollows_48, "dualres", epochs=30, interreflection="on")
+    chosen = next(stage["interreflection"] for stage in auto.diagnostics["stages"] if "interreflection" in stage)
+    assert chosen["kept"] is False and chosen["bounce_frame_share"] > 0.002
+    assert chosen["unexplained_with"] > 1.1 * chosen["unexplained_without"]
+    np.testing.assert_array_equal(auto.normal, off.normal)
+    assert not any("interreflection" in stage or "bounce_frame_share" in stage for stage in off.diagnostics["stages"])
+    record = next(stage for stage in forced.diagnostics["stages"] if "bounce_frame_share" in stage)
+    assert 0.002 < record["bounce_frame_share"] < 0.5 and 0.0 <= record["bounce_pairs_dropped"] < 0.5
+    assert np.degrees(np.arccos(np.clip(np.sum(forced.normal * off.normal, axis=-1), -1, 1)))[off.mask].max() > 1.0
+    # a higher reflectance takes out more
+    brighter = solve_capture(hollows_48, "dualres", epochs=30, interreflection="on", bounce_reflectance=1.2)
+    more = next(stage for stage in brighter.diagnostics["stages"] if "bounce_frame_share" in stage)
+    assert more["bounce_frame_share"] > 1.5 * record["bounce_frame_share"]
+
+
+def test_bad_interreflection_options_are_refused(sphere_48: Path) -> None:
+    with pytest.raises(UserError, match="'sometimes' is not one of auto, on, off"):
+        solve_capture(sphere_48, "dualres", epochs=2, interreflection="sometimes")
+    with pytest.raises(UserError, match="below the minimum"):
+        solve_capture(sphere_48, "dualres", epochs=2, bounce_reflectance=0.0)
+    with pytest.raises(UserError, match="bounce_reflectance=0.8 cannot apply with interreflection=off"):
+        solve_capture(sphere_48, "dualres", epochs=2, interreflection="off", bounce_reflectance=0.8)
