@@ -16,10 +16,11 @@ area of y's pixel on the surface, V the height field's visibility between x and 
 of the capture's albedo scale: the fitted albedo is relative (the frames fix it only up to the light's
 intensity), so γ is the one number the fit cannot give — 0 for a renderer without inter-reflection,
 about the brightest albedo's reflectance for a real object (more with a specular bounce). The pixel
-reflects ρ(x)·B(x, t) more than the direct model predicts: ``frame_offsets`` is that light integrated over
-each frame, taken out of the measured frames; ``event_shares`` the direct share of each event pair's
-super-pixel irradiance at both ends, whose log ratio moves the pair's target (a pair whose direct share
-is below ``MIN_DIRECT_SHARE`` at either end says little of the direct shading and is left out).
+reflects ρ(x)·B(x, t) more than the direct model predicts. ``remove_bounce`` takes it out: from the
+measured frames that light integrated over each frame (``frame_offsets``), and from each event pair's
+target the log ratio of the direct share of its super-pixel irradiance at its two ends (``event_offsets``
+against ``direct_irradiance``; a pair whose direct share is below ``MIN_DIRECT_SHARE`` at either end says
+little of the direct shading and is left out).
 
 The sum runs on a grid of at most ``WORK_SIDE`` cells a side (the bounce is smooth at the scale of a
 pixel) over neighbours within ``RADIUS_CELLS`` cells, at ``PHASES`` light directions per turn.
@@ -40,8 +41,8 @@ from pstoolkit import ShadowMask
 from pstoolkit.events.rule import LOG_EPS
 from pstoolkit.optics.lights import LightModel
 from pstoolkit.shadows.intervals import grid_times
-from pstoolkit_dualres.forward_model import frame_prediction, superpixel_grey
-from pstoolkit_dualres.losses import frame_loss, grid_frame_loss
+from pstoolkit_dualres.forward_model import frame_prediction
+from pstoolkit_dualres.losses import frame_loss, grid_frame_loss, pair_grey
 from pstoolkit_dualres.problem import EventTerms, FrameTerms, Problem
 from pstoolkit_dualres.reflectance import FitModel
 
@@ -250,18 +251,16 @@ def event_offsets(events: EventTerms, bounce: Bounce, albedo: np.ndarray, t0_us:
 
 def direct_irradiance(model: FitModel, normal: Tensor, maps: dict[str, Tensor], events: EventTerms, view: Tensor
                       ) -> tuple[np.ndarray, np.ndarray]:
-    """(E,) the fit's own super-pixel grey irradiance (``superpixel_grey``, under the current mask) of
-    every pair at its later and at its earlier time, without gradients."""
+    """(E,) the fit's own super-pixel grey irradiance (``losses.pair_grey``, under the current mask) of
+    every pair at its later and at its earlier time, without gradients, ``PAIR_CHUNK`` pairs at a time."""
     count = events.taps.shape[0]
     now, ref = np.zeros(count), np.zeros(count)
     with torch.no_grad():
         for first in range(0, count, PAIR_CHUNK):
-            part = slice(first, first + PAIR_CHUNK)
-            area = events.tap_area[part] if model.indirect else None
-            now[part] = superpixel_grey(model, normal, maps, events.taps[part], events.tap_weight_now[part], events.light_now[part],
-                                        events.grey_now[part], view, area).cpu().numpy()
-            ref[part] = superpixel_grey(model, normal, maps, events.taps[part], events.tap_weight_ref[part], events.light_ref[part],
-                                        events.grey_ref[part], view, area).cpu().numpy()
+            pairs = torch.arange(first, min(first + PAIR_CHUNK, count), device=events.taps.device)
+            grey, grey_ref = pair_grey(model, normal, maps, events.taps[pairs], events, pairs, view)
+            now[first : first + pairs.numel()] = grey.cpu().numpy()
+            ref[first : first + pairs.numel()] = grey_ref.cpu().numpy()
     return now, ref
 
 

@@ -156,6 +156,13 @@ def threshold_sigma(capture: psfmt.Capture, option: float) -> float:
     return float(recorded) if recorded is not None and np.isfinite(recorded) and recorded > 0 else 0.0
 
 
+def _current(field: nn.Module, model: FitModel) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """The fit's (P, 3) normals and its BRDF's maps now, without gradients."""
+    with torch.no_grad():
+        normal, pixel_raw, smooth_raw = field()
+        return normal, model.maps(pixel_raw, smooth_raw)
+
+
 def _stage_bounds(preset: Preset, detector: ShadowDetector, between: bool) -> list[int]:
     """Epochs at which the stages start, then the last epoch: at the preset's ``detect_at`` when the
     detector uses the surface or something else runs ``between`` stages (the event gate of
@@ -389,12 +396,13 @@ class DualRes(Solver):
                 return records, fitted, {"kept": False, **seen}
             records_b, fitted_b = fit_from(1, gamma, (bar[0], middle))
             bounced = FitState.take(problem, field, model, shadows, gains)
-            left_b = self._unexplained(problem, field, model, options)
+            weights = self._stage(preset, options, 0, options["seed"])
+            left_b = self._unexplained(problem, field, model, weights)
             clock.lap("unexplained")
             start.restore(problem, field, model, gains)
             shadows = start.shadows
             records_a, fitted_a = fit_from(1, 0.0, (middle, bar[1]))
-            left_a = self._unexplained(problem, field, model, options)
+            left_a = self._unexplained(problem, field, model, weights)
             clock.lap("unexplained")
             chosen = {**seen, "unexplained_without": left_a, "unexplained_with": left_b}
             if left_b <= (1.0 + BOUNCE_TOLERANCE) * left_a:
@@ -421,10 +429,9 @@ class DualRes(Solver):
                 stages += [record, *records]
                 history += fitted
             self.shadows = shadows
-            with torch.no_grad():
-                normal, pixel_raw, smooth_raw = field()
-                maps = {name: value.cpu().numpy() for name, value in model.maps(pixel_raw, smooth_raw).items()}
-                normal_np = normal.cpu().numpy()
+            normal, fitted = _current(field, model)
+            maps = {name: value.cpu().numpy() for name, value in fitted.items()}
+            normal_np = normal.cpu().numpy()
         clock.lap("output")
         return self._result(problem, model, normal_np, maps, options["fill_unlit"], {
             **problem.diagnostics, "preset": preset.record(), "brdf": model.name,
@@ -438,19 +445,12 @@ class DualRes(Solver):
     def _bounce(pre: Preprocessed, problem: Problem, field: nn.Module, model: FitModel, shadows: ShadowMask,
                 reflectance: float) -> dict[str, float]:
         """``interreflection.remove_bounce`` of the current fit at ``reflectance``."""
-        with torch.no_grad():
-            normal, pixel_raw, smooth_raw = field()
-            maps = model.maps(pixel_raw, smooth_raw)
-        return remove_bounce(problem, model, normal, maps, shadows, pre.light, pre.t0_us, pre.period_us, reflectance)
+        return remove_bounce(problem, model, *_current(field, model), shadows, pre.light, pre.t0_us, pre.period_us, reflectance)
 
     @staticmethod
-    def _unexplained(problem: Problem, field: nn.Module, model: FitModel, options: dict[str, Any]) -> float:
-        """``interreflection.unexplained`` of the current fit, with the preset's loss weights."""
-        preset = resolve(options)
-        with torch.no_grad():
-            normal, pixel_raw, smooth_raw = field()
-            maps = model.maps(pixel_raw, smooth_raw)
-        return unexplained(problem, model, normal, maps, options["frame_weight"], preset.event_weight, options["event_huber"])
+    def _unexplained(problem: Problem, field: nn.Module, model: FitModel, config: StageConfig) -> float:
+        """``interreflection.unexplained`` of the current fit, with the stages' loss weights."""
+        return unexplained(problem, model, *_current(field, model), config.frame_weight, config.event_weight, config.event_huber)
 
     @staticmethod
     def _stage(preset: Preset, options: dict[str, Any], epochs: int, seed: int) -> StageConfig:
