@@ -471,7 +471,7 @@ class DualRes(Solver):
         h, w, pixels = problem.geometry.height, problem.geometry.width, problem.geometry.pixels
         full = np.zeros((h * w, 3), dtype=np.float32)
         full[pixels] = normal
-        shadows = detector.detect(pre.evidence.with_normal(full.reshape(h, w, 3)), detector_options)
+        shadows = detector.detect(pre.evidence.with_normal(full.reshape(h, w, 3), fitted=True), detector_options)
         problem.apply_mask(shadows)
         return shadows
 

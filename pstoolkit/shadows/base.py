@@ -100,7 +100,8 @@ class ShadowEvidence:
     ``profile`` the events of one period from ``t0_us`` at the event pixels (eq. 20);
     ``frames`` (J, H, W, 3) the mean frame of each of the period's exposure windows ``windows_us``
     (J, 2) phases, in units of saturation. Surface: ``normal`` (H, W, 3) the current estimate of
-    the solver, None before it has one."""
+    the solver, None before it has one; ``fitted``: that estimate is a fit to these measurements
+    (a re-detection), not a start such as a closed form."""
 
     frame_shape: tuple[int, int]
     event_shape: tuple[int, int]
@@ -117,10 +118,12 @@ class ShadowEvidence:
     frames: np.ndarray
     windows_us: np.ndarray
     normal: np.ndarray | None = None
+    fitted: bool = False
 
-    def with_normal(self, normal: np.ndarray) -> ShadowEvidence:
-        """The same evidence with the surface estimate ``normal`` (H, W, 3)."""
-        return replace(self, normal=np.asarray(normal, dtype=np.float32))
+    def with_normal(self, normal: np.ndarray, fitted: bool = False) -> ShadowEvidence:
+        """The same evidence with the surface estimate ``normal`` (H, W, 3), ``fitted`` to the
+        measurements or a start."""
+        return replace(self, normal=np.asarray(normal, dtype=np.float32), fitted=fitted)
 
     def event_mask(self, intervals: ShadowIntervals) -> ShadowMask:
         """A mask from intervals at event pixels: each frame pixel takes those of its super pixel."""

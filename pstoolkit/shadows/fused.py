@@ -10,10 +10,11 @@ solver has a surface the detector returns no mask.
 
 Light from the rest of the object fills the cast shadows of a concavity, and its events are not dark
 there; so a shadow of the surface also counts where the events see its edges (``edge_seen``: a net fall
-at its entry, a net rise at its exit), at the frame pixels the surface shadows for at most ``edge_share``
-of the turn. A pixel shadowed longer keeps only what a dark span confirms: under inter-reflection the few
-directly lit samples a longer mask leaves it fix its normal worse than the bounce-lit ones they replace
-(``docs/dualres-tuning.md``).
+at its entry, a net rise at its exit). On a start's surface (the closed form's, before any fit) only at
+the frame pixels it shadows for at most ``edge_share`` of the turn: a pixel shadowed longer keeps only what
+a dark span confirms, because long shadows of a wrong surface leave a first fit a short, wrong lit arc to
+fix a normal by. On a surface fitted to the measurements (``ShadowEvidence.fitted``, a solver's
+re-detection) the limit is ``fitted_edge_share``, the whole turn by default (``docs/dualres-tuning.md``).
 """
 
 from __future__ import annotations
@@ -55,8 +56,11 @@ class FusedDetector(ShadowDetector):
         *GEOMETRY_OPTIONS,
         Option("min_gap_ms", float, -1.0, "shortest dark span, ms (−1: one refractory period, at least 0.2 ms)", minimum=-1.0),
         Option("edge_share", float, 0.3, "a shadow whose edges the events see (more fall than rise within edge_tolerance_deg "
-               "of its entry, more rise than fall of its exit) counts without a dark span at the pixels the surface "
-               "shadows for at most this share of the turn (0: dark spans only)", minimum=0.0, maximum=1.0),
+               "of its entry, more rise than fall of its exit) counts without a dark span at the pixels a start's "
+               "surface (not yet fitted) shadows for at most this share of the turn (0: dark spans only)",
+               minimum=0.0, maximum=1.0),
+        Option("fitted_edge_share", float, 1.0, "the same limit on a surface fitted to the measurements (a re-detection)",
+               minimum=0.0, maximum=1.0),
     )
     uses_surface: ClassVar[bool] = True
 
@@ -70,7 +74,8 @@ class FusedDetector(ShadowDetector):
         dark = event_darkness(evidence, steps, min_gap_us(options["min_gap_ms"], evidence.refractory_us, 1.0))
         covering = evidence.super_pixel[pixels]
         confirmed = RunCollector(pixels.size)
-        edges = options["edge_share"] > 0
+        edge_share = options["fitted_edge_share" if evidence.fitted else "edge_share"]
+        edges = edge_share > 0
         if edges:
             tracker = EdgeTracker(SuperPixels.of(evidence), count_pixels=True)
             surface = RunCollector(pixels.size)
@@ -87,7 +92,7 @@ class FusedDetector(ShadowDetector):
         if edges:
             seen = seen_edges(evidence, tracker, options["edge_tolerance_deg"])
             chosen = {**chosen, **seen.record()}
-            extra = _seen_at_pixels(evidence, seen, surface.intervals(evidence.period_us), pixels, options["edge_share"])
+            extra = _seen_at_pixels(evidence, seen, surface.intervals(evidence.period_us), pixels, edge_share)
             # the table merges what overlaps or touches: the union of both kinds of confirmation
             shadows = ShadowIntervals.concatenate([shadows, extra])
         return replace(evidence.frame_mask(shadows), diagnostics=chosen)

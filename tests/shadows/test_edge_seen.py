@@ -40,10 +40,21 @@ def test_the_keys_count_each_polarity_across_the_period_ends() -> None:
 
 @pytest.fixture(scope="module")
 def lit_shadows(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
-    """48 px GGX blobs at 2 ms (reset-at-end) with dualres's evidence on the true normals, the true mask,
-    and the same evidence with light filling every super pixel's shadow (an event every FILL_US)."""
-    path = tmp_path_factory.mktemp("edges") / "blobs.h5"
-    simulate(SimulationConfig(scene="blobs", size=48, seed=0, refractory_us=2000.0), path)
+    """48 px GGX blobs (no pixel in shadow for over a quarter of the turn), filled: ``_filled``."""
+    return _filled(tmp_path_factory, "blobs")
+
+
+@pytest.fixture(scope="module")
+def lit_hollows(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
+    """48 px GGX hollows (shadows up to 0.41 of the turn), filled: ``_filled``."""
+    return _filled(tmp_path_factory, "hollows")
+
+
+def _filled(tmp_path_factory: pytest.TempPathFactory, scene: str) -> dict[str, object]:
+    """A 48 px GGX ``scene`` at 2 ms (reset-at-end) with dualres's evidence on the true normals, the true
+    mask, and the same evidence with light filling every super pixel's shadow (an event every FILL_US)."""
+    path = tmp_path_factory.mktemp("edges") / f"{scene}.h5"
+    simulate(SimulationConfig(scene=scene, size=48, seed=0, refractory_us=2000.0), path)
     capture = psfmt.read(path)
     pre = preprocess(capture, PreprocessOptions())
     gt = capture.ground_truth
@@ -104,3 +115,23 @@ def test_seen_shadows_lie_where_the_surface_predicts_them(lit_shadows: dict) -> 
     flat = evidence.with_normal(np.broadcast_to(np.float32([0, 0, 1]), evidence.normal.shape).copy())
     none = seen_shadows(flat, surface_height(flat), 360, 0.225, 10.0)
     assert none.runs == 0 and none.columns.size == 0 and not none.pixel_share.any()
+
+
+def test_a_fitted_surface_takes_the_seen_shadows_of_every_pixel(lit_hollows: dict) -> None:
+    """``edge_share`` limits the seen shadows on a start's surface, ``fitted_edge_share`` (the whole turn)
+    on a fitted one: the same limit gives the same mask either way, and the fitted default adds shadow
+    time only at the pixels the surface shadows for more than the start's limit."""
+    truth, region, filled = lit_hollows["truth"], lit_hollows["mask"], lit_hollows["filled"]
+    fitted = filled.with_normal(filled.normal, fitted=True)
+    start = _fused(filled)
+    capped = _fused(fitted, "fitted_edge_share=0.3", "edge_share=0")
+    whole = _fused(fitted)
+    pixels = np.flatnonzero(np.asarray(region).ravel())
+    assert np.array_equal(start.coverage()[pixels], capped.coverage()[pixels])
+    added = whole.coverage()[pixels] - start.coverage()[pixels]
+    seen = seen_shadows(filled, surface_height(filled), 720, 0.225, 10.0)
+    assert added.min() >= 0 and added.max() > 0
+    assert not added[seen.pixel_share <= 0.3].any()
+    # measured recall 0.43 → 0.66, precision 1.00 both
+    before, after = score(start, truth, region), score(whole, truth, region)
+    assert after[1] > before[1] + 0.15 and after[0] > 0.99

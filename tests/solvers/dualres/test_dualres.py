@@ -158,16 +158,30 @@ class TrueShadows(ShadowDetector):
         return true_shadows(gt.depth, gt.mask, evidence.light, evidence.t0_us, evidence.period_us)
 
 
+class SurfaceShadows(TrueShadows):
+    """A third party's surface detector: the truth again, recording whether each surface it was given
+    was a fit to the measurements."""
+
+    name = "truth-surface"
+    uses_surface = True
+    fitted: list[bool] = []
+
+    def detect(self, evidence, options):  # type: ignore[no-untyped-def]
+        SurfaceShadows.fitted.append(evidence.fitted)
+        return super().detect(evidence, options)
+
+
 class ThirdParty:
     @staticmethod
     @hookimpl
     def pstoolkit_register_shadow_detectors(registry):  # type: ignore[no-untyped-def]
         registry.register(TrueShadows)
+        registry.register(SurfaceShadows)
 
 
 def test_a_third_party_detector_plugs_into_dualres(blobs: Path) -> None:
     capture = psfmt.load(blobs)
-    TrueShadows.capture = capture
+    TrueShadows.capture, TrueShadows.calls = capture, 0
     plugins.register_plugin(ThirdParty, "truth-plugin")
     try:
         entry = get_registries().shadow_detectors.get("truth")
@@ -178,6 +192,19 @@ def test_a_third_party_detector_plugs_into_dualres(blobs: Path) -> None:
     # not a surface detector: called once, before the fit; the true mask beats no mask
     assert TrueShadows.calls == 1 and result.diagnostics["shadow_detector"] == "truth"
     assert _mae(result.normal, capture) < 0.6  # measured 0.43°
+
+
+def test_a_surface_detector_is_told_the_start_from_the_fit(blobs: Path) -> None:
+    """The first mask comes from the closed form's surface, a start; every re-detection from the fit's."""
+    capture = psfmt.load(blobs)
+    SurfaceShadows.capture, SurfaceShadows.fitted = capture, []
+    plugins.register_plugin(ThirdParty, "truth-plugin")
+    try:
+        result = _solve(capture, "dualres", "epochs=10", "shadow_detector=truth-surface", "interreflection=off")
+    finally:
+        plugins.reset()
+    assert SurfaceShadows.fitted == [False, True]
+    assert [s["epoch"] for s in result.diagnostics["stages"]] == [0, 4]
 
 
 def test_paper_network_shape() -> None:
