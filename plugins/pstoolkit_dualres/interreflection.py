@@ -320,12 +320,13 @@ def remove_bounce(problem: Problem, model: FitModel, normal: Tensor, maps: dict[
 
 
 def unexplained(problem: Problem, model: FitModel, normal: Tensor, maps: dict[str, Tensor], frame_weight: float,
-                event_weight: float, huber: float) -> float:
+                event_weight: float, huber: float, pairs: np.ndarray | None = None) -> float:
     """λ_f·(mean |Ã − A|) + λ_e·(mean weighted ρ_δ of the event residual) of the fit against the
     measurements as built, with the bounce ``problem`` holds added to its prediction (the frames'
     ``FrameTerms.apply_bounce`` offsets, the pairs' ``bounce_now``/``bounce_ref``): the training
-    loss without its regularisers, over every pair the mask leaves usable and with the weights the
-    pairs had before ``apply_bounce`` left any out, so that fits with and without a bounce compare."""
+    loss without its regularisers, over ``pairs`` (indices; default: every pair the mask leaves usable)
+    and with the weights the pairs had before ``apply_bounce`` left any out, so that fits with and
+    without a bounce compare."""
     frames, events = problem.frames, problem.events
     with torch.no_grad():
         frame_term = float(grid_frame_loss(model, normal, maps, frames.shared_light, frames.shared_weight, frames.shared_visible,
@@ -335,7 +336,7 @@ def unexplained(problem: Problem, model: FitModel, normal: Tensor, maps: dict[st
                                         frames.sample_weight, problem.geometry.view, frames.count * normal.shape[0],
                                         energy=frames.energy), frames.measured, frames.saturated))
     src = events.source
-    usable = events.usable.cpu().numpy()
+    usable = events.usable.cpu().numpy() if pairs is None else np.asarray(pairs, dtype=np.int64)
     if usable.size == 0 or event_weight <= 0:
         return frame_weight * frame_term
     direct_now, direct_ref = direct_irradiance(model, normal, maps, events, problem.geometry.view)

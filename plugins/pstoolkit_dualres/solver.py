@@ -341,7 +341,7 @@ class DualRes(Solver):
             nonlocal shadows
             record: dict[str, Any] = {"epoch": spans[stage][0]}
             if detector.uses_surface:
-                shadows = self._detect_again(detector, detector_options, pre, problem, field)
+                shadows = self._detect_again(detector, detector_options, pre, problem, field, reflectance > 0)
                 clock.lap(f"redetect_{stage}")
                 record.update(shadow_intervals=len(shadows), cast_shadow_share=problem.diagnostics["cast_shadow_share"],
                               **shadows.diagnostics)
@@ -388,21 +388,30 @@ class DualRes(Solver):
             nonlocal shadows
             middle = 0.5 * (bar[0] + bar[1])
             start = FitState.take(problem, field, model, shadows, gains)
-            seen = self._bounce(pre, problem, field, model, shadows, gamma)
+            usable_a = problem.events.usable.cpu().numpy()
+            if detector.uses_surface:
+                # the fit with the bounce takes the mask the detector gives a surface inter-reflection flattened
+                shadows = self._detect_again(detector, detector_options, pre, problem, field, True)
+                clock.lap("redetect_bounce")
+            seen = {**self._bounce(pre, problem, field, model, shadows, gamma),
+                    "cast_shadow_share_with": problem.diagnostics["cast_shadow_share"]}
             clock.lap("bounce_1")
             if seen["bounce_frame_share"] < MIN_BOUNCE_SHARE:
                 start.restore(problem, field, model, gains)
+                shadows = start.shadows
                 records, fitted = fit_from(1, 0.0, bar)
                 return records, fitted, {"kept": False, **seen}
+            # both fits are judged on the pairs both masks leave usable: neither gains by leaving more out
+            compared = np.intersect1d(usable_a, problem.events.usable.cpu().numpy())
             records_b, fitted_b = fit_from(1, gamma, (bar[0], middle))
             bounced = FitState.take(problem, field, model, shadows, gains)
             weights = self._stage(preset, options, 0, options["seed"])
-            left_b = self._unexplained(problem, field, model, weights)
+            left_b = self._unexplained(problem, field, model, weights, compared)
             clock.lap("unexplained")
             start.restore(problem, field, model, gains)
             shadows = start.shadows
             records_a, fitted_a = fit_from(1, 0.0, (middle, bar[1]))
-            left_a = self._unexplained(problem, field, model, weights)
+            left_a = self._unexplained(problem, field, model, weights, compared)
             clock.lap("unexplained")
             chosen = {**seen, "unexplained_without": left_a, "unexplained_with": left_b}
             if left_b <= (1.0 + BOUNCE_TOLERANCE) * left_a:
@@ -448,9 +457,10 @@ class DualRes(Solver):
         return remove_bounce(problem, model, *_current(field, model), shadows, pre.light, pre.t0_us, pre.period_us, reflectance)
 
     @staticmethod
-    def _unexplained(problem: Problem, field: nn.Module, model: FitModel, config: StageConfig) -> float:
-        """``interreflection.unexplained`` of the current fit, with the stages' loss weights."""
-        return unexplained(problem, model, *_current(field, model), config.frame_weight, config.event_weight, config.event_huber)
+    def _unexplained(problem: Problem, field: nn.Module, model: FitModel, config: StageConfig, pairs: np.ndarray) -> float:
+        """``interreflection.unexplained`` of the current fit over ``pairs``, with the stages' loss weights."""
+        return unexplained(problem, model, *_current(field, model), config.frame_weight, config.event_weight, config.event_huber,
+                           pairs)
 
     @staticmethod
     def _stage(preset: Preset, options: dict[str, Any], epochs: int, seed: int) -> StageConfig:
@@ -464,14 +474,16 @@ class DualRes(Solver):
 
     @staticmethod
     def _detect_again(detector: ShadowDetector, detector_options: dict[str, Any], pre: Preprocessed, problem: Problem,
-                      field: nn.Module) -> ShadowMask:
-        """The detector on the current normals, its mask into the problem."""
+                      field: nn.Module, inter_reflected: bool) -> ShadowMask:
+        """The detector on the current normals, told whether inter-reflected light is taken out, its mask
+        into the problem."""
         with torch.no_grad():
             normal = field()[0].cpu().numpy()
         h, w, pixels = problem.geometry.height, problem.geometry.width, problem.geometry.pixels
         full = np.zeros((h * w, 3), dtype=np.float32)
         full[pixels] = normal
-        shadows = detector.detect(pre.evidence.with_normal(full.reshape(h, w, 3), fitted=True), detector_options)
+        evidence = pre.evidence.with_normal(full.reshape(h, w, 3), fitted=True, inter_reflected=inter_reflected)
+        shadows = detector.detect(evidence, detector_options)
         problem.apply_mask(shadows)
         return shadows
 

@@ -101,7 +101,9 @@ class ShadowEvidence:
     ``frames`` (J, H, W, 3) the mean frame of each of the period's exposure windows ``windows_us``
     (J, 2) phases, in units of saturation. Surface: ``normal`` (H, W, 3) the current estimate of
     the solver, None before it has one; ``fitted``: that estimate is a fit to these measurements
-    (a re-detection), not a start such as a closed form."""
+    (a re-detection), not a start such as a closed form; ``inter_reflected``: the solver takes light
+    inter-reflected by the object out of these measurements (and its surface may have been flattened
+    by it)."""
 
     frame_shape: tuple[int, int]
     event_shape: tuple[int, int]
@@ -119,11 +121,12 @@ class ShadowEvidence:
     windows_us: np.ndarray
     normal: np.ndarray | None = None
     fitted: bool = False
+    inter_reflected: bool = False
 
-    def with_normal(self, normal: np.ndarray, fitted: bool = False) -> ShadowEvidence:
+    def with_normal(self, normal: np.ndarray, fitted: bool = False, inter_reflected: bool = False) -> ShadowEvidence:
         """The same evidence with the surface estimate ``normal`` (H, W, 3), ``fitted`` to the
-        measurements or a start."""
-        return replace(self, normal=np.asarray(normal, dtype=np.float32), fitted=fitted)
+        measurements or a start, ``inter_reflected`` light taken out or not."""
+        return replace(self, normal=np.asarray(normal, dtype=np.float32), fitted=fitted, inter_reflected=inter_reflected)
 
     def event_mask(self, intervals: ShadowIntervals) -> ShadowMask:
         """A mask from intervals at event pixels: each frame pixel takes those of its super pixel."""

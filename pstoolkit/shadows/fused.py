@@ -15,6 +15,11 @@ the frame pixels it shadows for at most ``edge_share`` of the turn: a pixel shad
 a dark span confirms, because long shadows of a wrong surface leave a first fit a short, wrong lit arc to
 fix a normal by. On a surface fitted to the measurements (``ShadowEvidence.fitted``, a solver's
 re-detection) the limit is ``fitted_edge_share``, the whole turn by default (``docs/dualres-tuning.md``).
+
+Inter-reflection also flattens the normals of a concavity, so the surface integrated from them comes out
+too shallow and its shadows too short, more than one height scale for the whole surface makes up. Where
+the solver takes inter-reflected light out (``ShadowEvidence.inter_reflected``: the hypothesis that the
+capture has it), the mask also takes the confirmed shadows of the surface ``reflected_scale`` times taller.
 """
 
 from __future__ import annotations
@@ -61,41 +66,57 @@ class FusedDetector(ShadowDetector):
                minimum=0.0, maximum=1.0),
         Option("fitted_edge_share", float, 1.0, "the same limit on a surface fitted to the measurements (a re-detection)",
                minimum=0.0, maximum=1.0),
+        Option("reflected_scale", float, 1.19, "where the solver takes inter-reflection out (ShadowEvidence.inter_reflected), "
+               "also the confirmed shadows of a surface this much taller: inter-reflection flattens a concavity's normals, "
+               "so the surface integrated from them comes out too shallow (1: none)", minimum=1.0, maximum=2.0),
     )
     uses_surface: ClassVar[bool] = True
 
     def detect(self, evidence: ShadowEvidence, options: dict[str, Any]) -> ShadowMask:
         if evidence.normal is None:
             return evidence.no_mask()
-        steps = options["time_steps"]
-        pixels = np.flatnonzero(np.asarray(evidence.mask).ravel())
         # the height first: its solve is the detector's peak memory, better without the dark map beside it
         height, chosen = shadow_height(evidence, options)
-        dark = event_darkness(evidence, steps, min_gap_us(options["min_gap_ms"], evidence.refractory_us, 1.0))
-        covering = evidence.super_pixel[pixels]
-        confirmed = RunCollector(pixels.size)
-        edge_share = options["fitted_edge_share" if evidence.fitted else "edge_share"]
-        edges = edge_share > 0
-        if edges:
-            tracker = EdgeTracker(SuperPixels.of(evidence), count_pixels=True)
-            surface = RunCollector(pixels.size)
-        start = 0
-        # one sweep, a block of times at a time: no (steps, P) map of the surface's shadows is ever whole
-        for block in surface_shadow_blocks(evidence, height, steps, options["margin_px"]):
-            if edges:
-                tracker.feed(block)
-                surface.feed(block)
-            # np.take gathers a block's columns 5× faster than indexing with an index array
-            confirmed.feed(block & np.take(dark[start : start + len(block)], covering, axis=1))
-            start += len(block)
-        shadows = confirmed.intervals(evidence.period_us, pixels)
-        if edges:
-            seen = seen_edges(evidence, tracker, options["edge_tolerance_deg"])
-            chosen = {**chosen, **seen.record()}
-            extra = _seen_at_pixels(evidence, seen, surface.intervals(evidence.period_us), pixels, edge_share)
-            # the table merges what overlaps or touches: the union of both kinds of confirmation
-            shadows = ShadowIntervals.concatenate([shadows, extra])
+        dark = event_darkness(evidence, options["time_steps"], min_gap_us(options["min_gap_ms"], evidence.refractory_us, 1.0))
+        shadows, seen = _confirmed(evidence, options, height, dark)
+        chosen = {**chosen, **seen}
+        if evidence.inter_reflected and options["reflected_scale"] > 1.0:
+            taller, _ = _confirmed(evidence, options, height * np.float32(options["reflected_scale"]), dark)
+            # the table merges what overlaps or touches: the union
+            shadows = ShadowIntervals.concatenate([shadows, taller])
         return replace(evidence.frame_mask(shadows), diagnostics=chosen)
+
+
+def _confirmed(evidence: ShadowEvidence, options: dict[str, Any], height: np.ndarray, dark: np.ndarray
+               ) -> tuple[ShadowIntervals, dict[str, int]]:
+    """The shadows of the surface of ``height`` that the events confirm (module docstring), keyed by flat
+    frame pixel, and the record of the edges seen (empty when the options take none). ``dark``:
+    ``event_darkness`` on the options' time grid."""
+    steps = options["time_steps"]
+    pixels = np.flatnonzero(np.asarray(evidence.mask).ravel())
+    covering = evidence.super_pixel[pixels]
+    confirmed = RunCollector(pixels.size)
+    edge_share = options["fitted_edge_share" if evidence.fitted else "edge_share"]
+    edges = edge_share > 0
+    if edges:
+        tracker = EdgeTracker(SuperPixels.of(evidence), count_pixels=True)
+        surface = RunCollector(pixels.size)
+    start = 0
+    # one sweep, a block of times at a time: no (steps, P) map of the surface's shadows is ever whole
+    for block in surface_shadow_blocks(evidence, height, steps, options["margin_px"]):
+        if edges:
+            tracker.feed(block)
+            surface.feed(block)
+        # np.take gathers a block's columns 5× faster than indexing with an index array
+        confirmed.feed(block & np.take(dark[start : start + len(block)], covering, axis=1))
+        start += len(block)
+    shadows = confirmed.intervals(evidence.period_us, pixels)
+    if not edges:
+        return shadows, {}
+    seen = seen_edges(evidence, tracker, options["edge_tolerance_deg"])
+    extra = _seen_at_pixels(evidence, seen, surface.intervals(evidence.period_us), pixels, edge_share)
+    # the table merges what overlaps or touches: the union of both kinds of confirmation
+    return ShadowIntervals.concatenate([shadows, extra]), seen.record()
 
 
 def _seen_at_pixels(evidence: ShadowEvidence, seen: SeenShadows, surface: ShadowIntervals, pixels: np.ndarray,

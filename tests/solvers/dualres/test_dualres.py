@@ -159,15 +159,15 @@ class TrueShadows(ShadowDetector):
 
 
 class SurfaceShadows(TrueShadows):
-    """A third party's surface detector: the truth again, recording whether each surface it was given
-    was a fit to the measurements."""
+    """A third party's surface detector: the truth again, recording of each surface it was given whether
+    it was a fit to the measurements and whether inter-reflected light was taken out of them."""
 
     name = "truth-surface"
     uses_surface = True
-    fitted: list[bool] = []
+    told: list[tuple[bool, bool]] = []
 
     def detect(self, evidence, options):  # type: ignore[no-untyped-def]
-        SurfaceShadows.fitted.append(evidence.fitted)
+        SurfaceShadows.told.append((evidence.fitted, evidence.inter_reflected))
         return super().detect(evidence, options)
 
 
@@ -194,16 +194,23 @@ def test_a_third_party_detector_plugs_into_dualres(blobs: Path) -> None:
     assert _mae(result.normal, capture) < 0.6  # measured 0.43°
 
 
-def test_a_surface_detector_is_told_the_start_from_the_fit(blobs: Path) -> None:
-    """The first mask comes from the closed form's surface, a start; every re-detection from the fit's."""
+@pytest.mark.parametrize(("mode", "told"), [
+    ("off", [(False, False), (True, False)]),
+    ("on", [(False, False), (True, True)]),
+    # auto: the fit without the bounce under the first mask of the re-detection, the fit with it under the second
+    ("auto", [(False, False), (True, False), (True, True)]),
+])
+def test_a_surface_detector_is_told_the_start_from_the_fit_and_the_bounce(blobs: Path, mode: str, told: list) -> None:
+    """The first mask comes from the closed form's surface, a start; every re-detection from the fit's,
+    told whether the fit takes inter-reflected light out."""
     capture = psfmt.load(blobs)
-    SurfaceShadows.capture, SurfaceShadows.fitted = capture, []
+    SurfaceShadows.capture, SurfaceShadows.told = capture, []
     plugins.register_plugin(ThirdParty, "truth-plugin")
     try:
-        result = _solve(capture, "dualres", "epochs=10", "shadow_detector=truth-surface", "interreflection=off")
+        result = _solve(capture, "dualres", "epochs=10", "shadow_detector=truth-surface", f"interreflection={mode}")
     finally:
         plugins.reset()
-    assert SurfaceShadows.fitted == [False, True]
+    assert SurfaceShadows.told == told
     assert [s["epoch"] for s in result.diagnostics["stages"]] == [0, 4]
 
 

@@ -18,7 +18,7 @@ from pstoolkit.solve.batch import solver_options
 from pstoolkit_dualres.presets import OVERRIDES, PRESETS
 
 FUSED = ("time_steps=720", "margin_px=0.225", "height_scale=0.0", "edge_tolerance_deg=10.0", "min_gap_ms=-1.0", "edge_share=0.3",
-         "fitted_edge_share=1.0")
+         "fitted_edge_share=1.0", "reflected_scale=1.19")
 """The default shadow detector's options at their defaults, as a run records them."""
 
 
@@ -35,7 +35,7 @@ def test_the_preset_is_expanded_into_the_options_and_resolving_again_changes_not
     assert resolved == {
         **parsed, **{name: getattr(fast, name) for name in OVERRIDES}, "epochs": 2,
         "shadow": ("time_steps=720", "margin_px=0.5", "height_scale=0.0", "edge_tolerance_deg=10.0", "min_gap_ms=-1.0", "edge_share=0.3",
-                   "fitted_edge_share=1.0"),
+                   "fitted_edge_share=1.0", "reflected_scale=1.19"),
     }
     assert resolved["lr"] == 0.005 and resolved["event_weight"] == 8.0 and resolved["frame_samples"] == 8
     assert resolve_options(entry, resolved) == resolved

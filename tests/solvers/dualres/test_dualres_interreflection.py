@@ -154,18 +154,23 @@ def hollows_48(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_a_bounce_the_measurements_do_not_have_is_tried_and_left_out(hollows_48: Path) -> None:
     """The simulator renders no inter-reflection: with the default (auto) the fit with the bounce explains
     the measurements worse, so the fit without is kept, exactly as with the bounce off; a bounce forced
-    on changes the normals and records what it took out."""
-    auto = solve_capture(hollows_48, "dualres", epochs=30)
-    off = solve_capture(hollows_48, "dualres", epochs=30, interreflection="off")
+    on changes the normals and records what it took out. The choice at the preset's epochs: after 30 the
+    fit with the bounce (and its mask) leaves 9 % more unexplained, after 150 37 %."""
+    auto = solve_capture(hollows_48, "dualres")
+    off = solve_capture(hollows_48, "dualres", interreflection="off")
     forced = solve_capture(hollows_48, "dualres", epochs=30, interreflection="on")
-    chosen = next(stage["interreflection"] for stage in auto.diagnostics["stages"] if "interreflection" in stage)
+    stage = next(stage for stage in auto.diagnostics["stages"] if "interreflection" in stage)
+    chosen = stage["interreflection"]
     assert chosen["kept"] is False and chosen["bounce_frame_share"] > 0.002
+    # the fit with the bounce took the mask of a surface inter-reflection flattened: more shadow
+    assert chosen["cast_shadow_share_with"] > stage["cast_shadow_share"]
     assert chosen["unexplained_with"] > 1.1 * chosen["unexplained_without"]
     np.testing.assert_array_equal(auto.normal, off.normal)
     assert not any("interreflection" in stage or "bounce_frame_share" in stage for stage in off.diagnostics["stages"])
     record = next(stage for stage in forced.diagnostics["stages"] if "bounce_frame_share" in stage)
     assert 0.002 < record["bounce_frame_share"] < 0.5 and 0.0 <= record["bounce_pairs_dropped"] < 0.5
-    assert np.degrees(np.arccos(np.clip(np.sum(forced.normal * off.normal, axis=-1), -1, 1)))[off.mask].max() > 1.0
+    short = solve_capture(hollows_48, "dualres", epochs=30, interreflection="off")
+    assert np.degrees(np.arccos(np.clip(np.sum(forced.normal * short.normal, axis=-1), -1, 1)))[off.mask].max() > 1.0
     # a higher reflectance takes out more
     brighter = solve_capture(hollows_48, "dualres", epochs=30, interreflection="on", bounce_reflectance=1.2)
     more = next(stage for stage in brighter.diagnostics["stages"] if "bounce_frame_share" in stage)
