@@ -42,7 +42,7 @@ from pstoolkit.events.rule import LOG_EPS
 from pstoolkit.optics.lights import LightModel
 from pstoolkit.shadows.intervals import grid_times
 from pstoolkit_dualres.forward_model import frame_prediction
-from pstoolkit_dualres.losses import frame_loss, grid_frame_loss, pair_grey
+from pstoolkit_dualres.losses import event_loss, frame_loss, grid_frame_loss, pair_grey
 from pstoolkit_dualres.problem import EventTerms, FrameTerms, Problem
 from pstoolkit_dualres.reflectance import FitModel
 
@@ -320,13 +320,12 @@ def remove_bounce(problem: Problem, model: FitModel, normal: Tensor, maps: dict[
 
 
 def unexplained(problem: Problem, model: FitModel, normal: Tensor, maps: dict[str, Tensor], frame_weight: float,
-                event_weight: float, huber: float, pairs: np.ndarray | None = None) -> float:
-    """λ_f·(mean |Ã − A|) + λ_e·(mean weighted ρ_δ of the event residual) of the fit against the
-    measurements as built, with the bounce ``problem`` holds added to its prediction (the frames'
-    ``FrameTerms.apply_bounce`` offsets, the pairs' ``bounce_now``/``bounce_ref``): the training
-    loss without its regularisers, over ``pairs`` (indices; default: every pair the mask leaves usable)
-    and with the weights the pairs had before ``apply_bounce`` left any out, so that fits with and
-    without a bounce compare."""
+                event_weight: float, huber: float, pairs: np.ndarray) -> float:
+    """λ_f·(mean |Ã − A|) + λ_e·(``losses.event_loss``) of the fit against the measurements as built,
+    with the bounce ``problem`` holds added to its prediction (the frames' ``FrameTerms.apply_bounce``
+    offsets, the pairs' ``bounce_now``/``bounce_ref``): the training loss without its regularisers, over
+    the event pairs ``pairs`` (indices, usable under the mask of each fit compared) and with the weights
+    the pairs had before ``apply_bounce`` left any out, so that fits with and without a bounce compare."""
     frames, events = problem.frames, problem.events
     with torch.no_grad():
         frame_term = float(grid_frame_loss(model, normal, maps, frames.shared_light, frames.shared_weight, frames.shared_visible,
@@ -336,14 +335,14 @@ def unexplained(problem: Problem, model: FitModel, normal: Tensor, maps: dict[st
                                         frames.sample_weight, problem.geometry.view, frames.count * normal.shape[0],
                                         energy=frames.energy), frames.measured, frames.saturated))
     src = events.source
-    usable = events.usable.cpu().numpy() if pairs is None else np.asarray(pairs, dtype=np.int64)
+    usable = np.asarray(pairs, dtype=np.int64)
     if usable.size == 0 or event_weight <= 0:
         return frame_weight * frame_term
     direct_now, direct_ref = direct_irradiance(model, normal, maps, events, problem.geometry.view)
-    steps = src["steps"] if "steps" in src else src["rise"] - src["fall"]
-    residual = (np.log(direct_now + src.get("bounce_now", 0.0) + LOG_EPS) - np.log(direct_ref + src.get("bounce_ref", 0.0) + LOG_EPS)
-                - steps)[usable]
-    weight = (src["weight"] * src.get("gate", 1.0))[usable]
-    clipped = np.clip(residual, -huber, huber) if huber > 0 else residual
-    event_term = float(np.sum(weight * clipped * (2.0 * residual - clipped)) / usable.size)
+
+    def chosen(values: np.ndarray) -> Tensor:
+        return torch.as_tensor(values[usable], dtype=torch.float64)
+
+    event_term = float(event_loss(chosen(direct_now + src.get("bounce_now", 0.0)), chosen(direct_ref + src.get("bounce_ref", 0.0)),
+                                  chosen(events.measured_steps()), chosen(events.gated_weight()), LOG_EPS, huber))
     return frame_weight * frame_term + event_weight * event_term

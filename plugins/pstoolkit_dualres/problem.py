@@ -208,14 +208,21 @@ class EventTerms:
         self._set_targets()
         self._set_weights()
 
-    def _set_targets(self) -> None:
+    def measured_steps(self) -> np.ndarray:
+        """(E,) each pair's log step as its events and thresholds give it, before a bounce shifts it."""
         src = self.source
-        steps = src["steps"] if "steps" in src else src["rise"] - src["fall"]
-        self.target = _like(steps + src.get("bounce_shift", 0.0), self.target)
+        return src["steps"] if "steps" in src else src["rise"] - src["fall"]
+
+    def gated_weight(self) -> np.ndarray:
+        """(E,) each pair's confidence times its gate, before a bounce leaves any pair out."""
+        src = self.source
+        return src["weight"] * src.get("gate", 1.0)
+
+    def _set_targets(self) -> None:
+        self.target = _like(self.measured_steps() + self.source.get("bounce_shift", 0.0), self.target)
 
     def _set_weights(self) -> None:
-        src = self.source
-        self.weight = _like(src["weight"] * src.get("gate", 1.0) * src.get("bounce_keep", 1.0), self.weight)
+        self.weight = _like(self.gated_weight() * self.source.get("bounce_keep", 1.0), self.weight)
 
 
 @dataclass
