@@ -167,7 +167,7 @@ def grid_frame_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], li
 
 
 def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageConfig, batch: Batch,
-           tv_share: float) -> tuple[Tensor, dict[str, float]]:
+           tv_share: float) -> tuple[Tensor, dict[str, Tensor]]:
     """The total loss of eq. 26 (with the field's own smoothness penalty) and its parts on ``batch``.
 
     Parameters
@@ -191,8 +191,8 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
     total : Tensor
         The scalar loss, differentiable.
     parts : dict
-        The parts as floats: "frame", and "event", "tv" and "indirect" (the mean indirect light) when
-        they apply.
+        The parts as detached scalar tensors (on the problem's device: reading one waits for the
+        device): "frame", and "event", "tv" and "indirect" (the mean indirect light) when they apply.
     """
     normal, pixel_raw, smooth_raw = field(batch.pixels)
     maps = model.maps(pixel_raw, smooth_raw)
@@ -219,21 +219,21 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
             measured, saturated = measured[batch.frame_rows], saturated[batch.frame_rows]
         lf = frame_loss(predicted, measured, saturated)
     total = config.frame_weight * lf + field.penalty()
-    parts = {"frame": float(lf.detach())}
+    parts = {"frame": lf.detach()}
     if model.indirect:
         # L1: the indirect light stays 0 where the direct light explains the frames
         li = maps[INDIRECT.name].mean()
         total = total + config.indirect_sparsity * li
-        parts["indirect"] = float(li.detach())
+        parts["indirect"] = li.detach()
     e = batch.events
     if e.numel() and config.event_weight > 0:
         le = pair_event_loss(model, normal, maps, batch.event_taps, problem.events, e, view, config.event_huber)
         total = total + config.event_weight * le
-        parts["event"] = float(le.detach())
+        parts["event"] = le.detach()
     if tv_share > 0 and config.tv_weight > 0:
         ltv = tv_loss(normal, batch.tv_pairs) + tv_loss(maps[model.diffuse] if model.diffuse else pixel_raw, batch.tv_pairs)
         total = total + config.tv_weight * tv_share * ltv
-        parts["tv"] = float(ltv.detach())
+        parts["tv"] = ltv.detach()
     return total, parts
 
 

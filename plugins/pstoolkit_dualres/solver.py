@@ -105,11 +105,17 @@ class FitState:
 
 
 @contextmanager
-def deterministic(warn_only: bool) -> Iterator[None]:
-    """Torch's deterministic kernels for the duration (the scatter-adds of gathers' gradients are not,
-    by default, on several threads); on CUDA a kernel without a deterministic variant only warns."""
+def deterministic(device: torch.device) -> Iterator[None]:
+    """Torch's deterministic kernels for the duration on the CPU (the scatter-adds of gathers' gradients
+    are not, by default, on several threads), so a CPU run repeats bit for bit. Not on CUDA: there they
+    would replace the bilinear upsampling of the pyramid's levels by a Python decomposition whose
+    backward is a sorted ``index_put`` (20 ms a step at 256² on an H200, most of the training time), and
+    the scatter-adds by sorts; a CUDA run repeats to float rounding."""
+    if device.type != "cpu":
+        yield
+        return
     enabled, warn = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
-    torch.use_deterministic_algorithms(True, warn_only=warn_only)
+    torch.use_deterministic_algorithms(True)
     try:
         yield
     finally:
@@ -420,7 +426,7 @@ class DualRes(Solver):
                 return records_b, fitted_b, {"kept": True, **chosen}
             return records_a, fitted_a, {"kept": False, **chosen}
 
-        with deterministic(warn_only=str(self.device) != "cpu"):
+        with deterministic(torch.device(self.device)):
             field = build_field(preset, problem, model)
             clock.lap("field")
             total = max(preset.epochs, 1)

@@ -141,8 +141,7 @@ def mini_batches(problem: Problem, tiling: Tiling, config: StageConfig, generato
     event_bounds = np.searchsorted(event_batch[by_event], np.arange(n_batches + 1))
     pair_bounds = np.searchsorted(pair_batch[by_pair], np.arange(n_batches + 1))
     local = np.full(p, -1, dtype=np.int64)
-    device = problem.device
-    out = []
+    arrays: list[tuple[int, dict[str, np.ndarray]]] = []
     for b in range(n_batches):
         own = by_pixel[pixel_bounds[b]:pixel_bounds[b + 1]]
         chosen = by_event[event_bounds[b]:event_bounds[b + 1]]
@@ -155,18 +154,29 @@ def mini_batches(problem: Problem, tiling: Tiling, config: StageConfig, generato
         samples = _ranges(tiling.sample_start[own], tiling.sample_count[own])
         sample_pixel = np.repeat(np.arange(n), tiling.sample_count[own])
         pairs = tiling.tv_pairs[by_pair[pair_bounds[b]:pair_bounds[b + 1]]]
-
-        def tensor(array: np.ndarray) -> Tensor:
-            return torch.as_tensor(array, dtype=torch.int64, device=device)
-
-        out.append(Batch(
-            pixels=tensor(pixels), frame_pixels=n,
-            frame_rows=tensor((np.arange(problem.frames.count)[:, None] * p + own[None, :]).ravel()),
-            samples=tensor(samples), sample_pixel=tensor(sample_pixel),
-            sample_group=tensor(tiling.sample_frame[samples] * n + sample_pixel),
-            events=tensor(tiling.events[chosen]), event_taps=tensor(local[taps]), tv_pairs=tensor(local[pairs]),
-        ))
+        arrays.append((n, {
+            "pixels": pixels, "frame_rows": (np.arange(problem.frames.count)[:, None] * p + own[None, :]).ravel(),
+            "samples": samples, "sample_pixel": sample_pixel, "sample_group": tiling.sample_frame[samples] * n + sample_pixel,
+            "events": tiling.events[chosen], "event_taps": local[taps], "tv_pairs": local[pairs],
+        }))
         local[pixels] = -1
+    return _moved(arrays, problem.device)
+
+
+def _moved(arrays: list[tuple[int, dict[str, np.ndarray]]], device: torch.device) -> list[Batch]:
+    """The batches of these (``frame_pixels``, index arrays by field) on ``device``, the arrays moved in
+    one copy: on a GPU a copy for each batch and array would wait for the device each time."""
+    if not arrays:
+        return []
+    moved = torch.as_tensor(np.concatenate([a.ravel() for _, batch in arrays for a in batch.values()]).astype(np.int64),
+                            device=device)
+    out, start = [], 0
+    for n, batch in arrays:
+        views = {}
+        for name, a in batch.items():
+            views[name] = moved[start:start + a.size].view(a.shape)
+            start += a.size
+        out.append(Batch(frame_pixels=n, **views))
     return out
 
 
@@ -222,7 +232,7 @@ def train(problem: Problem, field: nn.Module, model: FitModel, config: StageConf
             batches = [full_batch(problem, _event_sample(problem, config, generator))]
         else:
             batches = mini_batches(problem, tiling, config, generator)
-        totals: dict[str, float] = {}
+        totals: dict[str, Tensor] = {}
         tv_share = 0.0 if warm_start else max(0.0, 1.0 - epoch / warmup)
         for batch in batches:
             # before the losses: the chunked frame term already adds to the model's own gradients
@@ -230,10 +240,13 @@ def train(problem: Problem, field: nn.Module, model: FitModel, config: StageConf
             loss, parts = losses(problem, field, model, config, batch, tv_share)
             loss.backward()
             optimizer.step()
-            for name, value in {"loss": float(loss.detach()), **parts}.items():
-                totals[name] = totals.get(name, 0.0) + value / len(batches)
+            # kept as tensors: reading a value each step would wait for the device each step
+            for name, value in {"loss": loss.detach(), **parts}.items():
+                share = value.to(torch.float64) / len(batches)
+                totals[name] = totals[name] + share if name in totals else share
         scheduler.step()
         if epoch % PROGRESS_EVERY == 0 or epoch == config.epochs - 1:
-            history.append({"epoch": float(epoch), "steps": float(len(batches)), **totals})
-            progress((epoch + 1) / config.epochs, f"epoch {epoch + 1}/{config.epochs} loss {totals['loss']:.4g}")
+            means = {name: float(value) for name, value in totals.items()}
+            history.append({"epoch": float(epoch), "steps": float(len(batches)), **means})
+            progress((epoch + 1) / config.epochs, f"epoch {epoch + 1}/{config.epochs} loss {means['loss']:.4g}")
     return history

@@ -17,9 +17,11 @@ surface estimate (``evidence.normal``) if the detector sets ``uses_surface``.
 
 from __future__ import annotations
 
+import hashlib
 from abc import ABC, abstractmethod
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field, replace
-from typing import Any, ClassVar
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 
@@ -27,6 +29,8 @@ from pstoolkit.optics.lights import LightModel
 from pstoolkit.plugin.options import Option
 from pstoolkit.shadows.intervals import ShadowIntervals, ShadowTable
 from pstoolkit.shadows.period_profile import Profile
+
+T = TypeVar("T")
 
 
 @dataclass
@@ -103,7 +107,9 @@ class ShadowEvidence:
     the solver, None before it has one; ``fitted``: that estimate is a fit to these measurements
     (a re-detection), not a start such as a closed form; ``inter_reflected``: the solver takes light
     inter-reflected by the object out of these measurements (and its surface may have been flattened
-    by it)."""
+    by it). ``memo``: shared by the evidence and its copies with another surface (``with_normal``; any
+    other copy starts an empty one), where a detector keeps what it computed (``remember``), so a
+    solver that asks again of the same surface (told something else of it) does not pay twice."""
 
     frame_shape: tuple[int, int]
     event_shape: tuple[int, int]
@@ -122,11 +128,26 @@ class ShadowEvidence:
     normal: np.ndarray | None = None
     fitted: bool = False
     inter_reflected: bool = False
+    memo: dict[Hashable, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def with_normal(self, normal: np.ndarray, fitted: bool = False, inter_reflected: bool = False) -> ShadowEvidence:
         """The same evidence with the surface estimate ``normal`` (H, W, 3), ``fitted`` to the
         measurements or a start, ``inter_reflected`` light taken out or not."""
-        return replace(self, normal=np.asarray(normal, dtype=np.float32), fitted=fitted, inter_reflected=inter_reflected)
+        copy = replace(self, normal=np.asarray(normal, dtype=np.float32), fitted=fitted, inter_reflected=inter_reflected)
+        copy.memo = self.memo
+        return copy
+
+    def surface_key(self) -> str | None:
+        """A digest of ``normal`` (None without one): what a value computed from the surface is keyed by."""
+        return None if self.normal is None else hashlib.blake2b(np.ascontiguousarray(self.normal).data, digest_size=16).hexdigest()
+
+    def remember(self, key: Hashable, compute: Callable[[], T]) -> T:
+        """``compute()``, once for this evidence and its copies per ``key``, which must name all that the
+        value depends on beyond the capture's data: the options it used, ``surface_key()`` where it uses
+        the surface. The value is shared: whoever takes it must not change it."""
+        if key not in self.memo:
+            self.memo[key] = compute()
+        return self.memo[key]
 
     def event_mask(self, intervals: ShadowIntervals) -> ShadowMask:
         """A mask from intervals at event pixels: each frame pixel takes those of its super pixel."""

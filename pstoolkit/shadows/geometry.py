@@ -37,12 +37,24 @@ GEOMETRY_OPTIONS: tuple[Option, ...] = (
 def shadow_height(evidence: ShadowEvidence, options: dict[str, Any]) -> tuple[np.ndarray, dict[str, Any]]:
     """(H, W) float32 height map (pixels) the detectors march — ``surface_height`` times ``height_scale``,
     calibrated against the events' onsets when that is 0 (``height_scale.calibrate``) — and the
-    diagnostics of the choice."""
-    height = surface_height(evidence)
+    diagnostics of the choice. Once per surface and options (``ShadowEvidence.remember``): the map is
+    read-only."""
+    key = ("shadow_height", evidence.surface_key(), *(options[name] for name in ("height_scale", "margin_px", "edge_tolerance_deg")))
+    height, record = evidence.remember(key, lambda: _shadow_height(evidence, options))
+    return height, dict(record)
+
+
+def _shadow_height(evidence: ShadowEvidence, options: dict[str, Any]) -> tuple[np.ndarray, dict[str, Any]]:
+    height = _read_only(surface_height(evidence))
     if options["height_scale"] > 0:
-        return height * np.float32(options["height_scale"]), {"height_scale": options["height_scale"]}
+        return _read_only(height * np.float32(options["height_scale"])), {"height_scale": options["height_scale"]}
     chosen = calibrate(evidence, height, margin_px=options["margin_px"], tolerance_deg=options["edge_tolerance_deg"])
-    return height * np.float32(chosen.scale), chosen.record()
+    return _read_only(height * np.float32(chosen.scale)), chosen.record()
+
+
+def _read_only(array: np.ndarray) -> np.ndarray:
+    array.flags.writeable = False
+    return array
 
 
 class GeometryDetector(ShadowDetector):

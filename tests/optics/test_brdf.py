@@ -134,7 +134,7 @@ def test_ggx_roughness_clamp_and_batch_shapes() -> None:
     assert same.shape == (4, 5, 3)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.cuda
 def test_ggx_on_cuda_matches_cpu() -> None:
     rng = np.random.default_rng(6)
     n, l, v = (torch.from_numpy(_upper_hemisphere(rng, 100)) for _ in range(3))

@@ -304,7 +304,7 @@ def test_the_compiled_event_term_is_the_rendered_one(brdf: object, huber: float,
     _assert_same_term((got, got_grads), (expected, expected_grads), atol_share=1e-5)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.cuda
 def test_on_a_gpu_the_frame_term_takes_large_chunks_with_the_same_value_and_gradients() -> None:
     """On CUDA no compiled pass: torch renders the frame term in chunks sized by the GPU's free memory
     (``frame_chunk``), which give the value and gradients of the CPU's compiled pass."""

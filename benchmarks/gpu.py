@@ -1,0 +1,225 @@
+"""DualResPS on a CUDA GPU against the CPU of the same machine (issue 36), in one command.
+
+Sections, each a table printed and stored in the JSON:
+
+1. ``fast`` (the default preset) on the simulator's ``blobs`` scene at ``--sizes`` frame pixels (events
+   at half that per axis; an H×W capture is the top-left crop of the max(H, W)² scene, as
+   ``dualres_scale.py`` cuts it), ``--device cuda`` at every size and ``--device cpu`` at
+   ``--cpu-sizes``: wall seconds of the solve, MAE, median and 90th percentile against the ground truth,
+   the GPU's peak allocated memory, and the wall seconds of the solver's stages
+   (``diagnostics["seconds"]``, preprocessing's own split beside them). Every solve follows a warm-up
+   solve of a 64² capture on the same device in this process, so numba's kernels are compiled and
+   CUDA's context and libraries loaded before any timed run ("second run").
+2. ``paper`` (the paper's MLP) at ``--paper-size`` on cuda: ``--paper-epochs`` epochs, or as many as a
+   first timed run of ``PROBE_EPOCHS`` says fit in ``--paper-budget-s``; seconds per epoch and the MAE.
+3. With ``--tests``: the suite's CUDA tests (``pytest -m cuda``), their summary line.
+
+``--profile SIZE …`` also runs cProfile over the cuda solve of that size (``paper``: the paper preset's
+run) and writes the functions that take the most time (cumulative and own) to ``profile-SIZE.txt``
+beside the JSON.
+
+Targets (issue 36, one H100, printed with the table): fast 256² ≤ 2 s, 1024² ≤ 8 s, 2048×2448 ≤ 40 s,
+each MAE within 0.02° of the CPU's; paper 1200 epochs at 256² ≤ 60 s. Seconds are wall seconds, the
+device synchronised before the clock is read.
+
+    python benchmarks/gpu.py                                   # everything, about 5 minutes on an H100
+    python benchmarks/gpu.py --sizes 256 1024 --cpu-sizes 256 --profile 1024 --out /tmp/gpu.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import io
+import json
+import os
+import platform
+import pstats
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from dualres_scale import capture_path, parse_size, size_name
+from results_io import write_results
+
+import psfmt
+from pstoolkit.evaluation.metrics import angular_error_deg
+from pstoolkit.plugin.manager import get_registries
+from pstoolkit.solve.base import run_solver
+
+RESULTS = Path(__file__).resolve().parent / "results" / "gpu.json"
+SIZES = ("256", "1024", "2048x2448")
+CPU_SIZES = ("256", "1024")
+WARM_UP = 64
+PROBE_EPOCHS = 12
+TARGET_S = {"256²": 2.0, "1024²": 8.0, "2048×2448": 40.0}
+PAPER_TARGET_S = 60.0
+PAPER_EPOCHS = 1200
+MAE_TOLERANCE_DEG = 0.02
+
+
+def synchronize(device: str) -> None:
+    if device == "cuda":
+        torch.cuda.synchronize()
+
+
+def solve(path: Path, device: str, assignments: list[str], profile: Path | None = None) -> dict[str, Any]:
+    """One dualres solve of the capture at ``path`` on ``device``: seconds, errors, stages, GPU memory."""
+    entry = get_registries().solvers.get("dualres")
+    options = entry.parse_options(assignments)
+    with psfmt.read(path) as capture:
+        truth = capture.ground_truth
+        if device == "cuda":
+            torch.cuda.reset_peak_memory_stats()
+        profiler = cProfile.Profile() if profile else None
+        synchronize(device)
+        started = time.perf_counter()
+        if profiler:
+            profiler.enable()
+        result, _ = run_solver(entry, capture, options, device=device)
+        synchronize(device)
+        seconds = time.perf_counter() - started
+        if profiler:
+            profiler.disable()
+            write_profile(profiler, profile)
+    error = angular_error_deg(result.normal, truth.normal, truth.mask)[truth.mask & result.mask]
+    d = result.diagnostics
+    return {
+        "device": device, "seconds": seconds, "mae_deg": float(np.mean(error)), "median_deg": float(np.median(error)),
+        "p90_deg": float(np.percentile(error, 90)), "coverage": float((truth.mask & result.mask).sum() / truth.mask.sum()),
+        "gpu_peak_gb": torch.cuda.max_memory_allocated() / 1e9 if device == "cuda" else None,
+        "stages": d.get("seconds", {}), "preprocess_split": d.get("preprocess", {}).get("seconds", {}),
+        "tiling": d.get("tiling"), "epochs": d.get("preset", {}).get("epochs"),
+    }
+
+
+def write_profile(profiler: cProfile.Profile, path: Path) -> None:
+    text = io.StringIO()
+    stats = pstats.Stats(profiler, stream=text)
+    stats.sort_stats("cumulative").print_stats(60)
+    stats.sort_stats("tottime").print_stats(40)
+    path.write_text(text.getvalue())
+
+
+def fast_rows(folder: Path, gpu: str, sizes: list[str], cpu_sizes: list[str], options: list[str], profile: list[str],
+              out: Path) -> list[dict[str, Any]]:
+    rows = []
+    for text in sizes:
+        shape = parse_size(text)
+        path = capture_path(folder, shape, 0)
+        for device in (gpu, "cpu") if text in cpu_sizes else (gpu,):
+            where = out.parent / f"profile-{text}.txt" if device == gpu and text in profile else None
+            row = {"size": size_name(shape), **solve(path, device, options, where)}
+            rows.append(row)
+            print(f"  fast {row['size']} {device}: {row['seconds']:.2f} s, MAE {row['mae_deg']:.3f}° "
+                  f"(median {row['median_deg']:.3f}°, p90 {row['p90_deg']:.3f}°); stages {row['stages']}; "
+                  f"preprocess {row['preprocess_split']}", flush=True)
+    return rows
+
+
+def paper_row(folder: Path, gpu: str, size: str, epochs: int, budget_s: float, profile: Path | None) -> dict[str, Any]:
+    """The paper preset on ``gpu``: a probe of PROBE_EPOCHS epochs, then ``epochs`` or as many as fit the budget."""
+    path = capture_path(folder, parse_size(size), 0)
+    probe = solve(path, gpu, ["preset=paper", f"epochs={PROBE_EPOCHS}"])
+    per_epoch = probe["seconds"] / PROBE_EPOCHS
+    run = min(epochs, max(PROBE_EPOCHS, int(budget_s / per_epoch)))
+    row = solve(path, gpu, ["preset=paper", f"epochs={run}"], profile)
+    print(f"  paper {size_name(parse_size(size))} {gpu}: {run} epochs in {row['seconds']:.1f} s "
+          f"({row['seconds'] / run * 1e3:.1f} ms/epoch), MAE {row['mae_deg']:.3f}°", flush=True)
+    return {"size": size_name(parse_size(size)), "probe_seconds_per_epoch": per_epoch, "epochs_run": run,
+            "seconds_per_epoch": row["seconds"] / run, "projected_seconds": row["seconds"] / run * epochs, **row}
+
+
+def cuda_tests() -> dict[str, Any]:
+    root = Path(__file__).resolve().parent.parent
+    done = subprocess.run([sys.executable, "-m", "pytest", "-m", "cuda", "-p", "no:cacheprovider", "-q", "-rs",
+                           "--continue-on-collection-errors"], cwd=root,
+                          capture_output=True, text=True)
+    lines = done.stdout.strip().splitlines()
+    print("\n".join(lines[-15:]))
+    return {"returncode": done.returncode, "summary": lines[-1] if lines else ""}
+
+
+def table(rows: list[dict[str, Any]]) -> None:
+    print(f"\n{'fast':>10} {'device':>6} {'seconds':>8} {'target':>7} {'MAE°':>7} {'median°':>8} {'p90°':>6} {'GPU GB':>7}")
+    for r in rows:
+        target = TARGET_S.get(r["size"]) if r["device"] == "cuda" else None
+        gpu = f"{r['gpu_peak_gb']:.2f}" if r["gpu_peak_gb"] is not None else "-"
+        print(f"{r['size']:>10} {r['device']:>6} {r['seconds']:8.2f} {target if target else '-':>7} {r['mae_deg']:7.3f} "
+              f"{r['median_deg']:8.3f} {r['p90_deg']:6.3f} {gpu:>7}")
+    stages = list(dict.fromkeys(k for r in rows for k in r["stages"] if k != "total"))
+    split = list(dict.fromkeys(k for r in rows for k in r["preprocess_split"] if k != "total"))
+    print(f"\n{'stage seconds':<20}" + "".join(f"{r['size'] + ' ' + r['device']:>16}" for r in rows))
+    for stage in stages:
+        print(f"{stage:<20}" + "".join(f"{r['stages'].get(stage, float('nan')):16.2f}" for r in rows))
+    for stage in split:
+        print(f"{'  pre.' + stage:<20}" + "".join(f"{r['preprocess_split'].get(stage, float('nan')):16.2f}" for r in rows))
+
+
+def verdict(rows: list[dict[str, Any]], paper: dict[str, Any] | None) -> dict[str, Any]:
+    """The issue's targets, each True/False (None where its run is missing)."""
+    checks: dict[str, Any] = {}
+    for size, limit in TARGET_S.items():
+        gpu = next((r for r in rows if r["size"] == size and r["device"] == "cuda"), None)
+        cpu = next((r for r in rows if r["size"] == size and r["device"] == "cpu"), None)
+        checks[f"fast_{size}_within_{limit:g}s"] = None if gpu is None else gpu["seconds"] <= limit
+        checks[f"fast_{size}_mae_gap_deg"] = None if gpu is None or cpu is None else gpu["mae_deg"] - cpu["mae_deg"]
+        checks[f"fast_{size}_mae_within_{MAE_TOLERANCE_DEG}"] = (None if gpu is None or cpu is None
+                                                                 else abs(gpu["mae_deg"] - cpu["mae_deg"]) <= MAE_TOLERANCE_DEG)
+    checks[f"paper_{PAPER_EPOCHS}_epochs_within_{PAPER_TARGET_S:g}s"] = (None if paper is None
+                                                                         else paper["projected_seconds"] <= PAPER_TARGET_S)
+    return checks
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", nargs="*", default=list(SIZES), help="fast preset on cuda at these sizes, N or HxW")
+    parser.add_argument("--cpu-sizes", nargs="*", default=list(CPU_SIZES), help="and on cpu at these (among --sizes)")
+    parser.add_argument("--dualres-options", nargs="*", default=[], help="extra --set assignments of the fast runs")
+    parser.add_argument("--paper-size", default="256", help="capture of the paper preset's run ('' skips it)")
+    parser.add_argument("--paper-epochs", type=int, default=PAPER_EPOCHS)
+    parser.add_argument("--paper-budget-s", type=float, default=90.0, help="at most this long a paper run (fewer epochs)")
+    parser.add_argument("--profile", nargs="*", default=[], help="sizes of --sizes whose cuda solve runs under cProfile, and/or 'paper'")
+    parser.add_argument("--tests", action="store_true", help="run the suite's CUDA tests (pytest -m cuda) first")
+    parser.add_argument("--data", type=Path, help="folder to keep the captures in (default: a temporary one)")
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--device", default="cuda", help="the device under test (cpu only tries this script out)")
+    args = parser.parse_args()
+    if args.device == "cuda" and not torch.cuda.is_available():
+        sys.exit("gpu.py: no CUDA GPU is available")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    tests = cuda_tests() if args.tests else None
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = args.data or Path(tmp)
+        folder.mkdir(parents=True, exist_ok=True)
+        warm = capture_path(folder, (WARM_UP, WARM_UP), 0)
+        for device in dict.fromkeys((args.device, "cpu")):
+            solve(warm, device, ["epochs=10"])
+        rows = fast_rows(folder, args.device, args.sizes, args.cpu_sizes, args.dualres_options, args.profile, args.out)
+        paper = paper_row(folder, args.device, args.paper_size, args.paper_epochs, args.paper_budget_s,
+                          args.out.parent / "profile-paper.txt" if "paper" in args.profile else None) if args.paper_size else None
+    table(rows)
+    if paper:
+        print(f"\npaper {paper['size']}: {paper['seconds_per_epoch'] * 1e3:.1f} ms/epoch, {args.paper_epochs} epochs ≈ "
+              f"{paper['projected_seconds']:.0f} s (target {PAPER_TARGET_S:g} s); MAE {paper['mae_deg']:.3f}° after "
+              f"{paper['epochs_run']} epochs")
+    checks = verdict(rows, paper)
+    print("\ntargets:", json.dumps(checks, indent=1))
+    write_results(args.out, {
+        "benchmark": "gpu", "config": {"scene": "blobs", "sizes": args.sizes, "cpu_sizes": args.cpu_sizes,
+                                       "dualres_options": args.dualres_options, "paper_size": args.paper_size,
+                                       "paper_epochs": args.paper_epochs},
+        "machine": {"gpu": torch.cuda.get_device_name() if args.device == "cuda" else None, "torch": torch.__version__, "python": platform.python_version(),
+                    "cpus": os.cpu_count(), "torch_threads": torch.get_num_threads()},
+        "rows": rows, "paper": paper, "tests": tests, "targets": checks,
+    })
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
