@@ -168,8 +168,7 @@ def _moved(arrays: list[tuple[int, dict[str, np.ndarray]]], device: torch.device
     one copy: on a GPU a copy for each batch and array would wait for the device each time."""
     if not arrays:
         return []
-    moved = torch.as_tensor(np.concatenate([a.ravel() for _, batch in arrays for a in batch.values()]).astype(np.int64),
-                            device=device)
+    moved = torch.as_tensor(np.concatenate([a.ravel() for _, batch in arrays for a in batch.values()], dtype=np.int64), device=device)
     out, start = [], 0
     for n, batch in arrays:
         views = {}

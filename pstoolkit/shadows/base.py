@@ -31,6 +31,8 @@ from pstoolkit.shadows.intervals import ShadowIntervals, ShadowTable
 from pstoolkit.shadows.period_profile import Profile
 
 T = TypeVar("T")
+# The key under which ShadowEvidence.memo holds the digest of the surface its values were computed from.
+_SURFACE = object()
 
 
 @dataclass
@@ -108,8 +110,9 @@ class ShadowEvidence:
     (a re-detection), not a start such as a closed form; ``inter_reflected``: the solver takes light
     inter-reflected by the object out of these measurements (and its surface may have been flattened
     by it). ``memo``: shared by the evidence and its copies with another surface (``with_normal``; any
-    other copy starts an empty one), where a detector keeps what it computed (``remember``), so a
-    solver that asks again of the same surface (told something else of it) does not pay twice."""
+    other copy starts an empty one), where a detector keeps what it computed from the surface
+    (``of_surface``), so a solver that asks again of the same surface (told something else of it)
+    does not pay twice."""
 
     frame_shape: tuple[int, int]
     event_shape: tuple[int, int]
@@ -137,14 +140,15 @@ class ShadowEvidence:
         copy.memo = self.memo
         return copy
 
-    def surface_key(self) -> str | None:
-        """A digest of ``normal`` (None without one): what a value computed from the surface is keyed by."""
-        return None if self.normal is None else hashlib.blake2b(np.ascontiguousarray(self.normal).data, digest_size=16).hexdigest()
-
-    def remember(self, key: Hashable, compute: Callable[[], T]) -> T:
-        """``compute()``, once for this evidence and its copies per ``key``, which must name all that the
-        value depends on beyond the capture's data: the options it used, ``surface_key()`` where it uses
-        the surface. The value is shared: whoever takes it must not change it."""
+    def of_surface(self, key: Hashable, compute: Callable[[], T]) -> T:
+        """``compute()``, a value computed from ``normal``, once per ``key`` (which names the options it
+        used) for this evidence and its copies while they ask of the same surface (a digest of its
+        bytes); a value asked of another surface drops those of the last, since a solver does not go
+        back to an earlier surface. The value is shared: whoever takes it must not change it."""
+        surface = None if self.normal is None else hashlib.blake2b(np.ascontiguousarray(self.normal).data, digest_size=16).digest()
+        if self.memo.get(_SURFACE) != surface:
+            self.memo.clear()
+            self.memo[_SURFACE] = surface
         if key not in self.memo:
             self.memo[key] = compute()
         return self.memo[key]

@@ -24,6 +24,7 @@ capture has it), the mask also takes the confirmed shadows of the surface ``refl
 
 from __future__ import annotations
 
+import functools
 from dataclasses import replace
 from typing import Any, ClassVar
 
@@ -77,11 +78,17 @@ class FusedDetector(ShadowDetector):
             return evidence.no_mask()
         # the height first: its solve is the detector's peak memory, better without the dark map beside it
         height, chosen = shadow_height(evidence, options)
-        dark = event_darkness(evidence, options["time_steps"], min_gap_us(options["min_gap_ms"], evidence.refractory_us, 1.0))
-        shadows, seen = _confirmed(evidence, options, height, dark)
+
+        @functools.cache
+        def dark() -> np.ndarray:
+            return event_darkness(evidence, options["time_steps"], min_gap_us(options["min_gap_ms"], evidence.refractory_us, 1.0))
+
+        # the same surface told only that inter-reflection is taken out confirms the same shadows at its own height
+        key = ("fused_confirmed", evidence.fitted, *sorted((k, v) for k, v in options.items() if k != "reflected_scale"))
+        shadows, seen = evidence.of_surface(key, lambda: _confirmed(evidence, options, height, dark()))
         chosen = {**chosen, **seen}
         if evidence.inter_reflected and options["reflected_scale"] > 1.0:
-            taller, _ = _confirmed(evidence, options, height * np.float32(options["reflected_scale"]), dark)
+            taller, _ = _confirmed(evidence, options, height * np.float32(options["reflected_scale"]), dark())
             # the table merges what overlaps or touches: the union
             shadows = ShadowIntervals.concatenate([shadows, taller])
         return replace(evidence.frame_mask(shadows), diagnostics=chosen)

@@ -37,10 +37,10 @@ GEOMETRY_OPTIONS: tuple[Option, ...] = (
 def shadow_height(evidence: ShadowEvidence, options: dict[str, Any]) -> tuple[np.ndarray, dict[str, Any]]:
     """(H, W) float32 height map (pixels) the detectors march — ``surface_height`` times ``height_scale``,
     calibrated against the events' onsets when that is 0 (``height_scale.calibrate``) — and the
-    diagnostics of the choice. Once per surface and options (``ShadowEvidence.remember``): the map is
+    diagnostics of the choice. Once per surface and options (``ShadowEvidence.of_surface``): the map is
     read-only."""
-    key = ("shadow_height", evidence.surface_key(), *(options[name] for name in ("height_scale", "margin_px", "edge_tolerance_deg")))
-    height, record = evidence.remember(key, lambda: _shadow_height(evidence, options))
+    key = ("shadow_height", *(options[name] for name in ("height_scale", "margin_px", "edge_tolerance_deg")))
+    height, record = evidence.of_surface(key, lambda: _shadow_height(evidence, options))
     return height, dict(record)
 
 

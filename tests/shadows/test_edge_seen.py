@@ -11,7 +11,7 @@ from helpers.event_rows import event_stream
 
 import psfmt
 from pstoolkit.plugin.manager import get_registries
-from pstoolkit.shadows import ShadowEvidence, geometry, interval_profile
+from pstoolkit.shadows import ShadowEvidence, fused, geometry, interval_profile
 from pstoolkit.shadows.edge_seen import seen_shadows
 from pstoolkit.shadows.height_scale import period_keys, within
 from pstoolkit.shadows.intervals import grid_times
@@ -161,21 +161,26 @@ def test_where_inter_reflection_is_taken_out_a_taller_surface_adds_its_confirmed
 def test_the_height_of_a_surface_is_calibrated_once_for_the_evidence_and_its_copies(lit_hollows: dict,
                                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
     """A re-detection of the same surface told something else of it (``inter_reflected``) takes the height
-    calibrated the first time (``ShadowEvidence.remember``) and gives the mask a fresh evidence gives;
-    another surface, or a copy with other data, calibrates again."""
-    calls = []
-    calibrate = geometry.calibrate
+    calibrated and the shadows confirmed the first time (``ShadowEvidence.of_surface``), sweeps only the
+    taller surface, and gives the mask a fresh evidence gives; another surface, or a copy with other data,
+    calibrates again."""
+    calls, sweeps = [], []
+    calibrate, confirmed = geometry.calibrate, fused._confirmed
     monkeypatch.setattr(geometry, "calibrate", lambda *args, **kwargs: calls.append(1) or calibrate(*args, **kwargs))
+    monkeypatch.setattr(fused, "_confirmed", lambda *args, **kwargs: sweeps.append(1) or confirmed(*args, **kwargs))
     evidence = lit_hollows["evidence"]
     fitted = evidence.with_normal(evidence.normal, fitted=True)
     first = _fused(fitted, "height_scale=0")
     again = _fused(fitted.with_normal(fitted.normal.copy(), fitted=True, inter_reflected=True), "height_scale=0",
                    "reflected_scale=1")
-    assert len(calls) == 1
+    assert len(calls) == 1 and len(sweeps) == 1
     assert np.array_equal(first.coverage(), again.coverage()) and first.diagnostics == again.diagnostics
+    taller = _fused(fitted.with_normal(fitted.normal.copy(), fitted=True, inter_reflected=True), "height_scale=0")
+    assert len(calls) == 1 and len(sweeps) == 2
+    assert np.all(taller.coverage() >= first.coverage())
     tilted = fitted.normal.copy()
     tilted[..., 0] += 0.01
     _fused(fitted.with_normal(tilted, fitted=True), "height_scale=0")
     fresh = _fused(replace(fitted, profile=fitted.profile), "height_scale=0")
-    assert len(calls) == 3
+    assert len(calls) == 3 and len(sweeps) == 4
     assert np.array_equal(fresh.coverage(), first.coverage())
