@@ -382,6 +382,8 @@ class DualRes(Solver):
                 def report(fraction: float, message: str, lo: float = done_from, hi: float = done_to) -> None:
                     progress(PREPROCESS_SHARE + (1.0 - PREPROCESS_SHARE) * (lo + fraction * (hi - lo)), message)
 
+                # no detection of this stage's surface is left to come
+                pre.evidence.forget()
                 fitted += train(problem, field, model, config, report,
                                 before_epoch=(lambda epoch, first=first: refit(first + epoch)) if sigma > 0 else None)
                 clock.lap(f"train_{index}")

@@ -153,6 +153,11 @@ class ShadowEvidence:
             self.memo[key] = compute()
         return self.memo[key]
 
+    def forget(self) -> None:
+        """Drop what ``of_surface`` keeps, for this evidence and its copies: a solver that will not ask
+        of the last surface again frees it (a detector's sweeps keep tens of MB at 1024²)."""
+        self.memo.clear()
+
     def event_mask(self, intervals: ShadowIntervals) -> ShadowMask:
         """A mask from intervals at event pixels: each frame pixel takes those of its super pixel."""
         return ShadowMask.from_intervals(intervals, self.super_pixel, self.t0_us, self.period_us)

@@ -169,6 +169,7 @@ def test_the_height_of_a_surface_is_calibrated_once_for_the_evidence_and_its_cop
     monkeypatch.setattr(geometry, "calibrate", lambda *args, **kwargs: calls.append(1) or calibrate(*args, **kwargs))
     monkeypatch.setattr(fused, "_confirmed", lambda *args, **kwargs: sweeps.append(1) or confirmed(*args, **kwargs))
     evidence = lit_hollows["evidence"]
+    evidence.forget()
     fitted = evidence.with_normal(evidence.normal, fitted=True)
     first = _fused(fitted, "height_scale=0")
     again = _fused(fitted.with_normal(fitted.normal.copy(), fitted=True, inter_reflected=True), "height_scale=0",
@@ -184,3 +185,19 @@ def test_the_height_of_a_surface_is_calibrated_once_for_the_evidence_and_its_cop
     fresh = _fused(replace(fitted, profile=fitted.profile), "height_scale=0")
     assert len(calls) == 3 and len(sweeps) == 4
     assert np.array_equal(fresh.coverage(), first.coverage())
+
+
+def test_forget_drops_what_the_detectors_kept_for_every_copy(lit_hollows: dict, monkeypatch: pytest.MonkeyPatch) -> None:
+    calls = []
+    calibrate = geometry.calibrate
+    monkeypatch.setattr(geometry, "calibrate", lambda *args, **kwargs: calls.append(1) or calibrate(*args, **kwargs))
+    evidence = lit_hollows["evidence"]
+    evidence.forget()
+    fitted = evidence.with_normal(evidence.normal, fitted=True)
+    _fused(fitted, "height_scale=0")
+    _fused(fitted, "height_scale=0")
+    assert len(calls) == 1 and fitted.memo
+    evidence.forget()
+    assert not fitted.memo
+    _fused(fitted, "height_scale=0")
+    assert len(calls) == 2
