@@ -264,8 +264,8 @@ def direct_irradiance(model: FitModel, normal: Tensor, maps: dict[str, Tensor], 
     return now, ref
 
 
-def remove_bounce(problem: Problem, model: FitModel, normal: Tensor, maps: dict[str, Tensor], shadows: ShadowMask,
-                  light: LightModel, t0_us: float, period_us: float, gamma: float) -> dict[str, float]:
+def remove_bounce(problem: Problem, model: FitModel, normal: Tensor, maps: dict[str, Tensor], height: np.ndarray,
+                  shadows: ShadowMask, light: LightModel, t0_us: float, period_us: float, gamma: float) -> dict[str, float]:
     """Take γ times the bounce of the current fit (module docstring) out of ``problem``'s frames and
     event targets, from the measurements as built (so each call replaces the last one's).
 
@@ -275,6 +275,9 @@ def remove_bounce(problem: Problem, model: FitModel, normal: Tensor, maps: dict[
         The fit's tensors, with ``shadows`` applied.
     model, normal, maps
         The fitted BRDF (with an RGB diffuse albedo), (P, 3) normals and its maps at the P pixels.
+    height
+        (H, W) the height of ``normal`` integrated over the P pixels, frame pixels
+        (``pstoolkit.shadows.surface_sweep.integrated_height``).
     shadows
         The current cast-shadow mask.
     light
@@ -290,8 +293,6 @@ def remove_bounce(problem: Problem, model: FitModel, normal: Tensor, maps: dict[
         ``bounce_frame_share``: the bounce's share of the measured frames' mean; ``bounce_pairs_dropped``:
         the share of event pairs left out.
     """
-    from pstoolkit.surface import integrate_normals  # deferred: sparse solvers
-
     geometry = problem.geometry
     h, w, pixels = geometry.height, geometry.width, geometry.pixels
     normal_np = normal.detach().cpu().numpy().astype(np.float64)
@@ -301,7 +302,6 @@ def remove_bounce(problem: Problem, model: FitModel, normal: Tensor, maps: dict[
     mask = np.zeros(h * w, dtype=bool)
     mask[pixels] = True
     mask = mask.reshape(h, w)
-    height = integrate_normals(full_normal.reshape(h, w, 3), mask)
     phase = grid_times(period_us, PHASES)
     lit = ~shadows.contains_grid(pixels, t0_us + phase) if len(shadows) else np.ones((PHASES, pixels.size), dtype=bool)
     directions = light.evaluate(t0_us + phase)[0]

@@ -42,6 +42,7 @@ from torch import nn
 import psfmt
 from pstoolkit import BRDF, Option, Progress, ShadowDetector, ShadowMask, Solver, SolverResult, UserError, get_registries
 from pstoolkit.plugin.options import format_assignments
+from pstoolkit.shadows.surface_sweep import integrated_height
 from pstoolkit.solve.tiled import solve_tiles
 from pstoolkit_dualres.consistency import event_gate
 from pstoolkit_dualres.fields import NeuralField, PyramidField
@@ -167,6 +168,14 @@ def _current(field: nn.Module, model: FitModel) -> tuple[torch.Tensor, dict[str,
     with torch.no_grad():
         normal, pixel_raw, smooth_raw = field()
         return normal, model.maps(pixel_raw, smooth_raw)
+
+
+def _frame_normal(problem: Problem, normal: torch.Tensor) -> np.ndarray:
+    """(H, W, 3) float32 frame map of the fit's (P, 3) ``normal``, zero off the masked pixels."""
+    h, w, pixels = problem.geometry.height, problem.geometry.width, problem.geometry.pixels
+    full = np.zeros((h * w, 3), dtype=np.float32)
+    full[pixels] = normal.detach().cpu().numpy()
+    return full.reshape(h, w, 3)
 
 
 def _stage_bounds(preset: Preset, detector: ShadowDetector, between: bool) -> list[int]:
@@ -461,8 +470,11 @@ class DualRes(Solver):
     @staticmethod
     def _bounce(pre: Preprocessed, problem: Problem, field: nn.Module, model: FitModel, shadows: ShadowMask,
                 reflectance: float) -> dict[str, float]:
-        """``interreflection.remove_bounce`` of the current fit at ``reflectance``."""
-        return remove_bounce(problem, model, *_current(field, model), shadows, pre.light, pre.t0_us, pre.period_us, reflectance)
+        """``interreflection.remove_bounce`` of the current fit at ``reflectance``, on the height the
+        detector integrated from the same normals when it just did (``integrated_height``)."""
+        normal, maps = _current(field, model)
+        height = integrated_height(pre.evidence.with_normal(_frame_normal(problem, normal)))
+        return remove_bounce(problem, model, normal, maps, height, shadows, pre.light, pre.t0_us, pre.period_us, reflectance)
 
     @staticmethod
     def _unexplained(problem: Problem, field: nn.Module, model: FitModel, config: StageConfig, pairs: np.ndarray) -> float:
@@ -486,11 +498,8 @@ class DualRes(Solver):
         """The detector on the current normals, told whether inter-reflected light is taken out, its mask
         into the problem."""
         with torch.no_grad():
-            normal = field()[0].cpu().numpy()
-        h, w, pixels = problem.geometry.height, problem.geometry.width, problem.geometry.pixels
-        full = np.zeros((h * w, 3), dtype=np.float32)
-        full[pixels] = normal
-        evidence = pre.evidence.with_normal(full.reshape(h, w, 3), fitted=True, inter_reflected=inter_reflected)
+            normal = field()[0]
+        evidence = pre.evidence.with_normal(_frame_normal(problem, normal), fitted=True, inter_reflected=inter_reflected)
         shadows = detector.detect(evidence, detector_options)
         problem.apply_mask(shadows)
         return shadows

@@ -17,13 +17,25 @@ from pstoolkit.shadows.sweep_kernels import shadowed_columns
 SWEEP_CHUNK = 32
 
 
-def surface_height(evidence: ShadowEvidence) -> np.ndarray:
-    """(H, W) float32 height map (pixels) of the surface ``evidence.normal`` (not None), integrated
-    over ``evidence.mask`` (``pstoolkit.surface.integrate_normals``)."""
+def integrated_height(evidence: ShadowEvidence) -> np.ndarray:
+    """(H, W) float64 height map (pixels) of the surface ``evidence.normal`` (not None), integrated
+    over ``evidence.mask`` (``pstoolkit.surface.integrate_normals``), 0 outside it. Once per surface
+    (``ShadowEvidence.of_surface``): the detectors' sweeps and a solver's model of the same surface
+    (dualres's inter-reflection) share one solve, the costliest step of a detection at 1024². The map
+    is read-only."""
     from pstoolkit.surface import integrate_normals
 
-    mask = np.asarray(evidence.mask, dtype=bool)
-    return integrate_normals(np.asarray(evidence.normal, dtype=np.float64), mask).astype(np.float32)
+    def integrate() -> np.ndarray:
+        height = integrate_normals(np.asarray(evidence.normal, dtype=np.float64), np.asarray(evidence.mask, dtype=bool))
+        height.flags.writeable = False
+        return height
+
+    return evidence.of_surface(("integrated_height",), integrate)
+
+
+def surface_height(evidence: ShadowEvidence) -> np.ndarray:
+    """(H, W) float32 ``integrated_height``: the precision the sweeps march in."""
+    return integrated_height(evidence).astype(np.float32)
 
 
 def surface_shadow_blocks(evidence: ShadowEvidence, height: np.ndarray, time_steps: int, margin_px: float) -> Iterator[np.ndarray]:

@@ -177,6 +177,36 @@ def test_a_bounce_the_measurements_do_not_have_is_tried_and_left_out(hollows_48:
     assert more["bounce_frame_share"] > 1.5 * record["bounce_frame_share"]
 
 
+def test_the_bounce_takes_the_height_the_detector_integrated(hollows_48: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The surface the bounce is fitted with is the one the detector just swept: one integration serves
+    both, so a fit that tries the bounce integrates as many surfaces as one without it (the closed
+    form's and the first stage's) and the heights the bounce models agree with a fresh solve."""
+    import pstoolkit.surface
+    import pstoolkit_dualres.interreflection as interreflection
+
+    solved: list[np.ndarray] = []
+    modelled: list[np.ndarray] = []
+    integrate = pstoolkit.surface.integrate_normals
+    bounce = interreflection.one_bounce
+
+    def counted(normal: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        solved.append(integrate(normal, mask))
+        return solved[-1]
+
+    def seen(normal: np.ndarray, albedo: np.ndarray, height: np.ndarray, mask: np.ndarray, *rest: object) -> object:
+        modelled.append(integrate(normal, mask) - height)
+        return bounce(normal, albedo, height, mask, *rest)
+
+    monkeypatch.setattr(pstoolkit.surface, "integrate_normals", counted)
+    monkeypatch.setattr(interreflection, "one_bounce", seen)
+    solve_capture(hollows_48, "dualres", epochs=30, interreflection="off")
+    without = len(solved)
+    auto = solve_capture(hollows_48, "dualres", epochs=30)
+    assert any("interreflection" in stage for stage in auto.diagnostics["stages"])
+    assert without == 2 and len(solved) == 2 * without
+    assert len(modelled) == 1 and np.abs(modelled[0]).max() < 1e-9
+
+
 def test_bad_interreflection_options_are_refused(sphere_48: Path) -> None:
     with pytest.raises(UserError, match="'sometimes' is not one of auto, on, off"):
         solve_capture(sphere_48, "dualres", epochs=2, interreflection="sometimes")
