@@ -24,15 +24,19 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
+import torch
 
 from pstoolkit import GREY_WEIGHTS, LightModel
 from pstoolkit._shared.vectors import unit
 from pstoolkit.optics.equivalent import equivalent_lights, sample_times
 
 EFFECTIVE_SHARE = 0.01
+# A pixel whose normal turned by less than 0.01° in an iteration has settled.
+MOVED_COS = float(np.cos(np.radians(0.01)))
 # Gaussian widths (pixels) of the normalised convolution that fills pixels from their neighbours.
 FILL_SIGMAS = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0)
 
@@ -108,7 +112,68 @@ def _solve(grey_lights: np.ndarray, grey: np.ndarray, usable: np.ndarray) -> np.
     b[ok] = np.linalg.solve(lhs[ok], rhs[ok][..., None])[..., 0]
     return b
 
+@dataclass
+class HostLights:
+    """The per-pixel equivalent lights ``lights`` (J, P, 3, 3) (``window_lights``) of a fixed point
+    solved on the host."""
 
+    lights: np.ndarray
+
+    def grey_at(self, index: np.ndarray) -> np.ndarray:
+        """(J, n, 3) the grey lights of the pixels ``index`` (bool (P,) or positions)."""
+        return _grey(self.lights)[:, index]
+
+    def albedo(self, rgb: np.ndarray, effective: np.ndarray, normal: np.ndarray) -> np.ndarray:
+        """(P, 3) ``_albedo`` of the windows' values ``rgb`` (J, P, 3) with these lights."""
+        return _albedo(rgb, self.lights, effective, normal)
+
+
+@dataclass
+class FixedPoint:
+    """The fixed point of the attached-shadow clamp (module docstring): ``normal`` (P, 3) unit (the
+    start's (0, 0, 1) where never solved), ``effective`` (J, P) bool, ``solved`` (P,) bool: a
+    nonzero solve at the last iteration the pixel took, ``iterations`` done, and ``lights``, the
+    equivalent lights of the last iteration (``HostLights``, or the device's)."""
+
+    normal: np.ndarray
+    effective: np.ndarray
+    solved: np.ndarray
+    iterations: int
+    lights: HostLights | Any
+
+
+def fixed_point(light: LightModel, windows_us: np.ndarray, grey: np.ndarray, masks: list[np.ndarray] | None, *,
+                iterations: int, n_samples: int) -> FixedPoint:
+    """The fixed-point iteration of the normals (module docstring) with numpy, from the clamp of
+    (0, 0, 1): ``grey`` (J, P) the pixels' grey window values, ``masks`` per window the
+    (n_samples, P) visibility at its ``sample_times`` or None; the pixels whose normal still moves
+    by 0.01° (``MOVED_COS``) are iterated again, at most ``iterations`` times (at least once)."""
+    n_windows, n_pixels = grey.shape
+    free = window_lights(light, windows_us, 1, normals=None, visibility=None, n_samples=n_samples)[:, 0]
+    free_norm = np.linalg.norm(_grey(free), axis=-1)  # (J,)
+    # Start from the clamp of a normal facing the camera: on a simulated sphere the first solve
+    # without any clamp falls into wrong fixed points near the rim (measured in docs/dualres-tuning.md,
+    # "Closed-form start: measured choices").
+    normal = np.tile(np.array([0.0, 0.0, 1.0]), (n_pixels, 1))
+    lights = np.empty((n_windows, n_pixels, 3, 3))
+    effective = np.zeros((n_windows, n_pixels), dtype=bool)
+    solved = np.zeros(n_pixels, dtype=bool)
+    # only pixels whose normal still moves are iterated again
+    active = np.arange(n_pixels)
+    done = 0
+    for done in range(1, max(iterations, 1) + 1):  # noqa: B007 -- the count after the loop is the record
+        vis = None if masks is None else [m[:, active] for m in masks]
+        lights[:, active] = window_lights(light, windows_us, active.size, normals=normal[active], visibility=vis, n_samples=n_samples)
+        effective[:, active] = np.linalg.norm(_grey(lights[:, active]), axis=-1) >= EFFECTIVE_SHARE * free_norm[:, None]
+        updated = unit(_solve(_grey(lights[:, active]), grey[:, active], effective[:, active]))
+        moved = np.any(updated != 0, axis=1)
+        solved[active] = moved
+        change = np.einsum("px,px->p", updated, normal[active])
+        normal[active[moved]] = updated[moved]
+        active = active[moved & (change < MOVED_COS)]
+        if active.size == 0:
+            break
+    return FixedPoint(normal, effective, solved, done, HostLights(lights))
 
 
 def fill(values: np.ndarray, known: np.ndarray, region: np.ndarray) -> np.ndarray:
@@ -140,6 +205,7 @@ def closed_form(
     n_samples: int,
     super_normal: np.ndarray | None = None,
     base: ClosedFormStart | None = None,
+    device: str = "cpu",
 ) -> ClosedFormStart:
     """Initial normal and albedo maps inside ``mask`` from the long exposures (see the module docstring).
 
@@ -169,6 +235,9 @@ def closed_form(
         shadow mask that changes only the pixels of ``mask``): their normals with three effective
         lights and their albedos with one feed the fills here, as their own solve would. None: the
         pixels outside ``mask`` are unknown.
+    device
+        Where the fixed-point iteration runs: "cpu" with numpy (``fixed_point``), or a torch device
+        (``closed_form_device.device_fixed_point``: the same to rounding). The fills stay on the host.
 
     Returns
     -------
@@ -179,32 +248,15 @@ def closed_form(
     pixels = np.flatnonzero(mask.ravel())
     rgb = frames.reshape(n_windows, -1, 3)[:, pixels]
     grey = rgb @ np.asarray(GREY_WEIGHTS)
-    free = window_lights(light, windows_us, 1, normals=None, visibility=None, n_samples=n_samples)[:, 0]
-    free_norm = np.linalg.norm(_grey(free), axis=-1)  # (J,)
     # m_c does not depend on the normal: look it up once for all iterations
     masks = None if visibility is None else [visibility(sample_times(t0, t1, n_samples), pixels) for t0, t1 in windows_us]
-    # Start from the clamp of a normal facing the camera: on a simulated sphere the first solve
-    # without any clamp falls into wrong fixed points near the rim (measured in docs/dualres-tuning.md,
-    # "Closed-form start: measured choices").
-    normal = np.tile(np.array([0.0, 0.0, 1.0]), (len(pixels), 1))
-    lights = np.empty((n_windows, len(pixels), 3, 3))
-    effective = np.zeros((n_windows, len(pixels)), dtype=bool)
-    solved = np.zeros(len(pixels), dtype=bool)
-    # only pixels whose normal still moves are iterated again
-    active = np.arange(len(pixels))
-    done = 0
-    for done in range(1, max(iterations, 1) + 1):  # noqa: B007 -- the count after the loop is the record
-        vis = None if masks is None else [m[:, active] for m in masks]
-        lights[:, active] = window_lights(light, windows_us, active.size, normals=normal[active], visibility=vis, n_samples=n_samples)
-        effective[:, active] = np.linalg.norm(_grey(lights[:, active]), axis=-1) >= EFFECTIVE_SHARE * free_norm[:, None]
-        updated = unit(_solve(_grey(lights[:, active]), grey[:, active], effective[:, active]))
-        moved = np.any(updated != 0, axis=1)
-        solved[active] = moved
-        change = np.einsum("px,px->p", updated, normal[active])
-        normal[active[moved]] = updated[moved]
-        active = active[moved & (change < np.cos(np.radians(0.01)))]
-        if active.size == 0:
-            break
+    if torch.device(device).type == "cpu":
+        point = fixed_point(light, windows_us, grey, masks, iterations=iterations, n_samples=n_samples)
+    else:
+        from pstoolkit_dualres.closed_form_device import device_fixed_point  # deferred: it builds on this module
+
+        point = device_fixed_point(light, windows_us, grey, masks, iterations=iterations, n_samples=n_samples, device=device)
+    normal, effective, solved, lights = point.normal, point.effective, point.solved, point.lights
     full = solved & (effective.sum(axis=0) >= 3)
     count = effective.sum(axis=0)
     normal_map = np.zeros((height * width, 3))
@@ -227,10 +279,10 @@ def closed_form(
         filled = np.where(np.linalg.norm(from_events, axis=1, keepdims=True) > 0.5, from_events, filled)
     normal = np.where(full[:, None], normal, filled)
     two = ~full & (count == 2)
-    normal[two] = _two_light_normal(grey[:, two], _grey(lights)[:, two], effective[:, two], normal[two])
+    normal[two] = _two_light_normal(grey[:, two], lights.grey_at(two), effective[:, two], normal[two])
     normal[:, 2] = np.maximum(normal[:, 2], 0.0)
     normal = unit(normal)
-    albedo = _albedo(rgb, lights, effective, normal)
+    albedo = lights.albedo(rgb, effective, normal)
     albedo_map = np.zeros((height * width, 3))
     has_light = np.zeros(height * width, dtype=bool)
     if base is not None:
@@ -248,7 +300,7 @@ def closed_form(
         normal=normal_out.reshape(height, width, 3).astype(np.float32),
         albedo=(albedo_map * mask[..., None]).astype(np.float32),
         effective=effective_map.reshape(height, width),
-        iterations=done,
+        iterations=point.iterations,
     )
 
 

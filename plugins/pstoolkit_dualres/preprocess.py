@@ -129,7 +129,7 @@ class Preprocessed:
     ``events``: the event pairs of eq. 25. ``super_normal`` (H, W, 3): the super pixels' event normals
     interpolated to the frame pixels (0 where unknown). ``start_normal`` (H, W, 3): the profile start's
     normals that replace the closed form's where nonzero, or None (step 7). ``init``: the start without a
-    cast-shadow mask.
+    cast-shadow mask. ``device``: the torch device the closed form iterates on (``closed_form``).
     """
 
     height: int
@@ -160,6 +160,7 @@ class Preprocessed:
     start_normal: np.ndarray | None
     init: ClosedFormStart
     options: PreprocessOptions
+    device: str = "cpu"
     diagnostics: dict[str, Any] = field(default_factory=dict)
     _samples: Samples | None = field(default=None, repr=False)
 
@@ -185,12 +186,13 @@ class Preprocessed:
         the mask shadows, which the unmasked start already solved."""
         mask, base = (self.mask, None) if only is None else (self.mask & only, self.init)
         return start(self.per_window, self.windows_us + self.t0_us, mask, self.light, self.super_normal,
-                     self.options, shadows, base, self.start_normal)
+                     self.options, shadows, base, self.start_normal, self.device)
 
 
 def start(per_window: np.ndarray, windows_us: np.ndarray, mask: np.ndarray, light: LightModel,
           super_normal: np.ndarray, options: PreprocessOptions, shadows: ShadowMask | None,
-          base: ClosedFormStart | None = None, start_normal: np.ndarray | None = None) -> ClosedFormStart:
+          base: ClosedFormStart | None = None, start_normal: np.ndarray | None = None, device: str = "cpu"
+          ) -> ClosedFormStart:
     """The closed-form start (``closed_form.closed_form``) of the window means under a cast-shadow mask,
     its normals replaced by ``start_normal`` where that is given and nonzero.
 
@@ -215,6 +217,8 @@ def start(per_window: np.ndarray, windows_us: np.ndarray, mask: np.ndarray, ligh
         The start of the pixels outside ``mask`` (``closed_form.closed_form``), or None.
     start_normal
         (H, W, 3) unit normals of the profile start (zero where unknown), or None.
+    device
+        The torch device of the fixed-point iteration (``closed_form.closed_form``).
 
     Returns
     -------
@@ -227,7 +231,7 @@ def start(per_window: np.ndarray, windows_us: np.ndarray, mask: np.ndarray, ligh
             return ~shadows.contains_grid(pixels, t_us)
 
     closed = closed_form(per_window, windows_us, mask, light, visibility=visibility, iterations=options.init_iterations,
-                         n_samples=options.light_samples, super_normal=super_normal, base=base)
+                         n_samples=options.light_samples, super_normal=super_normal, base=base, device=device)
     return _with_start_normal(closed, start_normal, mask)
 
 
@@ -315,8 +319,10 @@ def _super_pixel_values(values: np.ndarray, super_pixel: np.ndarray, mask: np.nd
     return sums / np.maximum(count, 1)[:, None]
 
 
-def preprocess(capture: psfmt.Capture, options: PreprocessOptions, progress: Progress = no_progress) -> Preprocessed:
-    """Preprocess a hybrid capture (see the module docstring); UserError on unusable input."""
+def preprocess(capture: psfmt.Capture, options: PreprocessOptions, progress: Progress = no_progress,
+               device: str = "cpu") -> Preprocessed:
+    """Preprocess a hybrid capture (see the module docstring) on the host, the closed form's iteration
+    on the torch ``device``; UserError on unusable input."""
     options.check()
     started = time.perf_counter()
     seconds: dict[str, float] = {}
@@ -372,7 +378,7 @@ def preprocess(capture: psfmt.Capture, options: PreprocessOptions, progress: Pro
     coarse, coarse_known = event_normals(pairs.pixel, pairs.t_ref_us, pairs.t_us, pairs.target, pairs.weight, light,
                                          n_pixels=n_events_px)
     super_normal = to_frames(coarse, coarse_known, affine, height, width, event_height, event_width)[0].reshape(height, width, 3)
-    closed = start(per_window, windows + t0, mask, light, super_normal, options, None)
+    closed = start(per_window, windows + t0, mask, light, super_normal, options, None, device=device)
     weight, start_normal = _profile_start(irradiance, light, capture.calibration.view_direction, mask, super_pixel,
                                           affine, t0, period, (event_height, event_width), options.start)
     init = _with_start_normal(closed, start_normal, mask)
@@ -395,5 +401,5 @@ def preprocess(capture: psfmt.Capture, options: PreprocessOptions, progress: Pro
         refractory_us=refractory, refractory_rule=rule, frames=frames, saturated=saturated,
         t_start_us=frames_in.t_start_us.copy(), t_end_us=frames_in.t_end_us.copy(), frame_window=frame_window,
         windows_us=windows, per_window=per_window, mask=mask, evidence=evidence, irradiance=irradiance, events=pairs,
-        super_normal=super_normal, start_normal=start_normal, init=init, options=options, diagnostics=diagnostics,
+        super_normal=super_normal, start_normal=start_normal, init=init, options=options, device=device, diagnostics=diagnostics,
     )

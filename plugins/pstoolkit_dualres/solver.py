@@ -317,7 +317,7 @@ class DualRes(Solver):
         clock = Stopwatch()
         progress(0.0, "preprocessing")
         pre = preprocess(capture, PreprocessOptions(scale_rule=options["scale_rule"], start=options["start"]),
-                         lambda fraction, message: progress(PREPROCESS_SHARE * fraction, message))
+                         lambda fraction, message: progress(PREPROCESS_SHARE * fraction, message), device=str(self.device))
         clock.lap("preprocess")
         # a detector that uses the surface starts from the closed form's: the fit's first stage then
         # already leaves out the shadows it predicts (the events confirm them, with ``fused``)

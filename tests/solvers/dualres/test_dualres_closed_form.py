@@ -10,9 +10,14 @@ import numpy as np
 import pytest
 
 import psfmt
+from pstoolkit import GREY_WEIGHTS, ShadowMask
 from pstoolkit.evaluation.metrics import angular_error_deg
 from pstoolkit.grid import bilinear_taps, to_frames
-from pstoolkit_dualres.closed_form import closed_form
+from pstoolkit.optics.equivalent import sample_times
+from pstoolkit.plugin.options import defaults
+from pstoolkit.shadows.fused import FusedDetector
+from pstoolkit_dualres.closed_form import FixedPoint, closed_form, fixed_point
+from pstoolkit_dualres.closed_form_device import device_fixed_point
 from pstoolkit_dualres.preprocess import Preprocessed, PreprocessOptions, preprocess
 from pstoolkit_dualres.super_pixel_normals import event_normals
 
@@ -81,3 +86,50 @@ def test_bilinear_interpolation_uses_only_known_super_pixels() -> None:
     assert out.reshape(4, 4)[1, 1] == pytest.approx((9 * 1.0 + 3 * 5.0 + 3 * 3.0) / 15)
     none, ok = to_frames(values, np.zeros(4, dtype=bool), affine, 4, 4, 2, 2)
     assert not ok.any() and np.all(none == 0.0)
+
+
+def _fixed_points(pre: Preprocessed, shadows: ShadowMask | None, device: str) -> tuple[FixedPoint, FixedPoint, np.ndarray]:
+    """The fixed point of ``pre``'s window means under ``shadows`` on the host and through torch on ``device``."""
+    options = PreprocessOptions()
+    pixels = np.flatnonzero(pre.mask)
+    grey = pre.per_window.reshape(len(pre.windows_us), -1, 3)[:, pixels] @ np.asarray(GREY_WEIGHTS)
+    windows = pre.windows_us + pre.t0_us
+    masks = None if shadows is None else [~shadows.contains_grid(pixels, sample_times(t0, t1, options.light_samples))
+                                          for t0, t1 in windows]
+    common = {"iterations": options.init_iterations, "n_samples": options.light_samples}
+    return (fixed_point(pre.light, windows, grey, masks, **common),
+            device_fixed_point(pre.light, windows, grey, masks, device=device, **common), grey)
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+@pytest.mark.parametrize("scene", ["sphere", "blobs"])
+def test_the_device_iteration_is_the_hosts_to_rounding(scene: str, device: str, sphere: tuple[psfmt.Capture, Preprocessed],
+                                                       blobs_48: Path) -> None:
+    """The torch copy of the fixed point (``closed_form_device``, what a GPU runs) held to the numpy one,
+    through torch on the CPU and on a GPU: the sphere without a mask, the blobs under the cast shadows
+    ``fused`` finds on the closed form's surface; the lights it keeps give the same albedo and two-light
+    planes."""
+    if scene == "sphere":
+        pre, shadows = sphere[1], None
+    else:
+        pre = preprocess(psfmt.read(blobs_48), PreprocessOptions())
+        shadows = FusedDetector().detect(pre.evidence.with_normal(pre.init.normal), defaults(FusedDetector.options))
+        assert len(shadows) > 100
+    host, torch_run, grey = _fixed_points(pre, shadows, device)
+    assert host.iterations == torch_run.iterations and host.iterations >= 3
+    # The iteration takes some rim pixels onto the terminator of one light sample (l·n ≈ 1e-16), so
+    # rounding tells whether that window's light is one sample's share or none, and whether it counts
+    # as effective: the normals there, and of the pixels that passed there, agree to 0.02°, the others
+    # to rounding.
+    differ = np.any(host.effective != torch_run.effective, axis=0)
+    apart = np.abs(torch_run.normal - host.normal).max(axis=1)
+    assert differ.mean() < 0.02 and np.mean(apart > 1e-9) < 0.02  # measured 16 and 18 of 1468 sphere pixels
+    np.testing.assert_array_equal(host.solved[~differ], torch_run.solved[~differ])
+    assert apart.max() < 3e-4
+    rgb = pre.per_window.reshape(len(pre.windows_us), -1, 3)[:, np.flatnonzero(pre.mask)]
+    np.testing.assert_allclose(torch_run.lights.albedo(rgb, host.effective, host.normal)[~differ],
+                               host.lights.albedo(rgb, host.effective, host.normal)[~differ], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(torch_run.lights.grey_at(~differ), host.lights.grey_at(~differ), rtol=1e-9, atol=1e-15)
+    positions = np.flatnonzero(~differ)[::7]
+    np.testing.assert_allclose(torch_run.lights.grey_at(positions), host.lights.grey_at(positions), rtol=1e-9, atol=1e-15)
+    assert grey.shape[1] == host.normal.shape[0]
