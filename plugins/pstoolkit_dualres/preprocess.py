@@ -353,7 +353,7 @@ def preprocess(capture: psfmt.Capture, options: PreprocessOptions, progress: Pro
     evidence = ShadowEvidence(
         frame_shape=(height, width), event_shape=(event_height, event_width), super_pixel=super_pixel, mask=mask,
         light=light, t0_us=t0, period_us=period, contrast_pos=c_pos, contrast_neg=c_neg, refractory_us=refractory,
-        refractory_rule=rule, profile=profile, frames=per_window, windows_us=windows,
+        refractory_rule=rule, profile=profile, frames=per_window, windows_us=windows, device=device,
     )
     frame_values = _super_pixel_values(grey.reshape(len(windows), -1), super_pixel, mask, n_events_px)
     # frame values are in saturation units over windows of seconds: Î in saturation units per second

@@ -109,7 +109,8 @@ class ShadowEvidence:
     the solver, None before it has one; ``fitted``: that estimate is a fit to these measurements
     (a re-detection), not a start such as a closed form; ``inter_reflected``: the solver takes light
     inter-reflected by the object out of these measurements (and its surface may have been flattened
-    by it). ``memo``: shared by the evidence and its copies with another surface (``with_normal``; any
+    by it). ``device``: the torch device the solver computes on, where a detector may compute too (the
+surface's integration does, ``surface_sweep.integrated_height``). ``memo``: shared by the evidence and its copies with another surface (``with_normal``; any
     other copy starts an empty one), where a detector keeps what it computed from the surface
     (``of_surface``), so a solver that asks again of the same surface (told something else of it)
     does not pay twice."""
@@ -131,6 +132,7 @@ class ShadowEvidence:
     normal: np.ndarray | None = None
     fitted: bool = False
     inter_reflected: bool = False
+    device: str = "cpu"
     memo: dict[Hashable, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def with_normal(self, normal: np.ndarray, fitted: bool = False, inter_reflected: bool = False) -> ShadowEvidence:

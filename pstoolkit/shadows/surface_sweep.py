@@ -19,14 +19,21 @@ SWEEP_CHUNK = 32
 
 def integrated_height(evidence: ShadowEvidence) -> np.ndarray:
     """(H, W) float64 height map (pixels) of the surface ``evidence.normal`` (not None), integrated
-    over ``evidence.mask`` (``pstoolkit.surface.integrate_normals``), 0 outside it. Once per surface
+    over ``evidence.mask`` (``pstoolkit.surface.integrate_normals``; on the evidence's torch device
+    when that is not the CPU, ``integrate_device``), 0 outside it. Once per surface
     (``ShadowEvidence.of_surface``): the detectors' sweeps and a solver's model of the same surface
     (dualres's inter-reflection) share one solve, the costliest step of a detection at 1024². The map
     is read-only."""
     from pstoolkit.surface import integrate_normals
 
     def integrate() -> np.ndarray:
-        height = integrate_normals(np.asarray(evidence.normal, dtype=np.float64), np.asarray(evidence.mask, dtype=bool))
+        normal, mask = np.asarray(evidence.normal, dtype=np.float64), np.asarray(evidence.mask, dtype=bool)
+        if str(evidence.device).split(":")[0] == "cpu":
+            height = integrate_normals(normal, mask)
+        else:
+            from pstoolkit.surface.integrate_device import integrate_normals_on  # deferred: torch
+
+            height = integrate_normals_on(normal, mask, evidence.device)
         height.flags.writeable = False
         return height
 

@@ -16,7 +16,7 @@ from pstoolkit.shadows.edge_seen import seen_shadows
 from pstoolkit.shadows.height_scale import period_keys, within
 from pstoolkit.shadows.intervals import grid_times
 from pstoolkit.shadows.score import score, true_shadows
-from pstoolkit.shadows.surface_sweep import surface_height
+from pstoolkit.shadows.surface_sweep import integrated_height, surface_height
 from pstoolkit.sim.config import SimulationConfig
 from pstoolkit.sim.simulator import simulate
 from pstoolkit_dualres.preprocess import PreprocessOptions, preprocess
@@ -201,3 +201,29 @@ def test_forget_drops_what_the_detectors_kept_for_every_copy(lit_hollows: dict, 
     assert not fitted.memo
     _fused(fitted, "height_scale=0")
     assert len(calls) == 2
+
+
+def test_evidence_on_a_device_integrates_its_surface_there(lit_hollows: dict, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A solver on a GPU sets ``ShadowEvidence.device``: the surface's height is solved there
+    (``integrate_device``, here through torch on the CPU in its place), once per surface, to the
+    host's heights within 1e-6 px, and the mask the detector gives is the host's."""
+    import pstoolkit.surface.integrate_device as integrate_device
+
+    devices = []
+    solve = integrate_device.integrate_normals_on
+
+    def on_cpu(normal: np.ndarray, mask: np.ndarray, device: str) -> np.ndarray:
+        devices.append(device)
+        return solve(normal, mask, "cpu")
+
+    monkeypatch.setattr(integrate_device, "integrate_normals_on", on_cpu)
+    evidence = lit_hollows["evidence"]
+    evidence.forget()
+    host = integrated_height(evidence)
+    assert devices == []
+    there = replace(evidence, device="cuda:0")
+    height = integrated_height(there)
+    assert devices == ["cuda:0"] and np.abs(height - host).max() < 1e-6 and not height.flags.writeable
+    assert integrated_height(there.with_normal(there.normal, fitted=True)) is height and devices == ["cuda:0"]
+    assert _fused(there).diagnostics == _fused(evidence).diagnostics
+    assert np.array_equal(_fused(there).coverage(), _fused(evidence).coverage())

@@ -276,9 +276,9 @@ def test_scale_rule_reaches_preprocessing(blobs: Path, monkeypatch: pytest.Monke
     seen: list[str] = []
     real = solver_module.preprocess
 
-    def spy(capture: psfmt.Capture, options: object, progress: object) -> object:
+    def spy(capture: psfmt.Capture, options: object, progress: object, device: str) -> object:
         seen.append(options.scale_rule)  # type: ignore[attr-defined]
-        return real(capture, options, progress)  # type: ignore[arg-type]
+        return real(capture, options, progress, device)  # type: ignore[arg-type]
 
     monkeypatch.setattr(solver_module, "preprocess", spy)
     with psfmt.read(blobs) as capture:
