@@ -28,9 +28,9 @@ from typing import Any
 
 import cv2
 import numpy as np
-import torch
 
 from pstoolkit import GREY_WEIGHTS, LightModel
+from pstoolkit._shared import devices
 from pstoolkit._shared.vectors import unit
 from pstoolkit.optics.equivalent import equivalent_lights, sample_times
 
@@ -250,7 +250,7 @@ def closed_form(
     grey = rgb @ np.asarray(GREY_WEIGHTS)
     # m_c does not depend on the normal: look it up once for all iterations
     masks = None if visibility is None else [visibility(sample_times(t0, t1, n_samples), pixels) for t0, t1 in windows_us]
-    if torch.device(device).type == "cpu":
+    if devices.on_host(device):
         point = fixed_point(light, windows_us, grey, masks, iterations=iterations, n_samples=n_samples)
     else:
         from pstoolkit_dualres.closed_form_device import device_fixed_point  # deferred: it builds on this module

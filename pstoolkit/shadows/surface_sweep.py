@@ -9,12 +9,16 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from pstoolkit._shared import devices
 from pstoolkit.shadows.base import ShadowEvidence
 from pstoolkit.shadows.intervals import grid_times
 from pstoolkit.shadows.sweep_kernels import shadowed_columns
 
 # Light directions swept at once: bounds the (chunk, H, W) float32 margins held in memory.
 SWEEP_CHUNK = 32
+# On a device, the margins of a block of directions may take this much of its memory (the sweep's own
+# arrays are bounded apart, ``shadow_sweep_device.BATCH_BYTES``).
+DEVICE_BLOCK_BYTES = 1 << 28
 
 
 def integrated_height(evidence: ShadowEvidence) -> np.ndarray:
@@ -28,7 +32,7 @@ def integrated_height(evidence: ShadowEvidence) -> np.ndarray:
 
     def integrate() -> np.ndarray:
         normal, mask = np.asarray(evidence.normal, dtype=np.float64), np.asarray(evidence.mask, dtype=bool)
-        if str(evidence.device).split(":")[0] == "cpu":
+        if devices.on_host(evidence.device):
             height = integrate_normals(normal, mask)
         else:
             from pstoolkit.surface.integrate_device import integrate_normals_on  # deferred: torch
@@ -47,16 +51,27 @@ def surface_height(evidence: ShadowEvidence) -> np.ndarray:
 
 def surface_shadow_blocks(evidence: ShadowEvidence, height: np.ndarray, time_steps: int, margin_px: float) -> Iterator[np.ndarray]:
     """Cast shadows of the surface of ``height`` (``surface_height``) at the bin centres of
-    ``intervals.grid_times`` from ``evidence.t0_us``, as blocks of up to SWEEP_CHUNK times in order:
-    (n, P) bool each, P the masked frame pixels in flat order. A block is a view of a buffer the
-    next one overwrites: use it (or copy it) before asking for the next. The whole (time_steps, P)
-    map never exists (0.75 GB at 1024² pixels and 720 steps)."""
-    # deferred: the sweep is compiled with numba, which `pstoolkit plugins` need not load
-    from pstoolkit.optics.shadow_sweep import ShadowCaster
-
+    ``intervals.grid_times`` from ``evidence.t0_us``, as blocks of times in order: (n, P) bool each,
+    P the masked frame pixels in flat order. A block is a view of a buffer the next one overwrites:
+    use it (or copy it) before asking for the next. The whole (time_steps, P) map never exists (0.75 GB
+    at 1024² pixels and 720 steps). On the evidence's torch device when that is not the CPU
+    (``shadow_sweep_device``, the same margins), in blocks of up to DEVICE_BLOCK_BYTES."""
     mask = np.asarray(evidence.mask, dtype=bool)
     directions = evidence.light.evaluate(evidence.t0_us + grid_times(evidence.period_us, time_steps))[0]
     inside = np.flatnonzero(mask.ravel())
+    if devices.on_host(evidence.device):
+        yield from _host_blocks(height, mask, inside, directions, margin_px)
+    else:
+        yield from _device_blocks(height, mask, inside, directions, margin_px, evidence.device)
+
+
+def _host_blocks(height: np.ndarray, mask: np.ndarray, inside: np.ndarray, directions: np.ndarray, margin_px: float
+                 ) -> Iterator[np.ndarray]:
+    """``surface_shadow_blocks`` with the compiled sweep, SWEEP_CHUNK directions at a time."""
+    # deferred: the sweep is compiled with numba, which `pstoolkit plugins` need not load
+    from pstoolkit.optics.shadow_sweep import ShadowCaster
+
+    time_steps = len(directions)
     # one caster (the height map in its four sweep orientations) and one set of buffers for all blocks
     caster = ShadowCaster(height, mask)
     margin = np.empty((min(SWEEP_CHUNK, time_steps), *mask.shape), dtype=np.float32)
@@ -67,3 +82,19 @@ def surface_shadow_blocks(evidence: ShadowEvidence, height: np.ndarray, time_ste
         caster.margins(block, margin[:n])
         shadowed_columns(margin[:n].reshape(n, -1), margin_px, inside, out[:n])
         yield out[:n]
+
+
+def _device_blocks(height: np.ndarray, mask: np.ndarray, inside: np.ndarray, directions: np.ndarray, margin_px: float,
+                   device: str) -> Iterator[np.ndarray]:
+    """``surface_shadow_blocks`` swept on the torch ``device``, the shadowed masked pixels brought back
+    a block at a time."""
+    import torch  # deferred: only a solver on a device sweeps there
+
+    from pstoolkit.optics.shadow_sweep_device import DeviceCaster
+
+    caster = DeviceCaster(height, mask, device)
+    columns = torch.as_tensor(inside, device=caster.device)
+    chunk = max(1, DEVICE_BLOCK_BYTES // max(4 * mask.size, 1))
+    for start in range(0, len(directions), chunk):
+        margin = caster.margins(directions[start : start + chunk])
+        yield (margin.reshape(len(margin), -1)[:, columns] > np.float32(margin_px)).cpu().numpy()

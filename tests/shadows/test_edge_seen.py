@@ -203,27 +203,27 @@ def test_forget_drops_what_the_detectors_kept_for_every_copy(lit_hollows: dict, 
     assert len(calls) == 2
 
 
-def test_evidence_on_a_device_integrates_its_surface_there(lit_hollows: dict, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_evidence_on_a_device_integrates_and_sweeps_its_surface_there(lit_hollows: dict, monkeypatch: pytest.MonkeyPatch) -> None:
     """A solver on a GPU sets ``ShadowEvidence.device``: the surface's height is solved there
-    (``integrate_device``, here through torch on the CPU in its place), once per surface, to the
-    host's heights within 1e-6 px, and the mask the detector gives is the host's."""
+    (``integrate_device``), once per surface, and its shadows swept there (``shadow_sweep_device``), here
+    through torch on the CPU (``devices.on_host`` told otherwise). The heights are the host's within
+    1e-6 px, the height scale chosen and the mask the detector gives the host's."""
     import pstoolkit.surface.integrate_device as integrate_device
+    from pstoolkit._shared import devices
 
-    devices = []
+    solved = []
     solve = integrate_device.integrate_normals_on
-
-    def on_cpu(normal: np.ndarray, mask: np.ndarray, device: str) -> np.ndarray:
-        devices.append(device)
-        return solve(normal, mask, "cpu")
-
-    monkeypatch.setattr(integrate_device, "integrate_normals_on", on_cpu)
+    monkeypatch.setattr(integrate_device, "integrate_normals_on", lambda *args: solved.append(1) or solve(*args))
     evidence = lit_hollows["evidence"]
     evidence.forget()
-    host = integrated_height(evidence)
-    assert devices == []
-    there = replace(evidence, device="cuda:0")
+    host_height = integrated_height(evidence)
+    host = _fused(evidence, "height_scale=0")
+    assert solved == []
+    monkeypatch.setattr(devices, "on_host", lambda device: False)
+    there = replace(evidence, profile=evidence.profile)
     height = integrated_height(there)
-    assert devices == ["cuda:0"] and np.abs(height - host).max() < 1e-6 and not height.flags.writeable
-    assert integrated_height(there.with_normal(there.normal, fitted=True)) is height and devices == ["cuda:0"]
-    assert _fused(there).diagnostics == _fused(evidence).diagnostics
-    assert np.array_equal(_fused(there).coverage(), _fused(evidence).coverage())
+    assert solved == [1] and np.abs(height - host_height).max() < 1e-6 and not height.flags.writeable
+    assert integrated_height(there.with_normal(there.normal, fitted=True)) is height and solved == [1]
+    mask = _fused(there, "height_scale=0")
+    assert mask.diagnostics == host.diagnostics and mask.diagnostics["height_scale"] == 1.0
+    assert np.array_equal(mask.coverage(), host.coverage())

@@ -1,0 +1,43 @@
+"""The stages a GPU runs as torch copies of the host's code (``devices.on_host``: the closed form's
+iteration, the surface's integration and shadow sweep), run end to end through torch on the CPU, give
+the host's result: CI has no GPU, so this is where the copies meet the rest of the pipeline."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import psfmt
+import pstoolkit.surface.integrate_device as integrate_device
+from pstoolkit._shared import devices
+from pstoolkit.evaluation.metrics import angular_error_deg
+from pstoolkit.plugin.manager import get_registries
+from pstoolkit.solve.base import SolverResult, run_solver
+from pstoolkit_dualres import closed_form_device
+
+
+def _solve(capture: psfmt.Capture) -> SolverResult:
+    entry = get_registries().solvers.get("dualres")
+    return run_solver(entry, capture, entry.parse_options(["epochs=40"]))[0]
+
+
+def test_the_device_path_on_the_cpu_gives_the_hosts_normals(blobs_48: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    capture = psfmt.load(blobs_48)
+    host = _solve(capture)
+    used = []
+    for module, name in ((closed_form_device, "device_fixed_point"), (integrate_device, "integrate_normals_on")):
+        real = getattr(module, name)
+        monkeypatch.setattr(module, name, lambda *args, real=real, name=name, **kwargs: used.append(name) or real(*args, **kwargs))
+    monkeypatch.setattr(devices, "on_host", lambda device: False)
+    there = _solve(capture)
+    # the start, its solve under the first mask; the first stage's surface and the bounce fit's
+    assert used.count("device_fixed_point") == 2 and used.count("integrate_normals_on") == 2
+    truth = capture.ground_truth
+    assert np.array_equal(host.mask, there.mask)
+    mae = [float(angular_error_deg(r.normal, truth.normal, truth.mask)[truth.mask].mean()) for r in (host, there)]
+    assert abs(mae[1] - mae[0]) <= 0.002  # measured equal to 1e-15
+    apart = angular_error_deg(there.normal, host.normal, host.mask)[host.mask]
+    assert np.percentile(apart, 90) <= 0.01  # measured 9e-7°: the sweeps' masks are the same
+    assert there.diagnostics["stages"][0]["shadow_intervals"] == host.diagnostics["stages"][0]["shadow_intervals"]
