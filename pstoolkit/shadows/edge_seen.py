@@ -15,12 +15,16 @@ mostly cancel, the step of a shadow's edge does not.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from pstoolkit.shadows.base import ShadowEvidence
 from pstoolkit.shadows.height_scale import EdgeTracker, SuperPixels, period_keys, super_pixel_edges, within
 from pstoolkit.shadows.intervals import ShadowIntervals, rasterize
+
+if TYPE_CHECKING:
+    from pstoolkit.shadows.device_tracking import DeviceEdgeTracker
 
 
 @dataclass(frozen=True)
@@ -49,7 +53,7 @@ def seen_shadows(evidence: ShadowEvidence, height: np.ndarray, time_steps: int, 
     return seen_edges(evidence, tracker, tolerance_deg)
 
 
-def seen_edges(evidence: ShadowEvidence, tracker: EdgeTracker, tolerance_deg: float) -> SeenShadows:
+def seen_edges(evidence: ShadowEvidence, tracker: EdgeTracker | DeviceEdgeTracker, tolerance_deg: float) -> SeenShadows:
     """The predicted shadows of ``tracker`` (fed a whole period, counting its pixels' bins) whose edges
     the events of ``evidence`` see.
 

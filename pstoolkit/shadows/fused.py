@@ -25,17 +25,19 @@ capture has it), the mask also takes the confirmed shadows of the surface ``refl
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any, ClassVar
 
 import numpy as np
 
+from pstoolkit._shared import devices
 from pstoolkit.plugin.options import Option
 from pstoolkit.shadows.base import ShadowDetector, ShadowEvidence, ShadowMask
 from pstoolkit.shadows.edge_seen import SeenShadows, seen_edges
 from pstoolkit.shadows.geometry import GEOMETRY_OPTIONS, shadow_height
-from pstoolkit.shadows.height_scale import EdgeTracker, SuperPixels
-from pstoolkit.shadows.intervals import RunCollector, ShadowIntervals, intervals_from_grid, rasterize
+from pstoolkit.shadows.height_scale import SuperPixels, edge_tracker
+from pstoolkit.shadows.intervals import ShadowIntervals, intervals_from_grid, rasterize, run_collector
 from pstoolkit.shadows.silences import dark_spans, min_gap_us
 from pstoolkit.shadows.surface_sweep import surface_shadow_blocks
 
@@ -102,20 +104,20 @@ def _confirmed(evidence: ShadowEvidence, options: dict[str, Any], height: np.nda
     steps = options["time_steps"]
     pixels = np.flatnonzero(np.asarray(evidence.mask).ravel())
     covering = evidence.super_pixel[pixels]
-    confirmed = RunCollector(pixels.size)
+    confirmed = run_collector(pixels.size, evidence.device)
     edge_share = options["fitted_edge_share" if evidence.fitted else "edge_share"]
     edges = edge_share > 0
     if edges:
-        tracker = EdgeTracker(SuperPixels.of(evidence), count_pixels=True)
-        surface = RunCollector(pixels.size)
+        tracker = edge_tracker(SuperPixels.of(evidence), evidence.device, count_pixels=True)
+        surface = run_collector(pixels.size, evidence.device)
+    under = _dark_columns(dark, covering, evidence.device)
     start = 0
     # one sweep, a block of times at a time: no (steps, P) map of the surface's shadows is ever whole
     for block in surface_shadow_blocks(evidence, height, steps, options["margin_px"]):
         if edges:
             tracker.feed(block)
             surface.feed(block)
-        # np.take gathers a block's columns 5× faster than indexing with an index array
-        confirmed.feed(block & np.take(dark[start : start + len(block)], covering, axis=1))
+        confirmed.feed(block & under(start, len(block)))
         start += len(block)
     shadows = confirmed.intervals(evidence.period_us, pixels)
     if not edges:
@@ -124,6 +126,20 @@ def _confirmed(evidence: ShadowEvidence, options: dict[str, Any], height: np.nda
     extra = _seen_at_pixels(evidence, seen, surface.intervals(evidence.period_us), pixels, edge_share)
     # the table merges what overlaps or touches: the union of both kinds of confirmation
     return ShadowIntervals.concatenate([shadows, extra]), seen.record()
+
+
+def _dark_columns(dark: np.ndarray, covering: np.ndarray, device: str) -> Callable[[int, int], Any]:
+    """``at(start, n)``: (n, P) bool, the rows ``start``… of ``dark`` (steps, He·We) at the super pixels
+    ``covering`` (P,) the masked frame pixels, where ``surface_shadow_blocks`` gives its blocks on
+    ``device``: there the map is moved once."""
+    if devices.on_host(device):
+        # np.take gathers a block's columns 5× faster than indexing with an index array
+        return lambda start, n: np.take(dark[start : start + n], covering, axis=1)
+    import torch  # deferred: only a solver on a device sweeps there
+
+    there = torch.as_tensor(dark, device=device)
+    columns = torch.as_tensor(covering, device=device)
+    return lambda start, n: there[start : start + n].index_select(1, columns)
 
 
 def _seen_at_pixels(evidence: ShadowEvidence, seen: SeenShadows, surface: ShadowIntervals, pixels: np.ndarray,

@@ -21,7 +21,7 @@ import numpy as np
 from pstoolkit.plugin.options import Option
 from pstoolkit.shadows.base import ShadowDetector, ShadowEvidence, ShadowMask
 from pstoolkit.shadows.height_scale import calibrate
-from pstoolkit.shadows.intervals import RunCollector
+from pstoolkit.shadows.intervals import run_collector
 from pstoolkit.shadows.surface_sweep import surface_height, surface_shadow_blocks
 
 GEOMETRY_OPTIONS: tuple[Option, ...] = (
@@ -67,7 +67,7 @@ class GeometryDetector(ShadowDetector):
         if evidence.normal is None:
             return evidence.no_mask()
         pixels = np.flatnonzero(np.asarray(evidence.mask).ravel())
-        runs = RunCollector(pixels.size)
+        runs = run_collector(pixels.size, evidence.device)
         height, chosen = shadow_height(evidence, options)
         for block in surface_shadow_blocks(evidence, height, options["time_steps"], options["margin_px"]):
             runs.feed(block)

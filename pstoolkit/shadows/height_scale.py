@@ -17,14 +17,19 @@ count.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from pstoolkit._shared import devices
 from pstoolkit.shadows.base import ShadowEvidence
 from pstoolkit.shadows.period_profile import Profile
 from pstoolkit.shadows.silences import RUN_TOLERANCE_US, min_gap_us
 from pstoolkit.shadows.surface_sweep import surface_shadow_blocks
 from pstoolkit.shadows.sweep_kernels import reached
+
+if TYPE_CHECKING:
+    from pstoolkit.shadows.device_tracking import DeviceEdgeTracker
 
 # Share of a super pixel's frame pixels in shadow at which its events see the edge: an edge that
 # takes most of the direct light drops the super pixel's mean by one contrast threshold about there.
@@ -169,10 +174,21 @@ class EdgeTracker:
         return bins, pixel, entering
 
 
+def edge_tracker(groups: SuperPixels, device: str, *, count_pixels: bool = False) -> EdgeTracker | DeviceEdgeTracker:
+    """The ``EdgeTracker`` for the blocks ``surface_sweep.surface_shadow_blocks`` gives on the torch
+    ``device``: the host's on the CPU, else its device copy (``device_tracking``)."""
+    if devices.on_host(device):
+        return EdgeTracker(groups, count_pixels=count_pixels)
+    from pstoolkit.shadows.device_tracking import DeviceEdgeTracker  # deferred: torch, and it builds on this module
+
+    return DeviceEdgeTracker(groups, device, count_pixels=count_pixels)
+
+
 def super_pixel_edges(evidence: ShadowEvidence, groups: SuperPixels, height: np.ndarray, time_steps: int, margin_px: float,
-                      *, count_pixels: bool = False) -> EdgeTracker:
-    """The ``EdgeTracker`` of the surface of ``height`` marched at ``time_steps`` directions."""
-    tracker = EdgeTracker(groups, count_pixels=count_pixels)
+                      *, count_pixels: bool = False) -> EdgeTracker | DeviceEdgeTracker:
+    """The ``EdgeTracker`` of the surface of ``height`` marched at ``time_steps`` directions (its device
+    copy where the evidence's device sweeps, ``device_tracking``)."""
+    tracker = edge_tracker(groups, evidence.device, count_pixels=count_pixels)
     for block in surface_shadow_blocks(evidence, height, time_steps, margin_px):
         tracker.feed(block)
     return tracker

@@ -6,6 +6,7 @@ and the height-scale calibration (``height_scale``)."""
 from __future__ import annotations
 
 from collections.abc import Iterator
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -13,6 +14,9 @@ from pstoolkit._shared import devices
 from pstoolkit.shadows.base import ShadowEvidence
 from pstoolkit.shadows.intervals import grid_times
 from pstoolkit.shadows.sweep_kernels import shadowed_columns
+
+if TYPE_CHECKING:
+    from torch import Tensor
 
 # Light directions swept at once: bounds the (chunk, H, W) float32 margins held in memory.
 SWEEP_CHUNK = 32
@@ -49,13 +53,15 @@ def surface_height(evidence: ShadowEvidence) -> np.ndarray:
     return integrated_height(evidence).astype(np.float32)
 
 
-def surface_shadow_blocks(evidence: ShadowEvidence, height: np.ndarray, time_steps: int, margin_px: float) -> Iterator[np.ndarray]:
+def surface_shadow_blocks(evidence: ShadowEvidence, height: np.ndarray, time_steps: int, margin_px: float
+                          ) -> Iterator[np.ndarray | Tensor]:
     """Cast shadows of the surface of ``height`` (``surface_height``) at the bin centres of
     ``intervals.grid_times`` from ``evidence.t0_us``, as blocks of times in order: (n, P) bool each,
     P the masked frame pixels in flat order. A block is a view of a buffer the next one overwrites:
     use it (or copy it) before asking for the next. The whole (time_steps, P) map never exists (0.75 GB
     at 1024² pixels and 720 steps). On the evidence's torch device when that is not the CPU
-    (``shadow_sweep_device``, the same margins), in blocks of up to DEVICE_BLOCK_BYTES."""
+    (``shadow_sweep_device``, the same margins), where the blocks stay: torch tensors of up to
+    DEVICE_BLOCK_BYTES of margins, for ``device_tracking``'s collectors."""
     mask = np.asarray(evidence.mask, dtype=bool)
     directions = evidence.light.evaluate(evidence.t0_us + grid_times(evidence.period_us, time_steps))[0]
     inside = np.flatnonzero(mask.ravel())
@@ -86,8 +92,7 @@ def _host_blocks(height: np.ndarray, mask: np.ndarray, inside: np.ndarray, direc
 
 def _device_blocks(height: np.ndarray, mask: np.ndarray, inside: np.ndarray, directions: np.ndarray, margin_px: float,
                    device: str) -> Iterator[np.ndarray]:
-    """``surface_shadow_blocks`` swept on the torch ``device``, the shadowed masked pixels brought back
-    a block at a time."""
+    """``surface_shadow_blocks`` swept on the torch ``device``, the blocks left there."""
     import torch  # deferred: only a solver on a device sweeps there
 
     from pstoolkit.optics.shadow_sweep_device import DeviceCaster
@@ -97,4 +102,4 @@ def _device_blocks(height: np.ndarray, mask: np.ndarray, inside: np.ndarray, dir
     chunk = max(1, DEVICE_BLOCK_BYTES // max(4 * mask.size, 1))
     for start in range(0, len(directions), chunk):
         margin = caster.margins(directions[start : start + chunk])
-        yield (margin.reshape(len(margin), -1)[:, columns] > np.float32(margin_px)).cpu().numpy()
+        yield margin.reshape(len(margin), -1)[:, columns] > np.float32(margin_px)

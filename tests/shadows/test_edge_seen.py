@@ -207,7 +207,7 @@ def test_evidence_on_a_device_integrates_and_sweeps_its_surface_there(lit_hollow
     """A solver on a GPU sets ``ShadowEvidence.device``: the surface's height is solved there
     (``integrate_device``), once per surface, and its shadows swept there (``shadow_sweep_device``), here
     through torch on the CPU (``devices.on_host`` told otherwise). The heights are the host's within
-    1e-6 px, the height scale chosen and the mask the detector gives the host's."""
+    1e-6 px, the height scale chosen and the masks ``fused`` and ``geometry`` give the host's."""
     import pstoolkit.surface.integrate_device as integrate_device
     from pstoolkit._shared import devices
 
@@ -227,3 +227,7 @@ def test_evidence_on_a_device_integrates_and_sweeps_its_surface_there(lit_hollow
     mask = _fused(there, "height_scale=0")
     assert mask.diagnostics == host.diagnostics and mask.diagnostics["height_scale"] == 1.0
     assert np.array_equal(mask.coverage(), host.coverage())
+    geometry_entry = get_registries().shadow_detectors.get("geometry")
+    swept = geometry_entry.obj().detect(there, geometry_entry.parse_options([]))
+    monkeypatch.setattr(devices, "on_host", lambda device: True)
+    assert np.array_equal(swept.coverage(), geometry_entry.obj().detect(evidence, geometry_entry.parse_options([])).coverage())

@@ -1,6 +1,7 @@
 """The stages a GPU runs as torch copies of the host's code (``devices.on_host``: the closed form's
-iteration, the surface's integration and shadow sweep), run end to end through torch on the CPU, give
-the host's result: CI has no GPU, so this is where the copies meet the rest of the pipeline."""
+iteration, the surface's integration and shadow sweep, the runs and edges of its shadows), run end to
+end through torch on the CPU, give the host's result: CI has no GPU, so this is where the copies meet
+the rest of the pipeline."""
 
 from __future__ import annotations
 
@@ -8,12 +9,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 import psfmt
 import pstoolkit.surface.integrate_device as integrate_device
 from pstoolkit._shared import devices
 from pstoolkit.evaluation.metrics import angular_error_deg
+from pstoolkit.optics.shadow_sweep import ShadowCaster
+from pstoolkit.optics.shadow_sweep_device import DeviceCaster
 from pstoolkit.plugin.manager import get_registries
+from pstoolkit.shadows.device_tracking import DeviceEdgeTracker, DeviceRunCollector
+from pstoolkit.shadows.height_scale import EdgeTracker
+from pstoolkit.shadows.intervals import RunCollector
 from pstoolkit.solve.base import SolverResult, run_solver
 from pstoolkit_dualres import closed_form_device
 
@@ -27,13 +34,24 @@ def test_the_device_path_on_the_cpu_gives_the_hosts_normals(blobs_48: Path, monk
     capture = psfmt.load(blobs_48)
     host = _solve(capture)
     used = []
-    for module, name in ((closed_form_device, "device_fixed_point"), (integrate_device, "integrate_normals_on")):
-        real = getattr(module, name)
-        monkeypatch.setattr(module, name, lambda *args, real=real, name=name, **kwargs: used.append(name) or real(*args, **kwargs))
+    for owner, name in ((closed_form_device, "device_fixed_point"), (integrate_device, "integrate_normals_on"),
+                        (DeviceCaster, "margins"), (DeviceRunCollector, "intervals"), (DeviceEdgeTracker, "edges"),
+                        (EdgeTracker, "feed"), (ShadowCaster, "margins")):
+        real = getattr(owner, name)
+        monkeypatch.setattr(owner, name, lambda *args, real=real, name=f"{owner.__name__}.{name}", **kwargs:
+                            used.append(name) or real(*args, **kwargs))
+    fed: list[object] = []
+    feed = RunCollector.feed
+    monkeypatch.setattr(RunCollector, "feed", lambda self, block: fed.append(block) or feed(self, block))
     monkeypatch.setattr(devices, "on_host", lambda device: False)
     there = _solve(capture)
     # the start, its solve under the first mask; the first stage's surface and the bounce fit's
-    assert used.count("device_fixed_point") == 2 and used.count("integrate_normals_on") == 2
+    assert used.count("pstoolkit_dualres.closed_form_device.device_fixed_point") == 2
+    assert used.count("pstoolkit.surface.integrate_device.integrate_normals_on") == 2
+    # every sweep, its runs and edges on the device's side; the host's collectors see only the host's grids
+    assert {"DeviceCaster.margins", "DeviceRunCollector.intervals", "DeviceEdgeTracker.edges"} <= set(used)
+    assert not {"EdgeTracker.feed", "ShadowCaster.margins"} & set(used)
+    assert fed and not any(isinstance(block, torch.Tensor) for block in fed)
     truth = capture.ground_truth
     assert np.array_equal(host.mask, there.mask)
     mae = [float(angular_error_deg(r.normal, truth.normal, truth.mask)[truth.mask].mean()) for r in (host, there)]
