@@ -102,4 +102,4 @@ def _device_blocks(height: np.ndarray, mask: np.ndarray, inside: np.ndarray, dir
     chunk = max(1, DEVICE_BLOCK_BYTES // max(4 * mask.size, 1))
     for start in range(0, len(directions), chunk):
         margin = caster.margins(directions[start : start + chunk])
-        yield margin.reshape(len(margin), -1)[:, columns] > np.float32(margin_px)
+        yield margin.reshape(len(margin), -1)[:, columns] > float(np.float32(margin_px))
