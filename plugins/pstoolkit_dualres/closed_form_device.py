@@ -1,4 +1,4 @@
-"""The closed form's fixed point (``closed_form.fixed_point``) on a torch device: the same iteration
+"""The closed form's fixed point (``fixed_point.fixed_point``) on a torch device: the same iteration
 of the attached-shadow clamp, each window's per-pixel equivalent lights one (P, S)·(S, 9) product of
 the samples' visibility and clamp against their weighted light directions
 (``pstoolkit.optics.equivalent.equivalent_lights`` for a directional light), the 3×3 systems solved
@@ -17,13 +17,13 @@ from torch import Tensor
 
 from pstoolkit import GREY_WEIGHTS, US_PER_S, LightModel
 from pstoolkit.optics.equivalent import sample_times
-from pstoolkit_dualres.closed_form import EFFECTIVE_SHARE, MOVED_COS, FixedPoint
+from pstoolkit_dualres.fixed_point import EFFECTIVE_SHARE, MOVED_COS, FixedPoint
 
 
 @dataclass
 class DeviceLights:
     """The per-pixel equivalent lights ``lights`` (J, P, 3, 3) float64 of a fixed point solved on
-    their device (``closed_form.HostLights`` on the host)."""
+    their device (``fixed_point.HostLights`` on the host)."""
 
     lights: Tensor
 
@@ -33,7 +33,7 @@ class DeviceLights:
         return _grey(self.lights[:, chosen]).cpu().numpy()
 
     def albedo(self, rgb: np.ndarray, effective: np.ndarray, normal: np.ndarray) -> np.ndarray:
-        """(P, 3) ``closed_form._albedo`` of the windows' values ``rgb`` (J, P, 3) with these lights."""
+        """(P, 3) ``fixed_point._albedo`` of the windows' values ``rgb`` (J, P, 3) with these lights."""
         device = self.lights.device
         shading = torch.einsum("jpcx,px->jpc", self.lights, torch.as_tensor(normal, device=device))
         shading = shading * torch.as_tensor(effective, device=device)[..., None]
@@ -52,7 +52,7 @@ def _unit(vectors: Tensor) -> Tensor:
 
 
 def _solve(grey_lights: Tensor, grey: Tensor, usable: Tensor) -> Tensor:
-    """``closed_form._solve``: b = ρ·n per pixel, least squares over the usable windows, zero where
+    """``fixed_point._solve``: b = ρ·n per pixel, least squares over the usable windows, zero where
     fewer than three or a singular system."""
     w = usable.to(grey.dtype)
     lhs = torch.einsum("jp,jpx,jpy->pxy", w, grey_lights, grey_lights)
@@ -66,7 +66,7 @@ def _solve(grey_lights: Tensor, grey: Tensor, usable: Tensor) -> Tensor:
 
 def device_fixed_point(light: LightModel, windows_us: np.ndarray, grey: np.ndarray, masks: list[np.ndarray] | None, *,
                        iterations: int, n_samples: int, device: str | torch.device) -> FixedPoint:
-    """``closed_form.fixed_point`` on ``device`` (module docstring); the same arguments, and a
+    """``fixed_point.fixed_point`` on ``device`` (module docstring); the same arguments, and a
     ``FixedPoint`` whose lights stay there (``DeviceLights``)."""
     dtype = torch.float64
     n_windows, n_pixels = grey.shape

@@ -1,8 +1,8 @@
 """The swept shadows' bookkeeping on a torch device: ``intervals.RunCollector`` and
-``height_scale.EdgeTracker`` fed the blocks ``surface_sweep.surface_shadow_blocks`` sweeps on a device,
+``edge_tracking.EdgeTracker`` fed the blocks ``surface_sweep.surface_shadow_blocks`` sweeps on a device,
 so that only the runs and edges found come back to the host, not the (steps, P) shadows (0.75 GB at
 1024² and 720 steps). Each gives what its host counterpart gives, in the same order (tests hold them
-to it); ``intervals.run_collector`` and ``height_scale.edge_tracker`` pick the one for a device.
+to it); ``run_collector`` and ``edge_tracker`` pick the host's or the device's for a device.
 """
 
 from __future__ import annotations
@@ -11,8 +11,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pstoolkit.shadows.height_scale import SuperPixels
-from pstoolkit.shadows.intervals import ShadowIntervals
+from pstoolkit._shared import devices
+from pstoolkit.shadows.edge_tracking import EdgeTracker, SuperPixels
+from pstoolkit.shadows.intervals import RunCollector, ShadowIntervals
 
 
 class DeviceRunCollector:
@@ -108,3 +109,16 @@ class DeviceEdgeTracker:
         entering = torch.cat([self._first[wrap], *self._entering]).cpu().numpy()
         return bins, self.groups.used[position], entering
 
+
+def run_collector(columns: int, device: str) -> RunCollector | DeviceRunCollector:
+    """The ``RunCollector`` of ``columns`` for the blocks ``surface_sweep.surface_shadow_blocks`` gives
+    on the torch ``device``: the host's on the CPU, else its device copy."""
+    return RunCollector(columns) if devices.on_host(device) else DeviceRunCollector(columns, device)
+
+
+def edge_tracker(groups: SuperPixels, device: str, *, count_pixels: bool = False) -> EdgeTracker | DeviceEdgeTracker:
+    """The ``EdgeTracker`` of ``groups`` for the blocks ``surface_shadow_blocks`` gives on the torch
+    ``device``: the host's on the CPU, else its device copy."""
+    if devices.on_host(device):
+        return EdgeTracker(groups, count_pixels=count_pixels)
+    return DeviceEdgeTracker(groups, device, count_pixels=count_pixels)

@@ -6,7 +6,7 @@ a dark span (``silences``) confirms too few of them: on path-traced `hollows` ``
 of what its own surface predicted. The edges still show: entering the shadow takes the direct light at
 once and leaving gives it back, so across the entry the super pixel's events fall and across the exit
 they rise. A super pixel's predicted shadow — where its shadowed share of the surface is at least
-``height_scale.SHARE_THRESHOLD``, the edges the height calibration scores — is *seen* when, within the
+``edge_tracking.SHARE_THRESHOLD``, the edges the height calibration scores — is *seen* when, within the
 tolerance of its entry, more of the super pixel's events fall than rise, and within that of its exit
 more rise than fall. A net count rather than an onset: the events of noise come in both polarities and
 mostly cancel, the step of a shadow's edge does not.
@@ -20,7 +20,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from pstoolkit.shadows.base import ShadowEvidence
-from pstoolkit.shadows.height_scale import EdgeTracker, SuperPixels, period_keys, super_pixel_edges, within
+from pstoolkit.shadows.edge_tracking import EdgeTracker, SuperPixels
+from pstoolkit.shadows.height_scale import period_keys, super_pixel_edges, within
 from pstoolkit.shadows.intervals import ShadowIntervals, rasterize
 
 if TYPE_CHECKING:

@@ -34,10 +34,11 @@ import numpy as np
 from pstoolkit._shared import devices
 from pstoolkit.plugin.options import Option
 from pstoolkit.shadows.base import ShadowDetector, ShadowEvidence, ShadowMask
+from pstoolkit.shadows.device_tracking import edge_tracker, run_collector
 from pstoolkit.shadows.edge_seen import SeenShadows, seen_edges
+from pstoolkit.shadows.edge_tracking import SuperPixels
 from pstoolkit.shadows.geometry import GEOMETRY_OPTIONS, shadow_height
-from pstoolkit.shadows.height_scale import SuperPixels, edge_tracker
-from pstoolkit.shadows.intervals import ShadowIntervals, intervals_from_grid, rasterize, run_collector
+from pstoolkit.shadows.intervals import ShadowIntervals, intervals_from_grid, rasterize
 from pstoolkit.shadows.silences import dark_spans, min_gap_us
 from pstoolkit.shadows.surface_sweep import surface_shadow_blocks
 

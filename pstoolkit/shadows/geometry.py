@@ -20,8 +20,8 @@ import numpy as np
 
 from pstoolkit.plugin.options import Option
 from pstoolkit.shadows.base import ShadowDetector, ShadowEvidence, ShadowMask
+from pstoolkit.shadows.device_tracking import run_collector
 from pstoolkit.shadows.height_scale import calibrate
-from pstoolkit.shadows.intervals import run_collector
 from pstoolkit.shadows.surface_sweep import surface_height, surface_shadow_blocks
 
 GEOMETRY_OPTIONS: tuple[Option, ...] = (

@@ -5,7 +5,7 @@ flattened — the classic effect of inter-reflection in a concavity, where light
 tilts a wall towards the camera — and its cast shadows then come out too short. The events know better
 when a shadow starts and ends: its edge takes the direct light at once, so the pixel's next run of events
 starts there, whatever light fills the shadow afterwards. A height map scaled by s predicts, at each
-super pixel, the times its shadowed share crosses ``SHARE_THRESHOLD``; ``calibrate`` scores each s by
+super pixel, the times its shadowed share crosses ``edge_tracking.SHARE_THRESHOLD``; ``calibrate`` scores each s by
 Cohen's kappa of those crossings against the events' onsets (``onsets``): an entry meets a falling onset
 within the tolerance, an exit a rising one, beyond the chance the onsets around it give. The scale moves
 from 1 only where another clearly agrees better (``_choose``): a surface already right keeps s = 1 (its
@@ -17,23 +17,16 @@ count.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pstoolkit._shared import devices
 from pstoolkit.shadows.base import ShadowEvidence
+from pstoolkit.shadows.device_tracking import DeviceEdgeTracker, edge_tracker
+from pstoolkit.shadows.edge_tracking import EdgeTracker, SuperPixels
 from pstoolkit.shadows.period_profile import Profile
 from pstoolkit.shadows.silences import RUN_TOLERANCE_US, min_gap_us
 from pstoolkit.shadows.surface_sweep import surface_shadow_blocks
-from pstoolkit.shadows.sweep_kernels import reached
 
-if TYPE_CHECKING:
-    from pstoolkit.shadows.device_tracking import DeviceEdgeTracker
-
-# Share of a super pixel's frame pixels in shadow at which its events see the edge: an edge that
-# takes most of the direct light drops the super pixel's mean by one contrast threshold about there.
-SHARE_THRESHOLD = 0.3
 # Fewest predicted edges a scale needs for its agreement to count.
 MIN_EDGES = 50
 # Width, in tolerances, of the span around an edge whose onsets set the chance of a match.
@@ -103,85 +96,6 @@ def _matches(keys: np.ndarray, pixel: np.ndarray, phase_us: np.ndarray, period_u
     around = within(keys, pixel, phase_us, period_us, CHANCE_SPAN * tolerance_us) - near
     chance = 1.0 - np.exp(-around / (CHANCE_SPAN - 1.0))
     return near > 0, chance
-
-
-@dataclass(frozen=True)
-class SuperPixels:
-    """The super pixels covering the masked frame pixels: ``used`` (G,) the event pixels, increasing;
-    ``group`` (P,) int32 the position in ``used`` of each masked frame pixel's (flat order); ``needed``
-    (G,) int32 how many of a super pixel's frame pixels make the ``SHARE_THRESHOLD`` share."""
-
-    used: np.ndarray
-    group: np.ndarray
-    needed: np.ndarray
-
-    @classmethod
-    def of(cls, evidence: ShadowEvidence) -> SuperPixels:
-        covering = evidence.super_pixel[np.flatnonzero(np.asarray(evidence.mask).ravel())]
-        used, group, count = np.unique(covering, return_inverse=True, return_counts=True)
-        # a whole count s reaches the share x = threshold·count exactly when it reaches ceil(x)
-        return cls(used, group.astype(np.int32), np.ceil(SHARE_THRESHOLD * count).astype(np.int32))
-
-
-class EdgeTracker:
-    """The edges of the super pixels' shadows, fed the surface's shadow blocks (``surface_sweep.
-    surface_shadow_blocks``) in time order: where a super pixel's shadowed share of ``groups`` crosses
-    ``SHARE_THRESHOLD``. With ``count_pixels``, also counts the time bins each masked frame pixel is
-    shadowed (``pixel_bins``). Holds a byte per super pixel and direction of a block besides its edges."""
-
-    def __init__(self, groups: SuperPixels, *, count_pixels: bool = False) -> None:
-        self.groups = groups
-        self.pixel_bins = np.zeros(groups.group.size, dtype=np.int32) if count_pixels else None
-        self._bins: list[np.ndarray] = []
-        self._pixel: list[np.ndarray] = []
-        self._entering: list[np.ndarray] = []
-        self._first: np.ndarray | None = None
-        self._last: np.ndarray | None = None
-        self.steps = 0
-
-    def feed(self, block: np.ndarray) -> None:
-        """The next (n, P) bool rows of the surface's shadows."""
-        groups = self.groups
-        if self.pixel_bins is not None:
-            self.pixel_bins += np.count_nonzero(block, axis=0).astype(np.int32)
-        state = np.empty((len(block), groups.used.size), dtype=bool)
-        reached(np.ascontiguousarray(block).view(np.uint8), groups.group, groups.needed, state)
-        if self._first is None:
-            self._first = state[0]
-        before = np.vstack([state[:1] if self._last is None else self._last[None], state[:-1]])
-        change = state != before
-        # few super pixels change within a block: np.nonzero over the whole block took longer than the sweep
-        changing = np.flatnonzero(change.any(axis=0))
-        k, e = np.nonzero(change[:, changing])
-        e = changing[e]
-        self._bins.append(self.steps + k)
-        self._pixel.append(groups.used[e])
-        self._entering.append(state[k, e])
-        self._last = state[-1]
-        self.steps += len(block)
-
-    def edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Every edge over the period as (time bin where the new state starts, super pixel, entering),
-        in time order, the period's wrap included."""
-        if self._first is None:
-            empty = np.empty(0, dtype=np.int64)
-            return empty, empty, np.empty(0, dtype=bool)
-        # the period wraps: the first bin follows the last
-        wrap = np.flatnonzero(self._first != self._last)
-        bins = np.concatenate([np.zeros(wrap.size, dtype=np.int64), *self._bins])
-        pixel = np.concatenate([self.groups.used[wrap], *self._pixel])
-        entering = np.concatenate([self._first[wrap], *self._entering])
-        return bins, pixel, entering
-
-
-def edge_tracker(groups: SuperPixels, device: str, *, count_pixels: bool = False) -> EdgeTracker | DeviceEdgeTracker:
-    """The ``EdgeTracker`` for the blocks ``surface_sweep.surface_shadow_blocks`` gives on the torch
-    ``device``: the host's on the CPU, else its device copy (``device_tracking``)."""
-    if devices.on_host(device):
-        return EdgeTracker(groups, count_pixels=count_pixels)
-    from pstoolkit.shadows.device_tracking import DeviceEdgeTracker  # deferred: torch, and it builds on this module
-
-    return DeviceEdgeTracker(groups, device, count_pixels=count_pixels)
 
 
 def super_pixel_edges(evidence: ShadowEvidence, groups: SuperPixels, height: np.ndarray, time_steps: int, margin_px: float,

@@ -12,14 +12,8 @@ discrete light directions); ``rasterize`` does the opposite.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
-
-from pstoolkit._shared import devices
-
-if TYPE_CHECKING:
-    from pstoolkit.shadows.device_tracking import DeviceRunCollector
 
 
 @dataclass
@@ -235,16 +229,6 @@ class RunCollector:
         names = np.arange(self.previous.size) if pixels is None else np.asarray(pixels, dtype=np.int64)
         step_us = float(period_us) / max(self.rows, 1)
         return ShadowIntervals(names[column[order]], first[order] * step_us, after[order] * step_us)
-
-
-def run_collector(columns: int, device: str) -> RunCollector | DeviceRunCollector:
-    """The ``RunCollector`` of ``columns`` for the blocks ``surface_sweep.surface_shadow_blocks`` gives
-    on the torch ``device``: the host's on the CPU, else its device copy (``device_tracking``)."""
-    if devices.on_host(device):
-        return RunCollector(columns)
-    from pstoolkit.shadows.device_tracking import DeviceRunCollector  # deferred: torch
-
-    return DeviceRunCollector(columns, device)
 
 
 def intervals_from_grid(shadowed: np.ndarray, period_us: float, pixels: np.ndarray | None = None) -> ShadowIntervals:

@@ -1,5 +1,5 @@
 """Compiled kernels of the surface's shadow sweep (``surface_sweep``) and of the edges tracked on it
-(``height_scale.EdgeTracker``), each reading a block of times row by row, rows in parallel.
+(``edge_tracking.EdgeTracker``), each reading a block of times row by row, rows in parallel.
 
 - ``shadowed_columns``: the masked pixels' shadows from the sweep's margins. numpy compared the whole
   frame and then gathered the masked columns with ``np.take``, a byte at a time.

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from pstoolkit.shadows.device_tracking import DeviceEdgeTracker, DeviceRunCollector
-from pstoolkit.shadows.height_scale import EdgeTracker, SuperPixels, edge_tracker
-from pstoolkit.shadows.intervals import RunCollector, run_collector
+from pstoolkit.shadows.device_tracking import DeviceEdgeTracker, DeviceRunCollector, edge_tracker, run_collector
+from pstoolkit.shadows.edge_tracking import EdgeTracker, SuperPixels
+from pstoolkit.shadows.intervals import RunCollector
 
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)]
 

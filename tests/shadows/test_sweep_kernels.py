@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from pstoolkit.shadows.height_scale import SHARE_THRESHOLD, EdgeTracker, SuperPixels
+from pstoolkit.shadows.edge_tracking import SHARE_THRESHOLD, EdgeTracker, SuperPixels
 from pstoolkit.shadows.sweep_kernels import reached, shadowed_columns
 
 

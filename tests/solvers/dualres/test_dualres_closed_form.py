@@ -16,8 +16,9 @@ from pstoolkit.grid import bilinear_taps, to_frames
 from pstoolkit.optics.equivalent import sample_times
 from pstoolkit.plugin.options import defaults
 from pstoolkit.shadows.fused import FusedDetector
-from pstoolkit_dualres.closed_form import FixedPoint, closed_form, fixed_point
+from pstoolkit_dualres.closed_form import closed_form
 from pstoolkit_dualres.closed_form_device import device_fixed_point
+from pstoolkit_dualres.fixed_point import FixedPoint, fixed_point
 from pstoolkit_dualres.preprocess import Preprocessed, PreprocessOptions, preprocess
 from pstoolkit_dualres.super_pixel_normals import event_normals
 

@@ -19,10 +19,10 @@ from pstoolkit.optics.shadow_sweep import ShadowCaster
 from pstoolkit.optics.shadow_sweep_device import DeviceCaster
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.shadows.device_tracking import DeviceEdgeTracker, DeviceRunCollector
-from pstoolkit.shadows.height_scale import EdgeTracker
+from pstoolkit.shadows.edge_tracking import EdgeTracker
 from pstoolkit.shadows.intervals import RunCollector
 from pstoolkit.solve.base import SolverResult, run_solver
-from pstoolkit_dualres import closed_form_device
+from pstoolkit_dualres import closed_form
 
 
 def _solve(capture: psfmt.Capture) -> SolverResult:
@@ -34,7 +34,7 @@ def test_the_device_path_on_the_cpu_gives_the_hosts_normals(blobs_48: Path, monk
     capture = psfmt.load(blobs_48)
     host = _solve(capture)
     used = []
-    for owner, name in ((closed_form_device, "device_fixed_point"), (integrate_device, "integrate_normals_on"),
+    for owner, name in ((closed_form, "device_fixed_point"), (integrate_device, "integrate_normals_on"),
                         (DeviceCaster, "margins"), (DeviceRunCollector, "intervals"), (DeviceEdgeTracker, "edges"),
                         (EdgeTracker, "feed"), (ShadowCaster, "margins")):
         real = getattr(owner, name)
@@ -46,7 +46,7 @@ def test_the_device_path_on_the_cpu_gives_the_hosts_normals(blobs_48: Path, monk
     monkeypatch.setattr(devices, "on_host", lambda device: False)
     there = _solve(capture)
     # the start, its solve under the first mask; the first stage's surface and the bounce fit's
-    assert used.count("pstoolkit_dualres.closed_form_device.device_fixed_point") == 2
+    assert used.count("pstoolkit_dualres.closed_form.device_fixed_point") == 2
     assert used.count("pstoolkit.surface.integrate_device.integrate_normals_on") == 2
     # every sweep, its runs and edges on the device's side; the host's collectors see only the host's grids
     assert {"DeviceCaster.margins", "DeviceRunCollector.intervals", "DeviceEdgeTracker.edges"} <= set(used)
