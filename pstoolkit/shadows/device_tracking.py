@@ -66,6 +66,7 @@ class DeviceEdgeTracker:
     def __init__(self, groups: SuperPixels, device: str | torch.device, *, count_pixels: bool = False) -> None:
         self.groups = groups
         self.group = torch.as_tensor(groups.group.astype(np.int64), device=device)
+        self.used = torch.as_tensor(groups.used.astype(np.int64), device=device)
         self.needed = torch.as_tensor(groups.needed, device=device)
         self._pixel_bins = torch.zeros(groups.group.size, dtype=torch.int64, device=device) if count_pixels else None
         self._bins: list[Tensor] = []
@@ -98,16 +99,22 @@ class DeviceEdgeTracker:
         self._last = state[-1]
         self.steps += block.shape[0]
 
+    def edges_there(self) -> tuple[Tensor, Tensor, Tensor]:
+        """``EdgeTracker.edges`` on the device: (time bin, super pixel, entering) of every edge, in time
+        order, int64, int64 and bool."""
+        if self._first is None or self._last is None:
+            empty = torch.empty(0, dtype=torch.int64, device=self.used.device)
+            return empty, empty, torch.empty(0, dtype=torch.bool, device=self.used.device)
+        wrap = torch.nonzero(self._first != self._last, as_tuple=True)[0]
+        bins = torch.cat([torch.zeros_like(wrap), *self._bins])
+        position = torch.cat([wrap, *self._pixel])
+        entering = torch.cat([self._first[wrap], *self._entering])
+        return bins, self.used[position], entering
+
     def edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``EdgeTracker.edges``: (time bin, super pixel, entering) of every edge, in time order."""
-        if self._first is None or self._last is None:
-            empty = np.empty(0, dtype=np.int64)
-            return empty, empty, np.empty(0, dtype=bool)
-        wrap = torch.nonzero(self._first != self._last, as_tuple=True)[0]
-        bins = torch.cat([torch.zeros_like(wrap), *self._bins]).cpu().numpy()
-        position = torch.cat([wrap, *self._pixel]).cpu().numpy()
-        entering = torch.cat([self._first[wrap], *self._entering]).cpu().numpy()
-        return bins, self.groups.used[position], entering
+        bins, pixel, entering = self.edges_there()
+        return bins.cpu().numpy(), pixel.cpu().numpy(), entering.cpu().numpy()
 
 
 def run_collector(columns: int, device: str) -> RunCollector | DeviceRunCollector:

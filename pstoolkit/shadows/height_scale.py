@@ -19,7 +19,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
+from torch import Tensor
 
+from pstoolkit._shared import devices
 from pstoolkit.shadows.base import ShadowEvidence
 from pstoolkit.shadows.device_tracking import DeviceEdgeTracker, edge_tracker
 from pstoolkit.shadows.edge_tracking import EdgeTracker, SuperPixels
@@ -108,14 +111,35 @@ def super_pixel_edges(evidence: ShadowEvidence, groups: SuperPixels, height: np.
     return tracker
 
 
-def _edge_matches(falling: np.ndarray, rising: np.ndarray, phase_us: np.ndarray, pixel: np.ndarray, entering: np.ndarray,
-                  period_us: float, tolerance_us: float) -> tuple[np.ndarray, np.ndarray]:
-    """``_matches`` of each edge against the onsets of its polarity: falling for an entry, rising for an exit."""
+def _kappa(falling: np.ndarray, rising: np.ndarray, phase_us: np.ndarray, pixel: np.ndarray, entering: np.ndarray,
+           period_us: float, tolerance_us: float) -> float:
+    """Cohen's kappa of the edges (``phase_us``, event ``pixel``, ``entering``; (n,) each) against the
+    onsets (``onsets``), each edge matched (``_matches``) against those of its polarity, falling for an
+    entry and rising for an exit: the matches beyond chance, as a share of what chance leaves."""
     met = np.zeros(len(pixel), dtype=bool)
     chance = np.zeros(len(pixel))
     for keys, which in ((falling, entering), (rising, ~entering)):
         met[which], chance[which] = _matches(keys, pixel[which], phase_us[which], period_us, tolerance_us)
-    return met, chance
+    return float(np.sum(met - chance) / max(np.sum(1.0 - chance), 1e-9))
+
+
+def kappa_there(falling: Tensor, rising: Tensor, phase_us: Tensor, pixel: Tensor, entering: Tensor, period_us: float,
+                tolerance_us: float) -> float:
+    """``_kappa`` of tensors on a device (float64 keys and phases, int64 pixels, bool entering): the same
+    searches and sums, equal to rounding (the order of the device's sums)."""
+    centre = pixel.to(torch.float64) * 3.0 * period_us + period_us + phase_us
+    met = torch.zeros_like(entering)
+    chance = torch.zeros_like(phase_us)
+
+    def within_there(keys: Tensor, at: Tensor, half_width_us: float) -> Tensor:
+        return torch.searchsorted(keys, at + half_width_us, right=True) - torch.searchsorted(keys, at - half_width_us)
+
+    for keys, which in ((falling, entering), (rising, ~entering)):
+        near = within_there(keys, centre[which], tolerance_us)
+        around = within_there(keys, centre[which], CHANCE_SPAN * tolerance_us) - near
+        met[which] = near > 0
+        chance[which] = 1.0 - torch.exp(-around.to(torch.float64) / (CHANCE_SPAN - 1.0))
+    return float(torch.sum(met.to(torch.float64) - chance) / max(float(torch.sum(1.0 - chance)), 1e-9))
 
 
 def calibrate(evidence: ShadowEvidence, height: np.ndarray, *, margin_px: float, tolerance_deg: float = 10.0,
@@ -145,12 +169,21 @@ def calibrate(evidence: ShadowEvidence, height: np.ndarray, *, margin_px: float,
     tolerance_us = tolerance_deg / 360.0 * period
     groups = SuperPixels.of(evidence)
     tried: dict[float, tuple[int, float]] = {}
+    on_host = devices.on_host(evidence.device)
+    if not on_host:
+        # the device's tracker keeps its edges there: the onsets go to meet them
+        falling, rising = (torch.as_tensor(keys, device=evidence.device) for keys in (falling, rising))
 
     def agreement(scale: float) -> None:
-        bins, pixel, entering = super_pixel_edges(evidence, groups, height * np.float32(scale), time_steps, margin_px).edges()
-        met, luck = _edge_matches(falling, rising, bins * (period / time_steps), pixel, entering, period, tolerance_us)
-        # Cohen's kappa of the edges against the onsets: the matches beyond chance, as a share of what chance leaves
-        tried[scale] = (int(bins.size), float(np.sum(met - luck) / max(np.sum(1.0 - luck), 1e-9)))
+        tracker = super_pixel_edges(evidence, groups, height * np.float32(scale), time_steps, margin_px)
+        if on_host:
+            bins, pixel, entering = tracker.edges()
+            tried[scale] = (int(bins.size), _kappa(falling, rising, bins * (period / time_steps), pixel, entering, period,
+                                                   tolerance_us))
+        else:
+            bins, pixel, entering = tracker.edges_there()
+            tried[scale] = (int(bins.numel()), kappa_there(falling, rising, bins.to(torch.float64) * (period / time_steps),
+                                                           pixel, entering, period, tolerance_us))
 
     for scale in COARSE_SCALES:
         agreement(scale)

@@ -4,6 +4,8 @@ heightened by a known factor."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from helpers.event_rows import event_stream
@@ -113,3 +115,24 @@ def test_where_the_onsets_carry_no_edges_the_surface_stays(blobs: dict) -> None:
     assert chosen.scale == 1.0 and max(chosen.matched) < MIN_AGREEMENT  # measured at most 0.16
     fixed = get_registries().shadow_detectors.get("fused")
     assert fixed.obj().detect(evidence, fixed.parse_options(["height_scale=1.5", "edge_share=0"])).diagnostics == {"height_scale": 1.5}
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+def test_the_device_calibration_is_the_hosts(blobs: dict, device: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a device the calibration scores the edges where its tracker keeps them (``kappa_there``, the
+    torch copy of ``_kappa``): the same agreements to rounding and the same scale, here for the flattened
+    blobs whose scale moves (through torch on the CPU, ``devices.on_host`` told otherwise, and on a GPU)."""
+    from pstoolkit._shared import devices
+    from pstoolkit.shadows import height_scale
+
+    capture, evidence, _ = blobs["reset-at-end"]
+    evidence = evidence.with_normal(_scaled_normals(capture.ground_truth.normal, 0.7))
+    host = calibrate(evidence, surface_height(evidence), margin_px=0.225)
+    scored = []
+    real = height_scale.kappa_there
+    monkeypatch.setattr(height_scale, "kappa_there", lambda *args: scored.append(1) or real(*args))
+    monkeypatch.setattr(devices, "on_host", lambda name: False)
+    there = calibrate(dataclasses.replace(evidence, device=device), surface_height(evidence), margin_px=0.225)
+    assert len(scored) == len(host.scales) and there.scale == host.scale != 1.0
+    assert there.scales == host.scales and there.edges == host.edges
+    np.testing.assert_allclose(there.matched, host.matched, rtol=1e-12, atol=1e-12)
