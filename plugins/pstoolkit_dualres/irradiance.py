@@ -30,6 +30,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from pstoolkit import US_PER_S
+from pstoolkit._shared import devices
+from pstoolkit_dualres.irradiance_device import fit_scale_there
 
 # Midpoint-rule samples per exposure window when fitting the scale s.
 SCALE_SAMPLES = 96
@@ -109,6 +111,7 @@ def approximate(
     frame_values: np.ndarray,
     f: np.ndarray | None = None,
     threshold_per_s: float = np.inf,
+    device: str = "cpu",
 ) -> Irradiance:
     """Î from one period's events and the super pixels' frame values (supplement eq. 1; see the module
     docstring).
@@ -135,6 +138,9 @@ def approximate(
         With the events' (N,) interval profile f (eq. 20, log units per second), s changes at events
         with |f| ≥ ``threshold_per_s`` (the paper's rule); without, at the window bounds (one value
         per window).
+    device
+        Where the scale is fitted: "cpu" with numpy, or a torch device (``irradiance_device``, the same
+        to rounding).
 
     Returns
     -------
@@ -160,7 +166,11 @@ def approximate(
     else:
         changes = _change_points(f, t_us, pixel, first, count, threshold_per_s, n_pixels)
     irradiance = Irradiance(keys, logs, changes, np.ones(changes.shape), bounds, period)
-    irradiance.scale = _fit_scale(irradiance, np.asarray(frame_values, dtype=np.float64))
+    values = np.asarray(frame_values, dtype=np.float64)
+    if devices.on_host(device):
+        irradiance.scale = _fit_scale(irradiance, values)
+    else:
+        irradiance.scale = fit_scale_there(irradiance, values, SCALE_SAMPLES, device)
     return irradiance
 
 

@@ -362,7 +362,7 @@ def preprocess(capture: psfmt.Capture, options: PreprocessOptions, progress: Pro
         n_pixels=n_events_px, period_us=period, contrast_pos=c_pos, contrast_neg=c_neg,
         refractory_us=refractory, bounds_us=np.r_[windows[:, 0], windows[-1, 1]], frame_values=frame_values,
         f=profile.f if options.scale_rule == "spikes" else None,
-        threshold_per_s=spike_threshold(SCALE_THETA_PER_S, min(c_pos, c_neg), refractory),
+        threshold_per_s=spike_threshold(SCALE_THETA_PER_S, min(c_pos, c_neg), refractory), device=device,
     )
     seconds["irradiance"] = time.perf_counter() - tick
     progress(0.35, "sampling")

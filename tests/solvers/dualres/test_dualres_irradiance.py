@@ -104,3 +104,27 @@ def test_the_rule_is_an_option_of_preprocessing(tmp_path: Path) -> None:
     assert windows.samples.phase_us.size != spikes.samples.phase_us.size
     np.testing.assert_array_equal(windows.events.t_us, spikes.events.t_us)
     assert not np.array_equal(windows.events.weight, spikes.events.weight)
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+def test_the_device_fit_of_the_scale_is_the_hosts(blobs_48: Path, device: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The torch copy of the scale's fit (``irradiance_device``) held to numpy's on a simulated capture's
+    super pixels, at the window bounds and at the spikes (pieces that wrap the period, pixels without
+    events), and ``interp`` to ``numpy.interp`` at, between and beyond the knots."""
+    import torch
+
+    from pstoolkit_dualres.irradiance import SCALE_SAMPLES, _fit_scale
+    from pstoolkit_dualres.irradiance_device import fit_scale_there, interp
+
+    xp = np.array([0.0, 1.0, 1.5, 4.0])
+    fp = np.array([2.0, -1.0, 3.0, 0.5])
+    x = np.array([-1.0, 0.0, 0.3, 1.0, 1.2, 1.5, 3.9, 4.0, 9.0])
+    torch_x, torch_xp, torch_fp = (torch.as_tensor(a, device=device) for a in (x, xp, fp))
+    np.testing.assert_array_equal(interp(torch_x, torch_xp, torch_fp).cpu().numpy(), np.interp(x, xp, fp))
+    pre = preprocess(psfmt.read(blobs_48), PreprocessOptions())
+    values = np.stack([np.full(pre.event_height * pre.event_width, 0.2 + 0.1 * j) for j in range(3)], axis=1)
+    for irradiance, fitted in ((pre.irradiance, values), (_approximate("spikes")[0], FRAMES)):
+        host = _fit_scale(irradiance, fitted)
+        there = fit_scale_there(irradiance, fitted, SCALE_SAMPLES, device)
+        np.testing.assert_allclose(there, host, rtol=1e-9, atol=1e-12)
+        assert np.all(np.isfinite(host)) and np.ptp(host) > 0
