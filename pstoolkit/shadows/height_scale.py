@@ -26,6 +26,7 @@ from pstoolkit._shared import devices
 from pstoolkit.shadows.base import ShadowEvidence
 from pstoolkit.shadows.device_tracking import DeviceEdgeTracker, edge_tracker
 from pstoolkit.shadows.edge_tracking import EdgeTracker, SuperPixels
+from pstoolkit.shadows.intervals import search_sorted
 from pstoolkit.shadows.period_profile import Profile
 from pstoolkit.shadows.silences import RUN_TOLERANCE_US, min_gap_us
 from pstoolkit.shadows.surface_sweep import surface_shadow_blocks
@@ -87,7 +88,7 @@ def within(keys: np.ndarray, pixel: np.ndarray, phase_us: np.ndarray, period_us:
     """(n,) int: the events of ``keys`` (``period_keys``) of each pixel within ``half_width_us`` of its
     phase."""
     centre = pixel * 3.0 * period_us + period_us + phase_us
-    return np.searchsorted(keys, centre + half_width_us, side="right") - np.searchsorted(keys, centre - half_width_us)
+    return search_sorted(keys, centre + half_width_us, side="right") - search_sorted(keys, centre - half_width_us)
 
 
 def _matches(keys: np.ndarray, pixel: np.ndarray, phase_us: np.ndarray, period_us: float, tolerance_us: float

@@ -4,7 +4,7 @@ A shadow is an interval of the light's phase (µs since a phase origin, in [0, p
 pixel is in a cast shadow; ``t1 < t0`` means it wraps past the period's end. ``ShadowIntervals`` is
 a plain list of them; ``ShadowTable`` merges a list into disjoint, non-wrapping intervals keyed by
 pixel·2·period + phase, and answers "is pixel x in shadow at phase t" and "how long is pixel x in
-shadow between two phases" for many queries at once, each by one ``searchsorted``.
+shadow between two phases" for many queries at once, each by one ``search_sorted``.
 ``intervals_from_grid`` turns a boolean map of a time grid into intervals (detectors that test
 discrete light directions); ``rasterize`` does the opposite.
 """
@@ -14,6 +14,22 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+
+# Queries below this many take numpy's search: the compiled one's threads cost more than they save.
+PARALLEL_SEARCH = 1 << 14
+
+
+def search_sorted(keys: np.ndarray, values: np.ndarray, side: str = "left") -> np.ndarray:
+    """``numpy.searchsorted(keys, values, side)`` for increasing float64 ``keys``, in parallel over the
+    ``values`` (any shape) when they are many (``interval_kernels.sorted_slots``): the same indices."""
+    values = np.asarray(values, dtype=np.float64)
+    if values.size < PARALLEL_SEARCH:
+        return np.searchsorted(keys, values, side=side)
+    from pstoolkit.shadows.interval_kernels import sorted_slots  # deferred: numba
+
+    out = np.empty(values.shape, dtype=np.int64)
+    sorted_slots(np.ascontiguousarray(keys, dtype=np.float64), np.ascontiguousarray(values).ravel(), side == "right", out.ravel())
+    return out
 
 
 @dataclass
@@ -104,7 +120,7 @@ class ShadowTable:
     def _contains(self, pixel: np.ndarray, t_us: np.ndarray) -> np.ndarray:
         """``contains`` by one search per query."""
         key = self._key(pixel, np.mod(t_us, self.period_us))
-        slot = np.searchsorted(self.start, key, side="right") - 1
+        slot = search_sorted(self.start, key, side="right") - 1
         inside = slot >= 0
         slot = np.maximum(slot, 0)
         return inside & (key <= self.end[slot]) & (key >= self.start[slot])
@@ -114,7 +130,7 @@ class ShadowTable:
         shadow time between them)."""
         if self.start.size == 0:
             return np.zeros(key.shape)
-        slot = np.searchsorted(self.start, key, side="right") - 1
+        slot = search_sorted(self.start, key, side="right") - 1
         safe = np.maximum(slot, 0)
         partial = np.clip(key - self.start[safe], 0.0, self.end[safe] - self.start[safe])
         return np.where(slot >= 0, self.before[safe] + partial, 0.0)
@@ -145,8 +161,7 @@ class ShadowTable:
     def _rows(self, pixel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each pixel's (N,) first and end table rows and its key offset pixel·2·period."""
         base = np.asarray(pixel, dtype=np.int64).astype(np.float64) * (2.0 * self.period_us)
-        return (np.searchsorted(self.start, base, side="left"),
-                np.searchsorted(self.start, base + self.period_us, side="right"), base)
+        return search_sorted(self.start, base, side="left"), search_sorted(self.start, base + self.period_us, side="right"), base
 
     def contains_grid(self, pixel: np.ndarray, t_us: np.ndarray) -> np.ndarray:
         """(T, N) bool: ``contains`` for every pixel (N,) at every phase ``t_us`` (T,)."""

@@ -1,5 +1,6 @@
-"""The sweep's compiled kernels against numpy's plain statement of what they compute, and the edge
-tracker that uses them against the shadowed share of each super pixel, computed whole."""
+"""The sweep's compiled kernels against numpy's plain statement of what they compute, the edge
+tracker that uses them against the shadowed share of each super pixel, computed whole, and the
+parallel search of the shadow tables against numpy's."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import numpy as np
 import pytest
 
 from pstoolkit.shadows.edge_tracking import SHARE_THRESHOLD, EdgeTracker, SuperPixels
+from pstoolkit.shadows.intervals import PARALLEL_SEARCH, search_sorted
 from pstoolkit.shadows.sweep_kernels import reached, shadowed_columns
 
 
@@ -59,3 +61,17 @@ def test_the_tracker_finds_where_each_super_pixels_share_crosses_the_threshold(b
     np.testing.assert_array_equal(entering, state[bins, np.searchsorted(groups.used, pixel)])
     np.testing.assert_array_equal(tracker.pixel_bins, shadows.sum(axis=0))
 
+
+
+@pytest.mark.parametrize("side", ["left", "right"])
+def test_the_parallel_search_gives_numpys_indices(side: str) -> None:
+    """``intervals.search_sorted`` (``interval_kernels.sorted_slots`` past PARALLEL_SEARCH queries): the
+    indices of ``numpy.searchsorted``, ties and both ends included, for any shape of queries."""
+    rng = np.random.default_rng(5)
+    keys = np.sort(np.round(rng.uniform(0.0, 1000.0, 3000), 1))
+    values = np.round(rng.uniform(-10.0, 1010.0, (PARALLEL_SEARCH // 50, 60)), 1)
+    values[0, :5] = [keys[0], keys[-1], keys[7], -1e9, 1e9]
+    found = search_sorted(keys, values, side)
+    assert values.size >= PARALLEL_SEARCH and found.shape == values.shape
+    np.testing.assert_array_equal(found, np.searchsorted(keys, values, side=side))
+    np.testing.assert_array_equal(search_sorted(keys, values[:2], side), np.searchsorted(keys, values[:2], side=side))
