@@ -9,3 +9,15 @@ def on_host(device: object) -> bool:
     integration and shadow sweep). Called through this module, so a test can send the CPU down the
     device's path."""
     return str(device).split(":")[0] == "cpu"
+
+
+def memory_budget(device: object, cap_bytes: int, share: float = 0.25) -> int:
+    """Bytes a batch of work on ``device`` may take: ``cap_bytes``, or on a CUDA device that share of
+    its free memory when less (a smaller card, or one the fit already fills), at least 64 MiB."""
+    import torch  # deferred: only a device's work asks
+
+    device = torch.device(device)
+    if device.type != "cuda":
+        return cap_bytes
+    free_bytes, _ = torch.cuda.mem_get_info(device)
+    return int(max(64 << 20, min(cap_bytes, share * free_bytes)))

@@ -7,7 +7,7 @@ as the sweep does), their maximum over the columns after each one by a log-step 
 of each pixel from the two lines around it. Every value is the sweep's own float32 expression of the
 same inputs and a maximum is exact, so the margins equal the compiled sweep's (a test holds them to
 it). Memory: a few (lines × columns) float32 arrays per light of a batch, bounded by
-``BATCH_BYTES``.
+``BATCH_BYTES`` or a quarter of a GPU's free memory.
 """
 
 from __future__ import annotations
@@ -16,9 +16,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from pstoolkit._shared import devices
 from pstoolkit.optics.shadow_sweep import _LOW_MARGIN, _NO_OCCLUDER, _sweep_axes
 
-# Device memory a batch of lights may take for its (lines × columns) arrays.
+# Device memory a batch of lights may take for its (lines × columns) arrays, at most (``devices.memory_budget``).
 BATCH_BYTES = 1 << 30
 
 
@@ -53,6 +54,7 @@ class DeviceCaster:
         out = torch.full((l.shape[0], h, w), _LOW_MARGIN, dtype=torch.float32, device=self.device)
         du, dv, side, along_u = _sweep_axes(l)
         tan_e = np.where(side, l[:, 2] / np.where(side, np.hypot(du, dv), 1.0), 0.0)
+        budget = devices.memory_budget(self.device, BATCH_BYTES)
         for transpose in (False, True):
             for flip in (False, True):
                 main, other = (dv, du) if transpose else (du, dv)
@@ -64,7 +66,7 @@ class DeviceCaster:
                 occluder, height, inside = self._maps(transpose, flip)
                 cols, rows = occluder.shape
                 lines = rows + int(np.ceil(np.max(np.abs(k)) * (cols - 1))) + 2
-                batch = max(1, BATCH_BYTES // (4 * 4 * cols * (lines + rows + 2)))
+                batch = max(1, budget // (4 * 4 * cols * (lines + rows + 2)))
                 for first in range(0, index.size, batch):
                     part = slice(first, first + batch)
                     oriented = _oriented_margins(occluder, height, inside, k[part], rise[part], lines)  # (G, C, R)

@@ -20,8 +20,8 @@ if TYPE_CHECKING:
 
 # Light directions swept at once: bounds the (chunk, H, W) float32 margins held in memory.
 SWEEP_CHUNK = 32
-# On a device, the margins of a block of directions may take this much of its memory (the sweep's own
-# arrays are bounded apart, ``shadow_sweep_device.BATCH_BYTES``).
+# On a device, the margins of a block of directions may take this much of its memory at most
+# (``devices.memory_budget``; the sweep's own arrays are bounded apart, ``shadow_sweep_device.BATCH_BYTES``).
 DEVICE_BLOCK_BYTES = 1 << 28
 
 
@@ -99,7 +99,7 @@ def _device_blocks(height: np.ndarray, mask: np.ndarray, inside: np.ndarray, dir
 
     caster = DeviceCaster(height, mask, device)
     columns = torch.as_tensor(inside, device=caster.device)
-    chunk = max(1, DEVICE_BLOCK_BYTES // max(4 * mask.size, 1))
+    chunk = max(1, devices.memory_budget(caster.device, DEVICE_BLOCK_BYTES) // max(4 * mask.size, 1))
     for start in range(0, len(directions), chunk):
         margin = caster.margins(directions[start : start + chunk])
         yield margin.reshape(len(margin), -1)[:, columns] > float(np.float32(margin_px))
