@@ -129,7 +129,7 @@ class Preprocessed:
     ``events``: the event pairs of eq. 25. ``super_normal`` (H, W, 3): the super pixels' event normals
     interpolated to the frame pixels (0 where unknown). ``start_normal`` (H, W, 3): the profile start's
     normals that replace the closed form's where nonzero, or None (step 7). ``init``: the start without a
-    cast-shadow mask. ``device``: the torch device the closed form iterates on (``closed_form``).
+    cast-shadow mask. The torch device its stages with a device copy run on is ``evidence.device``.
     """
 
     height: int
@@ -160,7 +160,6 @@ class Preprocessed:
     start_normal: np.ndarray | None
     init: ClosedFormStart
     options: PreprocessOptions
-    device: str = "cpu"
     diagnostics: dict[str, Any] = field(default_factory=dict)
     _samples: Samples | None = field(default=None, repr=False)
 
@@ -186,7 +185,7 @@ class Preprocessed:
         the mask shadows, which the unmasked start already solved."""
         mask, base = (self.mask, None) if only is None else (self.mask & only, self.init)
         return start(self.per_window, self.windows_us + self.t0_us, mask, self.light, self.super_normal,
-                     self.options, shadows, base, self.start_normal, self.device)
+                     self.options, shadows, base, self.start_normal, self.evidence.device)
 
 
 def start(per_window: np.ndarray, windows_us: np.ndarray, mask: np.ndarray, light: LightModel,
@@ -321,8 +320,9 @@ def _super_pixel_values(values: np.ndarray, super_pixel: np.ndarray, mask: np.nd
 
 def preprocess(capture: psfmt.Capture, options: PreprocessOptions, progress: Progress = no_progress,
                device: str = "cpu") -> Preprocessed:
-    """Preprocess a hybrid capture (see the module docstring) on the host, the closed form's iteration
-    on the torch ``device``; UserError on unusable input."""
+    """Preprocess a hybrid capture (see the module docstring) on the host, the irradiance scale's fit
+    and the closed form's iteration on the torch ``device`` (which the evidence keeps for the shadow
+    detectors); UserError on unusable input."""
     options.check()
     started = time.perf_counter()
     seconds: dict[str, float] = {}
@@ -401,5 +401,5 @@ def preprocess(capture: psfmt.Capture, options: PreprocessOptions, progress: Pro
         refractory_us=refractory, refractory_rule=rule, frames=frames, saturated=saturated,
         t_start_us=frames_in.t_start_us.copy(), t_end_us=frames_in.t_end_us.copy(), frame_window=frame_window,
         windows_us=windows, per_window=per_window, mask=mask, evidence=evidence, irradiance=irradiance, events=pairs,
-        super_normal=super_normal, start_normal=start_normal, init=init, options=options, device=device, diagnostics=diagnostics,
+        super_normal=super_normal, start_normal=start_normal, init=init, options=options, diagnostics=diagnostics,
     )

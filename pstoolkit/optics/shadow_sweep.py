@@ -4,6 +4,8 @@ sweeps a renderer reuses between nearby light directions (``ShadowCaster``)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numba
 import numpy as np
 
@@ -162,18 +164,10 @@ class ShadowCaster:
         h, w = self.height.shape
         out = np.empty((t, h, w), dtype=np.float32) if out is None else out
         affine = (SHADOW_BIAS_PX, PENUMBRA_PX) if openness else None
-        du, dv, side, along_u = _sweep_axes(l)
+        side = _sweep_axes(l)[2]
         out[~side] = _openness(np.float32(_LOW_MARGIN)) if openness else _LOW_MARGIN
-        tan_e = np.where(side, l[:, 2] / np.where(side, np.hypot(du, dv), 1.0), 0.0)
-        for transpose in (False, True):
-            for flip in (False, True):
-                main, other = (dv, du) if transpose else (du, dv)
-                index = np.flatnonzero(side & (along_u != transpose) & ((main < 0) == flip))
-                if index.size == 0:
-                    continue
-                k = other[index] / np.abs(main[index])
-                rise = tan_e[index] * np.sqrt(1.0 + k * k)
-                _sweep(*self._maps(transpose, flip), k, rise, index, transpose, flip, column_major, affine, out)
+        for transpose, flip, index, k, rise in sweep_groups(l):
+            _sweep(*self._maps(transpose, flip), k, rise, index, transpose, flip, column_major, affine, out)
         return out
 
     @staticmethod
@@ -182,6 +176,22 @@ class ShadowCaster:
         run more along the image's rows than its columns)."""
         _, _, side, along_u = _sweep_axes(np.asarray(directions, dtype=np.float64).reshape(-1, 3))
         return side & along_u
+
+
+def sweep_groups(l: np.ndarray) -> Iterator[tuple[bool, bool, np.ndarray, np.ndarray, np.ndarray]]:
+    """The lights of unit directions ``l`` (T, 3) that cast shadows, by the orientation their sweep walks
+    the maps in (``_sweep``): (transpose, flip, index (G,) of the lights, k (G,) rows per column of their
+    rays, rise (G,) pixels of height their rays climb per column), for each orientation with any."""
+    du, dv, side, along_u = _sweep_axes(l)
+    tan_e = np.where(side, l[:, 2] / np.where(side, np.hypot(du, dv), 1.0), 0.0)
+    for transpose in (False, True):
+        for flip in (False, True):
+            main, other = (dv, du) if transpose else (du, dv)
+            index = np.flatnonzero(side & (along_u != transpose) & ((main < 0) == flip))
+            if index.size == 0:
+                continue
+            k = other[index] / np.abs(main[index])
+            yield transpose, flip, index, k, tan_e[index] * np.sqrt(1.0 + k * k)
 
 
 def _sweep_axes(l: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

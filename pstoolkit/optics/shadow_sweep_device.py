@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from pstoolkit._shared import devices
-from pstoolkit.optics.shadow_sweep import _LOW_MARGIN, _NO_OCCLUDER, _sweep_axes
+from pstoolkit.optics.shadow_sweep import _LOW_MARGIN, _NO_OCCLUDER, sweep_groups
 
 # Device memory a batch of lights may take for its (lines × columns) arrays, at most (``devices.memory_budget``).
 BATCH_BYTES = 1 << 30
@@ -52,28 +52,19 @@ class DeviceCaster:
         l = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
         h, w = self.shape
         out = torch.full((l.shape[0], h, w), _LOW_MARGIN, dtype=torch.float32, device=self.device)
-        du, dv, side, along_u = _sweep_axes(l)
-        tan_e = np.where(side, l[:, 2] / np.where(side, np.hypot(du, dv), 1.0), 0.0)
         budget = devices.memory_budget(self.device, BATCH_BYTES)
-        for transpose in (False, True):
-            for flip in (False, True):
-                main, other = (dv, du) if transpose else (du, dv)
-                index = np.flatnonzero(side & (along_u != transpose) & ((main < 0) == flip))
-                if index.size == 0:
-                    continue
-                k = other[index] / np.abs(main[index])
-                rise = tan_e[index] * np.sqrt(1.0 + k * k)
-                occluder, height, inside = self._maps(transpose, flip)
-                cols, rows = occluder.shape
-                lines = rows + int(np.ceil(np.max(np.abs(k)) * (cols - 1))) + 2
-                batch = max(1, budget // (4 * 4 * cols * (lines + rows + 2)))
-                for first in range(0, index.size, batch):
-                    part = slice(first, first + batch)
-                    oriented = _oriented_margins(occluder, height, inside, k[part], rise[part], lines)  # (G, C, R)
-                    margin = oriented.transpose(1, 2)  # (G, R, C) of the oriented maps
-                    if flip:
-                        margin = margin.flip(2)
-                    out[torch.as_tensor(index[part], device=self.device)] = margin.transpose(1, 2) if transpose else margin
+        for transpose, flip, index, k, rise in sweep_groups(l):
+            occluder, height, inside = self._maps(transpose, flip)
+            cols, rows = occluder.shape
+            lines = rows + int(np.ceil(np.max(np.abs(k)) * (cols - 1))) + 2
+            batch = max(1, budget // (4 * 4 * cols * (lines + rows + 2)))
+            for first in range(0, index.size, batch):
+                part = slice(first, first + batch)
+                oriented = _oriented_margins(occluder, height, inside, k[part], rise[part], lines)  # (G, C, R)
+                margin = oriented.transpose(1, 2)  # (G, R, C) of the oriented maps
+                if flip:
+                    margin = margin.flip(2)
+                out[torch.as_tensor(index[part], device=self.device)] = margin.transpose(1, 2) if transpose else margin
         return out
 
 

@@ -110,10 +110,10 @@ class ShadowEvidence:
     (a re-detection), not a start such as a closed form; ``inter_reflected``: the solver takes light
     inter-reflected by the object out of these measurements (and its surface may have been flattened
     by it). ``device``: the torch device the solver computes on, where a detector may compute too (the
-surface's integration does, ``surface_sweep.integrated_height``). ``memo``: shared by the evidence and its copies with another surface (``with_normal``; any
-    other copy starts an empty one), where a detector keeps what it computed from the surface
-    (``of_surface``), so a solver that asks again of the same surface (told something else of it)
-    does not pay twice."""
+    surface's integration and sweep do, ``surface_sweep``). ``memo``: shared by the evidence and its
+    copies with another surface (``with_normal``; any other copy starts an empty one), where a detector
+    keeps what it computed from the surface (``of_surface``), so a solver that asks again of the same
+    surface (told something else of it) does not pay twice."""
 
     frame_shape: tuple[int, int]
     event_shape: tuple[int, int]

@@ -91,7 +91,7 @@ def _host_blocks(height: np.ndarray, mask: np.ndarray, inside: np.ndarray, direc
 
 
 def _device_blocks(height: np.ndarray, mask: np.ndarray, inside: np.ndarray, directions: np.ndarray, margin_px: float,
-                   device: str) -> Iterator[np.ndarray]:
+                   device: str) -> Iterator[Tensor]:
     """``surface_shadow_blocks`` swept on the torch ``device``, the blocks left there."""
     import torch  # deferred: only a solver on a device sweeps there
 
