@@ -18,6 +18,7 @@ import torch
 from torch import Tensor, nn
 
 from pstoolkit import Progress
+from pstoolkit._shared import devices
 from pstoolkit_dualres.losses import losses
 from pstoolkit_dualres.problem import Problem
 from pstoolkit_dualres.reflectance import FitModel
@@ -79,19 +80,20 @@ def full_batch(problem: Problem, events: Tensor) -> Batch:
 
 @dataclass
 class Tiling:
-    """What ``mini_batches`` needs of a problem, as numpy: each masked pixel's (row, column), each
+    """What ``mini_batches`` needs of a problem: as numpy, each masked pixel's (row, column), each
     usable event pair (``events``, indices into all pairs) with its anchor pixel (its footprint's
-    largest tap) and taps, the importance samples' per-pixel ranges and frames, and the TV pairs."""
+    largest tap) and taps, and the TV pairs; on the problem's device, each pixel's first importance
+    sample and count of them (the samples are stored by pixel) and each sample's frame."""
 
     row: np.ndarray
     col: np.ndarray
     events: np.ndarray
     event_anchor: np.ndarray
     event_taps: np.ndarray
-    sample_start: np.ndarray
-    sample_count: np.ndarray
-    sample_frame: np.ndarray
     tv_pairs: np.ndarray
+    sample_start: Tensor
+    sample_count: Tensor
+    sample_frame: Tensor
 
     @classmethod
     def of(cls, problem: Problem) -> Tiling:
@@ -102,26 +104,29 @@ class Tiling:
         taps = problem.events.taps.cpu().numpy()[events]
         weight = problem.events.tap_weight_now.cpu().numpy()[events]
         anchor = taps[np.arange(len(taps)), np.argmax(weight, axis=1)] if taps.size else np.zeros(0, np.int64)
-        sample_pixel = frames.sample_pixel.cpu().numpy()
-        count = np.bincount(sample_pixel, minlength=p)
+        count = torch.bincount(frames.sample_pixel, minlength=p)
         return cls(row=row, col=col, events=events, event_anchor=anchor, event_taps=taps,
-                   sample_start=np.cumsum(count) - count, sample_count=count,
-                   sample_frame=frames.sample_group.cpu().numpy() // max(p, 1),
-                   tv_pairs=geometry.tv_pairs.cpu().numpy())
+                   tv_pairs=geometry.tv_pairs.cpu().numpy(), sample_start=torch.cumsum(count, 0) - count,
+                   sample_count=count, sample_frame=frames.sample_group // max(p, 1))
 
 
-def _ranges(start: np.ndarray, count: np.ndarray) -> np.ndarray:
-    """The concatenated index ranges [start_i, start_i + count_i)."""
-    total = int(count.sum())
-    offsets = np.repeat(start - (np.cumsum(count) - count), count)
-    return np.arange(total, dtype=np.int64) + offsets
+def _starts(count: np.ndarray) -> np.ndarray:
+    """Where each of consecutive blocks of ``count`` entries starts."""
+    return np.cumsum(count) - count
 
 
 def mini_batches(problem: Problem, tiling: Tiling, config: StageConfig, generator: torch.Generator) -> list[Batch]:
     """One epoch's mini-batches (see the module docstring): a random tiling offset, tiles in random order
-    grouped into batches of about ``config.batch_pixels`` pixels."""
+    grouped into batches of about ``config.batch_pixels`` pixels.
+
+    A batch's pixels are its own (in the masked pixels' order), then the pixels its event pairs'
+    footprints reach outside its tiles (ascending); its frame rows and samples follow its own pixels'
+    order. Every batch is built at once: the arrays of pixels, pairs and TV pairs on the host, moved to
+    the problem's device in one copy, the samples' (some 80 per pixel) there."""
     tile = config.tile
     p = problem.geometry.pixels.size
+    if p == 0:
+        return []
     shift = torch.randint(0, tile, (2,), generator=generator).numpy()
     rows = (problem.geometry.height + tile) // tile + 1
     cols = (problem.geometry.width + tile) // tile + 1
@@ -129,54 +134,89 @@ def mini_batches(problem: Problem, tiling: Tiling, config: StageConfig, generato
     rank = torch.randperm(rows * cols, generator=generator).numpy()
     # tiles in random order; a batch closes once it holds batch_pixels pixels
     size = np.bincount(rank[tile_of], minlength=rows * cols)
-    batch_of_rank = (np.cumsum(size) - size) // config.batch_pixels
+    batch_of_rank = _starts(size) // config.batch_pixels
     # a tile larger than batch_pixels skips batch numbers: number the batches densely
     pixel_batch = np.unique(batch_of_rank[rank[tile_of]], return_inverse=True)[1].reshape(-1)
     event_batch = pixel_batch[tiling.event_anchor]
     pair_batch = np.where(pixel_batch[tiling.tv_pairs[:, 0]] == pixel_batch[tiling.tv_pairs[:, 1]],
                           pixel_batch[tiling.tv_pairs[:, 0]], -1)
     by_pixel, by_event, by_pair = (np.argsort(b, kind="stable") for b in (pixel_batch, event_batch, pair_batch))
-    n_batches = int(pixel_batch.max()) + 1 if p else 0
-    pixel_bounds = np.searchsorted(pixel_batch[by_pixel], np.arange(n_batches + 1))
-    event_bounds = np.searchsorted(event_batch[by_event], np.arange(n_batches + 1))
-    pair_bounds = np.searchsorted(pair_batch[by_pair], np.arange(n_batches + 1))
-    local = np.full(p, -1, dtype=np.int64)
-    arrays: list[tuple[int, dict[str, np.ndarray]]] = []
-    for b in range(n_batches):
-        own = by_pixel[pixel_bounds[b]:pixel_bounds[b + 1]]
-        chosen = by_event[event_bounds[b]:event_bounds[b + 1]]
-        taps = tiling.event_taps[chosen]
-        # event footprints that reach outside the batch's tiles need those pixels too
-        extra = np.setdiff1d(taps, own)
-        pixels = np.concatenate([own, extra])
-        local[pixels] = np.arange(pixels.size)
-        n = own.size
-        samples = _ranges(tiling.sample_start[own], tiling.sample_count[own])
-        sample_pixel = np.repeat(np.arange(n), tiling.sample_count[own])
-        pairs = tiling.tv_pairs[by_pair[pair_bounds[b]:pair_bounds[b + 1]]]
-        arrays.append((n, {
-            "pixels": pixels, "frame_rows": (np.arange(problem.frames.count)[:, None] * p + own[None, :]).ravel(),
-            "samples": samples, "sample_pixel": sample_pixel, "sample_group": tiling.sample_frame[samples] * n + sample_pixel,
-            "events": tiling.events[chosen], "event_taps": local[taps], "tv_pairs": local[pairs],
-        }))
-        local[pixels] = -1
-    return _moved(arrays, problem.device)
+    n_batches = int(pixel_batch.max()) + 1
+    own_count = np.bincount(pixel_batch, minlength=n_batches)
+    event_count = np.bincount(event_batch, minlength=n_batches)
+    pair_count = np.bincount(pair_batch[pair_batch >= 0], minlength=n_batches)
+    # each pixel's place among its batch's own pixels, and its batch's count of them
+    own_rank = np.empty(p, dtype=np.int64)
+    own_rank[by_pixel] = np.arange(p) - np.repeat(_starts(own_count), own_count)
+    own_of = own_count[pixel_batch[by_pixel]]
+    # the footprints' pixels outside their pair's batch, unique and ascending within each batch
+    taps = tiling.event_taps[by_event]
+    tap_batch = np.repeat(event_batch[by_event], taps.shape[1]).reshape(taps.shape)
+    outside = pixel_batch[taps] != tap_batch
+    extra_key = np.unique(tap_batch[outside] * p + taps[outside])
+    extra_batch, extra_pixel = np.divmod(extra_key, p)
+    extra_count = np.bincount(extra_batch, minlength=n_batches)
+    extra_place = own_count[extra_batch] + np.arange(extra_key.size) - np.repeat(_starts(extra_count), extra_count)
+    local_taps = own_rank[taps]
+    local_taps[outside] = extra_place[np.searchsorted(extra_key, tap_batch[outside] * p + taps[outside])]
+    pixel_count = own_count + extra_count
+    pixels = np.empty(int(pixel_count.sum()), dtype=np.int64)
+    pixel_start = _starts(pixel_count)
+    pixels[pixel_start[pixel_batch[by_pixel]] + own_rank[by_pixel]] = by_pixel
+    pixels[pixel_start[extra_batch] + extra_place] = extra_pixel
+    # frame rows frame-major within each batch: frame·P + pixel for each frame, then the next
+    frames = problem.frames.count
+    frame_rows = np.empty(frames * p, dtype=np.int64)
+    row_start = frames * _starts(own_count)[pixel_batch[by_pixel]] + own_rank[by_pixel]
+    for k in range(frames):
+        frame_rows[row_start + k * own_of] = k * p + by_pixel
+    pairs = tiling.tv_pairs[by_pair[by_pair.size - int(pair_count.sum()):]]
+    sample_count = tiling.sample_count.cpu().numpy()
+    moved = _moved({"pixels": pixels, "frame_rows": frame_rows, "events": tiling.events[by_event], "event_taps": local_taps,
+                    "tv_pairs": own_rank[pairs]}, problem.device)
+    rows_of = {"pixels": pixel_count, "frame_rows": frames * own_count, "events": event_count, "event_taps": event_count,
+               "tv_pairs": pair_count}
+    parts = {name: torch.split(moved[name], rows_of[name].tolist()) for name in rows_of}
+    sample_rows = np.bincount(pixel_batch, weights=sample_count, minlength=n_batches).astype(np.int64).tolist()
+    for name, value in _samples(tiling, by_pixel, own_rank[by_pixel], own_of).items():
+        parts[name] = torch.split(value, sample_rows)
+    return [Batch(frame_pixels=int(n), **{name: split[b] for name, split in parts.items()}) for b, n in enumerate(own_count)]
 
 
-def _moved(arrays: list[tuple[int, dict[str, np.ndarray]]], device: torch.device) -> list[Batch]:
-    """The batches of these (``frame_pixels``, index arrays by field) on ``device``, the arrays moved in
-    one copy: on a GPU a copy for each batch and array would wait for the device each time."""
-    if not arrays:
-        return []
-    moved = torch.as_tensor(np.concatenate([a.ravel() for _, batch in arrays for a in batch.values()], dtype=np.int64), device=device)
-    out, start = [], 0
-    for n, batch in arrays:
-        views = {}
-        for name, a in batch.items():
-            views[name] = moved[start:start + a.size].view(a.shape)
-            start += a.size
-        out.append(Batch(frame_pixels=n, **views))
+def _moved(arrays: dict[str, np.ndarray], device: torch.device) -> dict[str, Tensor]:
+    """These int64 arrays on ``device``, moved in one copy: on a GPU a copy for each batch and array would
+    wait for the device each time."""
+    moved = torch.as_tensor(np.concatenate([a.ravel() for a in arrays.values()], dtype=np.int64), device=device)
+    out, start = {}, 0
+    for name, a in arrays.items():
+        out[name] = moved[start:start + a.size].view(a.shape)
+        start += a.size
     return out
+
+
+def _samples(tiling: Tiling, order: np.ndarray, rank: np.ndarray, own: np.ndarray) -> dict[str, Tensor]:
+    """The importance samples of the masked pixels ``order`` (P,), each pixel's in their stored order:
+    "samples" their indices into all samples, "sample_pixel" the ``rank`` of their pixel among its
+    batch's own pixels, "sample_group" frame·``own`` + rank (``own`` each pixel's batch's count of own
+    pixels). In numpy on the host (faster there than torch), in torch on a device (some 80 samples a
+    pixel: moving their indices each epoch would take longer than making them there)."""
+    start, count, frame = tiling.sample_start, tiling.sample_count, tiling.sample_frame
+    total = int(frame.numel())
+    if devices.on_host(count.device):
+        count_np = count.numpy()[order]
+        offset = np.repeat(start.numpy()[order] - (np.cumsum(count_np) - count_np), count_np)
+        samples = np.arange(total, dtype=np.int64) + offset
+        sample_pixel = np.repeat(rank, count_np)
+        group = frame.numpy()[samples] * np.repeat(own, count_np) + sample_pixel
+        return {"samples": torch.from_numpy(samples), "sample_pixel": torch.from_numpy(sample_pixel),
+                "sample_group": torch.from_numpy(group)}
+    there = _moved({"order": order, "rank": rank, "own": own}, count.device)
+    count = count[there["order"]]
+    offset = torch.repeat_interleave(start[there["order"]] - (torch.cumsum(count, 0) - count), count, output_size=total)
+    samples = torch.arange(total, device=count.device) + offset
+    sample_pixel = torch.repeat_interleave(there["rank"], count, output_size=total)
+    group = frame[samples] * torch.repeat_interleave(there["own"], count, output_size=total) + sample_pixel
+    return {"samples": samples, "sample_pixel": sample_pixel, "sample_group": group}
 
 
 def _event_sample(problem: Problem, config: StageConfig, generator: torch.Generator) -> Tensor:

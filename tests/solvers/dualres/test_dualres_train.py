@@ -14,6 +14,7 @@ import pytest
 import torch
 
 import psfmt
+from pstoolkit._shared import devices
 from pstoolkit._shared.progress import no_progress
 from pstoolkit.evaluation.metrics import angular_error_deg
 from pstoolkit.events.rule import LOG_EPS
@@ -76,6 +77,34 @@ def test_an_epoch_covers_every_pixel_sample_and_usable_event_once(sphere: tuple[
         assert (b.tv_pairs.numpy() < b.frame_pixels).all()
     again = mini_batches(problem, tiling, STAGE, torch.Generator().manual_seed(0))
     assert all(torch.equal(a.pixels, b.pixels) for a, b in zip(batches, again))
+
+
+def test_a_batchs_pixels_are_its_own_then_the_footprints_outside_ascending(sphere: tuple[psfmt.Capture, Problem]) -> None:
+    _, problem = sphere
+    tiling = Tiling.of(problem)
+    batches = mini_batches(problem, tiling, STAGE, torch.Generator().manual_seed(3))
+    reached = 0
+    for b in batches:
+        pixels = b.pixels.numpy()
+        own, extra = pixels[: b.frame_pixels], pixels[b.frame_pixels:]
+        assert (np.diff(own) > 0).all()
+        taps = problem.events.taps.numpy()[b.events.numpy()]
+        np.testing.assert_array_equal(extra, np.setdiff1d(taps, own))
+        reached += extra.size
+    assert reached > 0
+
+
+def test_the_samples_made_on_a_device_are_the_hosts(sphere: tuple[psfmt.Capture, Problem], monkeypatch: pytest.MonkeyPatch) -> None:
+    """Torch on the CPU, ``devices.on_host`` told otherwise, makes the batches' samples as numpy does."""
+    _, problem = sphere
+    tiling = Tiling.of(problem)
+    host = mini_batches(problem, tiling, STAGE, torch.Generator().manual_seed(5))
+    monkeypatch.setattr(devices, "on_host", lambda device: False)
+    there = mini_batches(problem, tiling, STAGE, torch.Generator().manual_seed(5))
+    assert len(host) == len(there) > 1
+    for a, b in zip(host, there):
+        for name in ("pixels", "frame_rows", "samples", "sample_pixel", "sample_group", "events", "event_taps", "tv_pairs"):
+            assert torch.equal(getattr(a, name), getattr(b, name)), name
 
 
 def test_the_mask_reaches_the_frames_and_the_events(blobs: tuple[psfmt.Capture, Preprocessed]) -> None:
