@@ -32,7 +32,8 @@ from pstoolkit_dualres.problem import EventTerms, Problem
 from pstoolkit_dualres.reflectance import INDIRECT, FitModel
 
 if TYPE_CHECKING:
-    from pstoolkit_dualres.train import Batch, StageConfig
+    from pstoolkit_dualres.batches import Batch, Valid
+    from pstoolkit_dualres.train import StageConfig
 
 # Pixels per chunk of the frame term on the shared time grid (``grid_frame_loss``): the rendering's
 # intermediates, (chunk, K·S, 3) float32 each (4.5 MiB at 16384 pixels and K·S = 24), stay below
@@ -47,10 +48,20 @@ GRAPH_BYTES_PER_SAMPLE = 512
 CUDA_FRAME_CHUNK = 1 << 20
 
 
-def frame_loss(predicted: Tensor, measured: Tensor, saturated: Tensor) -> Tensor:
-    """Mean |Ã − A| over (values, 3); ``saturated`` (values,) bool marks clipped measurements."""
+def share_mean(values: Tensor, valid: Valid | None = None) -> Tensor:
+    """The mean of ``values`` (N, ...), or where ``valid`` is given the mean over the rows it marks
+    (a padded batch's, ``batches.Padding``)."""
+    if valid is None:
+        return values.mean()
+    marked = values * valid.mask.view((-1,) + (1,) * (values.dim() - 1))
+    return marked.sum() / (valid.count.clamp(min=1) * (values[0].numel() if values.shape[0] else 1))
+
+
+def frame_loss(predicted: Tensor, measured: Tensor, saturated: Tensor, valid: Valid | None = None) -> Tensor:
+    """Mean |Ã − A| over (values, 3) (over the rows ``valid`` marks, where given); ``saturated``
+    (values,) bool marks clipped measurements."""
     residual = torch.where(saturated[:, None], torch.relu(1.0 - predicted), (predicted - measured).abs())
-    return residual.mean()
+    return share_mean(residual, valid)
 
 
 def robust_square(residual: Tensor, huber: float) -> Tensor:
@@ -62,10 +73,14 @@ def robust_square(residual: Tensor, huber: float) -> Tensor:
     return clipped * (2.0 * residual - clipped)
 
 
-def event_loss(grey_t: Tensor, grey_ref: Tensor, target: Tensor, weight: Tensor, eps: float, huber: float = 0.0) -> Tensor:
+def event_loss(grey_t: Tensor, grey_ref: Tensor, target: Tensor, weight: Tensor, eps: float, huber: float = 0.0,
+               valid: Valid | None = None) -> Tensor:
     """Σ w·ρ_δ(ln((Ĩ_k + ε)/(Ĩ_ref + ε)) − target) / N_e with ``target`` = ln α + p·C per event pair and
-    ρ_δ = ``robust_square`` (δ = ``huber``, log units)."""
-    return torch.sum(weight * robust_square(log_residual(grey_t, grey_ref, target, eps), huber)) / max(int(target.numel()), 1)
+    ρ_δ = ``robust_square`` (δ = ``huber``, log units); over the pairs ``valid`` marks, where given."""
+    terms = weight * robust_square(log_residual(grey_t, grey_ref, target, eps), huber)
+    if valid is None:
+        return torch.sum(terms) / max(int(target.numel()), 1)
+    return torch.sum(terms * valid.mask) / valid.count.clamp(min=1)
 
 
 def log_residual(grey_t: Tensor, grey_ref: Tensor, target: Tensor, eps: float) -> Tensor:
@@ -73,12 +88,13 @@ def log_residual(grey_t: Tensor, grey_ref: Tensor, target: Tensor, eps: float) -
     return torch.log(grey_t + eps) - torch.log(grey_ref + eps) - target
 
 
-def tv_loss(values: Tensor, pairs: Tensor) -> Tensor:
-    """Mean |v_a − v_b| over neighbour pairs (Q, 2) of rows of ``values`` (P, C)."""
+def tv_loss(values: Tensor, pairs: Tensor, valid: Valid | None = None) -> Tensor:
+    """Mean |v_a − v_b| over neighbour pairs (Q, 2) of rows of ``values`` (P, C) (over those ``valid``
+    marks, where given)."""
     if pairs.numel() == 0:
         return values.sum() * 0.0
     difference = values.new_tensor([1.0, -1.0]).expand(pairs.shape[0], 2)
-    return gather_sum(values, pairs, difference).abs().mean()
+    return share_mean(gather_sum(values, pairs, difference).abs(), valid)
 
 
 def frame_chunk(normal: Tensor, samples: int) -> int:
@@ -167,7 +183,7 @@ def grid_frame_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], li
 
 
 def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageConfig, batch: Batch,
-           tv_share: float) -> tuple[Tensor, dict[str, Tensor]]:
+           tv_share: float | Tensor) -> tuple[Tensor, dict[str, Tensor]]:
     """The total loss of eq. 26 (with the field's own smoothness penalty) and its parts on ``batch``.
 
     Parameters
@@ -182,9 +198,11 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
     config
         The stage's loss weights λ_f, λ_e, λ_tv.
     batch
-        The step's pixels, frame samples, event pairs and TV pairs.
+        The step's pixels, frame samples, event pairs and TV pairs; a padded batch's means are taken
+        over the rows its ``padding`` marks.
     tv_share
-        Factor on λ_tv (the warm-up's fade from 1 to 0; 0: no TV term).
+        Factor on λ_tv (the warm-up's fade from 1 to 0; 0: no TV term); a tensor (a CUDA graph's
+        input) always adds the term.
 
     Returns
     -------
@@ -196,7 +214,7 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
     """
     normal, pixel_raw, smooth_raw = field(batch.pixels)
     maps = model.maps(pixel_raw, smooth_raw)
-    n = batch.frame_pixels
+    n, pad = batch.frame_pixels, batch.padding
     own_normal, own_maps = (normal, maps) if n is None else (normal[:n], {k: v[:n] for k, v in maps.items()})
     frames, view = problem.frames, problem.geometry.view
     if frames.shared_light is not None:
@@ -206,32 +224,41 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
         measured, saturated = frames.measured, frames.saturated
         if batch.frame_rows is not None:
             measured, saturated = measured[batch.frame_rows], saturated[batch.frame_rows]
-        lf = grid_frame_loss(model, own_normal, own_maps, frames.shared_light, frames.shared_weight, visible, view,
-                             frames.count, measured, saturated, energy=frames.energy)
+        if pad is None:
+            lf = grid_frame_loss(model, own_normal, own_maps, frames.shared_light, frames.shared_weight, visible, view,
+                                 frames.count, measured, saturated, energy=frames.energy)
+        else:
+            predicted = frame_prediction_grid(model, own_normal, own_maps, frames.shared_light, frames.shared_weight, visible,
+                                              view, frames.count, frames.energy)
+            lf = frame_loss(predicted, measured, saturated, pad.frame)
     else:
         light, weight = frames.sample_light, frames.sample_weight
         if batch.samples is not None:
             light, weight = light[batch.samples], weight[batch.samples]
+        if pad is not None:
+            weight = weight * pad.sample.mask[:, None]
         predicted = frame_prediction(model, own_normal, own_maps, batch.sample_pixel, batch.sample_group, light, weight,
                                      view, frames.count * own_normal.shape[0], energy=frames.energy)
         measured, saturated = frames.measured, frames.saturated
         if batch.frame_rows is not None:
             measured, saturated = measured[batch.frame_rows], saturated[batch.frame_rows]
-        lf = frame_loss(predicted, measured, saturated)
+        lf = frame_loss(predicted, measured, saturated, None if pad is None else pad.frame)
     total = config.frame_weight * lf + field.penalty()
     parts = {"frame": lf.detach()}
     if model.indirect:
         # L1: the indirect light stays 0 where the direct light explains the frames
-        li = maps[INDIRECT.name].mean()
+        li = share_mean(maps[INDIRECT.name], None if pad is None else pad.pixel)
         total = total + config.indirect_sparsity * li
         parts["indirect"] = li.detach()
     e = batch.events
     if e.numel() and config.event_weight > 0:
-        le = pair_event_loss(model, normal, maps, batch.event_taps, problem.events, e, view, config.event_huber)
+        le = pair_event_loss(model, normal, maps, batch.event_taps, problem.events, e, view, config.event_huber,
+                             None if pad is None else pad.event)
         total = total + config.event_weight * le
         parts["event"] = le.detach()
-    if tv_share > 0 and config.tv_weight > 0:
-        ltv = tv_loss(normal, batch.tv_pairs) + tv_loss(maps[model.diffuse] if model.diffuse else pixel_raw, batch.tv_pairs)
+    if config.tv_weight > 0 and (isinstance(tv_share, Tensor) or tv_share > 0):
+        tv = None if pad is None else pad.tv
+        ltv = tv_loss(normal, batch.tv_pairs, tv) + tv_loss(maps[model.diffuse] if model.diffuse else pixel_raw, batch.tv_pairs, tv)
         total = total + config.tv_weight * tv_share * ltv
         parts["tv"] = ltv.detach()
     return total, parts
@@ -239,25 +266,28 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
 
 
 def pair_event_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], taps: Tensor, events: EventTerms, pairs: Tensor,
-                    view: Tensor, huber: float = 0.0) -> Tensor:
+                    view: Tensor, huber: float = 0.0, valid: Valid | None = None) -> Tensor:
     """The event term of eq. 25 over the event ``pairs`` (indices into ``events``) whose super pixels
     cover the frame pixels ``taps`` (E, F) of ``normal`` (P, 3) and ``maps``: one compiled pass
     (``event_kernel``) for the built-in GGX and Lambertian on the CPU, else ``superpixel_grey`` now and
-    at the reference time through ``event_loss``; ``huber`` its δ (0: the square). The scalar loss,
-    differentiable."""
-    if supports(model, normal):
+    at the reference time through ``event_loss``; ``huber`` its δ (0: the square); over the pairs
+    ``valid`` marks, where given (through torch). The scalar loss, differentiable."""
+    if valid is None and supports(model, normal):
         return fused_event_loss(model, normal, maps, taps, events, pairs, view, LOG_EPS, huber)
     grey, grey_ref = pair_grey(model, normal, maps, taps, events, pairs, view)
-    return event_loss(grey, grey_ref, events.target[pairs], events.weight[pairs], LOG_EPS, huber)
+    return event_loss(grey, grey_ref, events.target[pairs], events.weight[pairs], LOG_EPS, huber, valid)
 
 
 
 def pair_grey(model: FitModel, normal: Tensor, maps: dict[str, Tensor], taps: Tensor, events: EventTerms, pairs: Tensor,
               view: Tensor) -> tuple[Tensor, Tensor]:
-    """(E,) each pair's ``superpixel_grey`` now and at its reference time, through torch."""
+    """(E,) each pair's ``superpixel_grey`` now and at its reference time, through torch, both in one
+    rendering (half the kernels of two: on a GPU, a step's time is their count)."""
+    count = pairs.numel()
     area = events.tap_area[pairs] if model.indirect else None
-    grey = superpixel_grey(model, normal, maps, taps, events.tap_weight_now[pairs], events.light_now[pairs],
-                           events.grey_now[pairs], view, area)
-    grey_ref = superpixel_grey(model, normal, maps, taps, events.tap_weight_ref[pairs], events.light_ref[pairs],
-                               events.grey_ref[pairs], view, area)
-    return grey, grey_ref
+    both = superpixel_grey(model, normal, maps, torch.cat([taps, taps]),
+                           torch.cat([events.tap_weight_now[pairs], events.tap_weight_ref[pairs]]),
+                           torch.cat([events.light_now[pairs], events.light_ref[pairs]]),
+                           torch.cat([events.grey_now[pairs], events.grey_ref[pairs]]), view,
+                           None if area is None else torch.cat([area, area]))
+    return both[:count], both[count:]

@@ -1,0 +1,376 @@
+"""What one Adam step of DualResPS fits (``Batch``): all of the problem (``full_batch``), or one of an
+epoch's mini-batches of spatial tiles (``epoch_batches``), as the paper's network trains.
+
+An epoch of mini-batches is a pass over all masked pixels in batches of about ``batch_pixels`` frame
+pixels: square tiles of ``tile`` frame pixels, shuffled and offset at random every epoch, each batch
+taking its pixels' frames and importance samples, the event pairs of the super pixels anchored in its
+tiles, and the TV pairs inside it (as LL22a trains). ``EpochBatches`` holds them as arrays over the
+whole epoch: split into batches of their own sizes (``batches``), or packed into rows of one size
+(``packed``, each field padded to a ``Capacity``), which a step replayed as a CUDA graph reads
+(``graphed``) through an ``Unpacker``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from pstoolkit._shared import devices
+from pstoolkit_dualres.problem import Problem
+
+# The per-batch counts a packed row starts with: own pixels, pixels outside, samples, pairs, TV pairs.
+COUNTS = 5
+
+
+@dataclass
+class Valid:
+    """Which rows of a padded field hold data: ``mask`` (N,) 1.0 or 0.0 in the problem's dtype, and
+    ``count`` their number, a 0-dim tensor."""
+
+    mask: Tensor
+    count: Tensor
+
+
+@dataclass
+class Padding:
+    """The rows of a packed batch that hold data: of its pixels (own and outside), of its frame rows,
+    importance samples, event pairs and TV pairs."""
+
+    pixel: Valid
+    frame: Valid
+    sample: Valid
+    event: Valid
+    tv: Valid
+
+
+@dataclass
+class Batch:
+    """One Adam step's share of the problem. ``pixels`` (N,) the masked-pixel positions the field
+    is evaluated at (None: all, in order), the first ``frame_pixels`` of them (None: all) the pixels
+    whose frames are fitted; ``frame_rows`` their rows of ``FrameTerms.measured`` in frame-major order
+    (None: all); ``samples`` their importance samples (None: all) with ``sample_pixel`` and
+    ``sample_group`` (frame·frame_pixels + pixel) in local positions; ``events`` the event pairs
+    (indices into all pairs) with ``event_taps`` in local positions; ``tv_pairs`` local neighbour
+    pairs; ``padding`` the rows that hold data when the fields are padded (None: all do)."""
+
+    pixels: Tensor | None
+    frame_pixels: int | None
+    frame_rows: Tensor | None
+    samples: Tensor | None
+    sample_pixel: Tensor
+    sample_group: Tensor
+    events: Tensor
+    event_taps: Tensor
+    tv_pairs: Tensor
+    padding: Padding | None = None
+
+
+def full_batch(problem: Problem, events: Tensor) -> Batch:
+    """Every pixel and sample, the event pairs ``events``."""
+    return Batch(pixels=None, frame_pixels=None, frame_rows=None, samples=None,
+                 sample_pixel=problem.frames.sample_pixel, sample_group=problem.frames.sample_group,
+                 events=events, event_taps=problem.events.taps[events], tv_pairs=problem.geometry.tv_pairs)
+
+
+@dataclass(frozen=True)
+class Capacity:
+    """Rows of each field of a packed batch: ``own`` frame pixels, ``outside`` pixels the pairs'
+    footprints reach beyond its tiles, importance ``samples``, event ``pairs`` and ``tv`` pairs, for
+    ``frames`` frames and ``fan`` taps a pair."""
+
+    own: int
+    outside: int
+    samples: int
+    pairs: int
+    tv: int
+    frames: int
+    fan: int
+
+    @property
+    def width(self) -> int:
+        """Entries of a packed row: the counts, pixels, frame rows, three per sample, pairs and their
+        taps, and two per TV pair."""
+        return (COUNTS + self.own + self.outside + self.frames * self.own + 3 * self.samples
+                + self.pairs * (1 + self.fan) + 2 * self.tv)
+
+    def covers(self, other: Capacity) -> bool:
+        """Whether every field of ``other`` fits in this one's."""
+        return all(getattr(self, name) >= getattr(other, name) for name in ("own", "outside", "samples", "pairs", "tv"))
+
+    def grown(self, share: float, multiple: int) -> Capacity:
+        """Each field ``share`` times larger, rounded up to a ``multiple`` (an empty one stays empty)."""
+        def up(n: int) -> int:
+            # an empty field stays empty: a padded row must point at some row of the problem
+            return 0 if n == 0 else -(-int(np.ceil(n * share)) // multiple) * multiple
+
+        return Capacity(own=up(self.own), outside=up(self.outside), samples=up(self.samples), pairs=up(self.pairs),
+                        tv=up(self.tv), frames=self.frames, fan=self.fan)
+
+
+@dataclass
+class Tiling:
+    """What ``mini_batches`` needs of a problem: as numpy, each masked pixel's (row, column), each
+    usable event pair (``events``, indices into all pairs) with its anchor pixel (its footprint's
+    largest tap) and taps, and the TV pairs; on the problem's device, each pixel's first importance
+    sample and count of them (the samples are stored by pixel) and each sample's frame."""
+
+    row: np.ndarray
+    col: np.ndarray
+    events: np.ndarray
+    event_anchor: np.ndarray
+    event_taps: np.ndarray
+    tv_pairs: np.ndarray
+    sample_start: Tensor
+    sample_count: Tensor
+    sample_frame: Tensor
+
+    @classmethod
+    def of(cls, problem: Problem) -> Tiling:
+        geometry, frames = problem.geometry, problem.frames
+        p = geometry.pixels.size
+        row, col = np.divmod(geometry.pixels, geometry.width)
+        events = problem.events.usable.cpu().numpy()
+        taps = problem.events.taps.cpu().numpy()[events]
+        weight = problem.events.tap_weight_now.cpu().numpy()[events]
+        anchor = taps[np.arange(len(taps)), np.argmax(weight, axis=1)] if taps.size else np.zeros(0, np.int64)
+        count = torch.bincount(frames.sample_pixel, minlength=p)
+        return cls(row=row, col=col, events=events, event_anchor=anchor, event_taps=taps,
+                   tv_pairs=geometry.tv_pairs.cpu().numpy(), sample_start=torch.cumsum(count, 0) - count,
+                   sample_count=count, sample_frame=frames.sample_group // max(p, 1))
+
+
+def _starts(count: np.ndarray) -> np.ndarray:
+    """Where each of consecutive blocks of ``count`` entries starts."""
+    return np.cumsum(count) - count
+
+
+def epoch_batches(problem: Problem, tiling: Tiling, batch_pixels: int, tile: int, generator: torch.Generator) -> EpochBatches:
+    """One epoch's mini-batches (see the module docstring): a random offset of the tiles of ``tile``
+    frame pixels a side, the tiles in random order grouped into batches of about ``batch_pixels``
+    pixels, drawn from ``generator``.
+
+    A batch's pixels are its own (in the masked pixels' order), then the pixels its event pairs'
+    footprints reach outside its tiles (ascending); its frame rows and samples follow its own pixels'
+    order. Every batch is built at once: the arrays of pixels, pairs and TV pairs on the host, moved to
+    the problem's device in one copy, the samples' (some 80 per pixel) there."""
+    p = problem.geometry.pixels.size
+    frames = problem.frames.count
+    if p == 0:
+        return EpochBatches(np.zeros(0, np.int64), {}, {}, frames)
+    shift = torch.randint(0, tile, (2,), generator=generator).numpy()
+    rows = (problem.geometry.height + tile) // tile + 1
+    cols = (problem.geometry.width + tile) // tile + 1
+    tile_of = ((tiling.row + shift[0]) // tile) * cols + (tiling.col + shift[1]) // tile
+    rank = torch.randperm(rows * cols, generator=generator).numpy()
+    # tiles in random order; a batch closes once it holds batch_pixels pixels
+    size = np.bincount(rank[tile_of], minlength=rows * cols)
+    batch_of_rank = _starts(size) // batch_pixels
+    # a tile larger than batch_pixels skips batch numbers: number the batches densely
+    pixel_batch = np.unique(batch_of_rank[rank[tile_of]], return_inverse=True)[1].reshape(-1)
+    event_batch = pixel_batch[tiling.event_anchor]
+    pair_batch = np.where(pixel_batch[tiling.tv_pairs[:, 0]] == pixel_batch[tiling.tv_pairs[:, 1]],
+                          pixel_batch[tiling.tv_pairs[:, 0]], -1)
+    by_pixel, by_event, by_pair = (np.argsort(b, kind="stable") for b in (pixel_batch, event_batch, pair_batch))
+    n_batches = int(pixel_batch.max()) + 1
+    own_count = np.bincount(pixel_batch, minlength=n_batches)
+    event_count = np.bincount(event_batch, minlength=n_batches)
+    pair_count = np.bincount(pair_batch[pair_batch >= 0], minlength=n_batches)
+    # each pixel's place among its batch's own pixels, and its batch's count of them
+    own_rank = np.empty(p, dtype=np.int64)
+    own_rank[by_pixel] = np.arange(p) - np.repeat(_starts(own_count), own_count)
+    own_of = own_count[pixel_batch[by_pixel]]
+    # the footprints' pixels outside their pair's batch, unique and ascending within each batch
+    taps = tiling.event_taps[by_event]
+    tap_batch = np.repeat(event_batch[by_event], taps.shape[1]).reshape(taps.shape)
+    outside = pixel_batch[taps] != tap_batch
+    extra_key = np.unique(tap_batch[outside] * p + taps[outside])
+    extra_batch, extra_pixel = np.divmod(extra_key, p)
+    extra_count = np.bincount(extra_batch, minlength=n_batches)
+    extra_place = own_count[extra_batch] + np.arange(extra_key.size) - np.repeat(_starts(extra_count), extra_count)
+    local_taps = own_rank[taps]
+    local_taps[outside] = extra_place[np.searchsorted(extra_key, tap_batch[outside] * p + taps[outside])]
+    pixel_count = own_count + extra_count
+    pixels = np.empty(int(pixel_count.sum()), dtype=np.int64)
+    pixel_start = _starts(pixel_count)
+    pixels[pixel_start[pixel_batch[by_pixel]] + own_rank[by_pixel]] = by_pixel
+    pixels[pixel_start[extra_batch] + extra_place] = extra_pixel
+    # frame rows frame-major within each batch: frame·P + pixel for each frame, then the next
+    frame_rows = np.empty(frames * p, dtype=np.int64)
+    row_start = frames * _starts(own_count)[pixel_batch[by_pixel]] + own_rank[by_pixel]
+    for k in range(frames):
+        frame_rows[row_start + k * own_of] = k * p + by_pixel
+    pairs = tiling.tv_pairs[by_pair[by_pair.size - int(pair_count.sum()):]]
+    sample_count = tiling.sample_count.cpu().numpy()
+    moved = _moved({"pixels": pixels, "frame_rows": frame_rows, "events": tiling.events[by_event], "event_taps": local_taps,
+                    "tv_pairs": own_rank[pairs]}, problem.device)
+    sample_rows = np.bincount(pixel_batch, weights=sample_count, minlength=n_batches).astype(np.int64)
+    rows = {"pixels": pixel_count, "frame_rows": frames * own_count, "samples": sample_rows, "sample_pixel": sample_rows,
+            "sample_group": sample_rows, "events": event_count, "event_taps": event_count, "tv_pairs": pair_count}
+    fields = {**moved, **_samples(tiling, by_pixel, own_rank[by_pixel], own_of)}
+    return EpochBatches(own_count, {name: fields[name] for name in rows}, rows, frames)
+
+
+def mini_batches(problem: Problem, tiling: Tiling, batch_pixels: int, tile: int, generator: torch.Generator) -> list[Batch]:
+    """``epoch_batches`` split into its batches."""
+    return epoch_batches(problem, tiling, batch_pixels, tile, generator).batches()
+
+
+@dataclass
+class EpochBatches:
+    """An epoch's mini-batches as arrays over the epoch: ``own`` (B,) each batch's own frame pixels;
+    ``fields`` by the name of ``Batch``'s field, the batches' rows one after the other, on the
+    problem's device; ``rows`` by name (B,) each batch's count of them; ``frames`` K."""
+
+    own: np.ndarray
+    fields: dict[str, Tensor]
+    rows: dict[str, np.ndarray]
+    frames: int
+
+    def __len__(self) -> int:
+        return int(self.own.size)
+
+    def batches(self) -> list[Batch]:
+        """Each batch with fields of its own sizes (views into the epoch's arrays)."""
+        parts = {name: torch.split(value, self.rows[name].tolist()) for name, value in self.fields.items()}
+        return [Batch(frame_pixels=int(n), **{name: split[b] for name, split in parts.items()}) for b, n in enumerate(self.own)]
+
+    def capacity(self) -> Capacity:
+        """The rows of the epoch's largest batch in each field."""
+        if not len(self):
+            return Capacity(0, 0, 0, 0, 0, self.frames, 0)
+        fan = int(self.fields["event_taps"].shape[1])
+        return Capacity(own=int(self.own.max()), outside=int((self.rows["pixels"] - self.own).max()),
+                        samples=int(self.rows["samples"].max()), pairs=int(self.rows["events"].max()),
+                        tv=int(self.rows["tv_pairs"].max()), frames=self.frames, fan=fan)
+
+    def packed(self, capacity: Capacity) -> Tensor:
+        """(B, ``capacity.width``) int64 on the fields' device, a row a batch: its counts (own pixels,
+        pixels outside, samples, pairs, TV pairs), then each field padded to its capacity: own pixels
+        at [0, own), those outside from ``capacity.own`` on (the pairs' taps renumbered so), frame rows
+        frame·``capacity.own`` + pixel, sample groups likewise; padding points at row 0 of whatever
+        it indexes (``Unpacker``'s masks leave it out). Every field must fit (``capacity.covers``)."""
+        b, c = len(self), capacity
+        own, outside = self.own, self.rows["pixels"] - self.own
+        device = self.fields["pixels"].device
+        out = torch.zeros((b, c.width), dtype=torch.int64, device=device)
+        counts = np.stack([own, outside, self.rows["samples"], self.rows["events"], self.rows["tv_pairs"]], axis=1)
+        out[:, :COUNTS] = torch.as_tensor(counts, device=device)
+        n_of = {name: _per_row(torch.as_tensor(own, device=device), self.rows[name]) for name in ("pixels", "frame_rows", "samples", "events")}
+        pixels, n = self.fields["pixels"], n_of["pixels"]
+        place = _place(self.rows["pixels"], device)
+        offset = COUNTS
+        offset = _pad_into(out, offset, c.own + c.outside, pixels, self.rows["pixels"], torch.where(place < n, place, place - n + c.own))
+        # frame rows come frame-major: frame k of a batch of n own pixels at k·n + i, padded to k·own + i
+        place, n = _place(self.rows["frame_rows"], device), n_of["frame_rows"]
+        offset = _pad_into(out, offset, c.frames * c.own, self.fields["frame_rows"], self.rows["frame_rows"],
+                           place // n * c.own + place % n)
+        sample_pixel, n = self.fields["sample_pixel"], n_of["samples"]
+        group = (self.fields["sample_group"] - sample_pixel) // n * c.own + sample_pixel
+        for values in (self.fields["samples"], sample_pixel, group):
+            offset = _pad_into(out, offset, c.samples, values, self.rows["samples"])
+        offset = _pad_into(out, offset, c.pairs, self.fields["events"], self.rows["events"])
+        taps, n = self.fields["event_taps"], n_of["events"][:, None]
+        offset = _pad_into(out, offset, c.pairs, torch.where(taps < n, taps, taps - n + c.own), self.rows["events"])
+        _pad_into(out, offset, c.tv, self.fields["tv_pairs"], self.rows["tv_pairs"])
+        return out
+
+
+def _per_row(per_batch: Tensor, rows: np.ndarray) -> Tensor:
+    """``per_batch`` (B,) repeated for each of a field's rows (``rows`` (B,) of them a batch)."""
+    return torch.repeat_interleave(per_batch, torch.as_tensor(rows, device=per_batch.device), output_size=int(rows.sum()))
+
+
+def _place(rows: np.ndarray, device: torch.device) -> Tensor:
+    """Each of a field's rows' place within its batch (``rows`` (B,) of them a batch)."""
+    starts = torch.as_tensor(_starts(rows), device=device)
+    return torch.arange(int(rows.sum()), device=device) - _per_row(starts, rows)
+
+
+def _pad_into(out: Tensor, offset: int, capacity: int, values: Tensor, rows: np.ndarray, place: Tensor | None = None) -> int:
+    """Write a field (``values`` (N, ...), ``rows`` (B,) of them a batch) into columns [offset, offset +
+    ``capacity``·row size) of ``out`` (B, W), each row at its ``place`` (default: its place within its
+    batch); the offset after it."""
+    device = out.device
+    size = int(np.prod(values.shape[1:], dtype=np.int64))
+    if values.shape[0]:
+        batch = _per_row(torch.arange(len(rows), device=device), rows)
+        place = _place(rows, device) if place is None else place
+        block = out[:, offset:offset + capacity * size].view(out.shape[0], capacity, size)
+        block[batch, place] = values.reshape(-1, size)
+    return offset + capacity * size
+
+
+class Unpacker:
+    """The padded ``Batch`` of a packed row of ``capacity`` (``EpochBatches.packed``), its ``padding``
+    masks in ``dtype``: views into the row, and masks from its counts in a few kernels (a row's
+    positions against the count that bounds each), with no read of the device, so that a CUDA graph
+    may capture it."""
+
+    def __init__(self, capacity: Capacity, dtype: torch.dtype, device: torch.device) -> None:
+        c = self.capacity = capacity
+        self.dtype = dtype
+        # the masks' rows: own pixels, pixels outside, frame rows (own pixels for each frame), samples,
+        # pairs, TV pairs; each row's place and which count bounds it
+        spans = [(c.own, 0), (c.outside, 1), *[(c.own, 0)] * c.frames, (c.samples, 2), (c.pairs, 3), (c.tv, 4)]
+        self.place = torch.cat([torch.arange(n, device=device) for n, _ in spans])
+        self.bound = torch.cat([torch.full((n,), which, device=device) for n, which in spans])
+        self.rows = [c.own + c.outside, c.frames * c.own, c.samples, c.pairs, c.tv]
+        self.fields = (("pixels", c.own + c.outside, 1), ("frame_rows", c.frames * c.own, 1), ("samples", c.samples, 1),
+                       ("sample_pixel", c.samples, 1), ("sample_group", c.samples, 1), ("events", c.pairs, 1),
+                       ("event_taps", c.pairs, c.fan), ("tv_pairs", c.tv, 2))
+
+    def __call__(self, row: Tensor) -> Batch:
+        c = self.capacity
+        counts = row[:COUNTS]
+        offset = COUNTS
+        fields: dict[str, Tensor] = {}
+        for name, rows, size in self.fields:
+            part = row[offset:offset + rows * size]
+            fields[name] = part.view(rows, size) if size > 1 else part
+            offset += rows * size
+        pixel, frame, sample, event, tv = torch.split((self.place < counts[self.bound]).to(self.dtype), self.rows)
+        count = counts.to(self.dtype)
+        padding = Padding(pixel=Valid(pixel, count[0] + count[1]), frame=Valid(frame, count[0] * c.frames),
+                          sample=Valid(sample, count[2]), event=Valid(event, count[3]), tv=Valid(tv, count[4]))
+        return Batch(frame_pixels=c.own, padding=padding, **fields)
+
+
+def _moved(arrays: dict[str, np.ndarray], device: torch.device) -> dict[str, Tensor]:
+    """These int64 arrays on ``device``, moved in one copy: on a GPU a copy for each batch and array would
+    wait for the device each time."""
+    moved = torch.as_tensor(np.concatenate([a.ravel() for a in arrays.values()], dtype=np.int64), device=device)
+    out, start = {}, 0
+    for name, a in arrays.items():
+        out[name] = moved[start:start + a.size].view(a.shape)
+        start += a.size
+    return out
+
+
+def _samples(tiling: Tiling, order: np.ndarray, rank: np.ndarray, own: np.ndarray) -> dict[str, Tensor]:
+    """The importance samples of the masked pixels ``order`` (P,), each pixel's in their stored order:
+    "samples" their indices into all samples, "sample_pixel" the ``rank`` of their pixel among its
+    batch's own pixels, "sample_group" frame·``own`` + rank (``own`` each pixel's batch's count of own
+    pixels). In numpy on the host (faster there than torch), in torch on a device (some 80 samples a
+    pixel: moving their indices each epoch would take longer than making them there)."""
+    start, count, frame = tiling.sample_start, tiling.sample_count, tiling.sample_frame
+    total = int(frame.numel())
+    if devices.on_host(count.device):
+        count_np = count.numpy()[order]
+        offset = np.repeat(start.numpy()[order] - (np.cumsum(count_np) - count_np), count_np)
+        samples = np.arange(total, dtype=np.int64) + offset
+        sample_pixel = np.repeat(rank, count_np)
+        group = frame.numpy()[samples] * np.repeat(own, count_np) + sample_pixel
+        return {"samples": torch.from_numpy(samples), "sample_pixel": torch.from_numpy(sample_pixel),
+                "sample_group": torch.from_numpy(group)}
+    there = _moved({"order": order, "rank": rank, "own": own}, count.device)
+    count = count[there["order"]]
+    offset = torch.repeat_interleave(start[there["order"]] - (torch.cumsum(count, 0) - count), count, output_size=total)
+    samples = torch.arange(total, device=count.device) + offset
+    sample_pixel = torch.repeat_interleave(there["rank"], count, output_size=total)
+    group = frame[samples] * torch.repeat_interleave(there["own"], count, output_size=total) + sample_pixel
+    return {"samples": samples, "sample_pixel": sample_pixel, "sample_group": group}
+
+

@@ -1,0 +1,183 @@
+"""Mini-batch Adam steps replayed as CUDA graphs (the ``paper`` preset on a GPU).
+
+A step of the paper's network on 512 pixels launches several hundred small kernels (the MLP, the
+rendering of its importance samples and event pairs, their backward, Adam); on a GPU their launches,
+not their work, set its time. ``GraphedSteps`` captures one step as a CUDA graph and replays it for
+every batch: the step reads its batch from one static row (``batches.EpochBatches.packed``, each field
+padded to a ``Capacity``) and the problem's terms from copies the graph owns, so a step costs the copy
+of its row and a replay.
+
+- The epoch's largest batch, with ``HEADROOM``, sets the capacities; an epoch with a larger batch
+  captures again.
+- The step at which a graph is wanted runs eagerly first (on a side stream, so that capture finds
+  every lazy initialisation done), then the graph is captured for the steps after it.
+- The problem's terms are copied into the graph's own before each epoch when an ``apply_`` replaced
+  them (the thresholds' refit between epochs); a change of shape captures again.
+- λ_tv's share is a tensor the graph reads; once it reaches 0, a graph without the TV term.
+- Adam runs ``capturable``, its learning rates tensors the scheduler updates in place.
+- Each step adds its loss and parts to sums the graph owns; ``epoch`` returns their means.
+- A capture torch refuses leaves the steps eager, with a warning.
+
+Without CUDA (``use_graphs`` False) the same padded steps run eagerly: how the tests hold a padded
+step to the step of ``train`` on the same batch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from typing import TYPE_CHECKING, Any
+
+import torch
+from torch import Tensor, nn
+
+from pstoolkit_dualres.batches import Capacity, EpochBatches, Unpacker
+from pstoolkit_dualres.losses import losses
+from pstoolkit_dualres.problem import Problem
+from pstoolkit_dualres.reflectance import FitModel
+
+if TYPE_CHECKING:
+    from pstoolkit_dualres.train import StageConfig
+
+# Capacities the epoch's largest batch asks for times this, rounded up to ALIGN rows: the batches of
+# a later epoch (another offset and order of the tiles) rarely outgrow them.
+HEADROOM = 1.25
+ALIGN = 64
+# The terms of the problem a step reads, which the graph keeps its own copies of.
+FRAME_TERMS = ("shared_light", "shared_weight", "shared_visible", "sample_light", "sample_weight", "measured", "saturated",
+               "energy")
+EVENT_TERMS = ("taps", "tap_weight_now", "tap_weight_ref", "light_now", "light_ref", "tap_area", "grey_now", "grey_ref",
+               "target", "weight")
+
+
+def wanted(device: torch.device) -> bool:
+    """Whether ``train`` steps through ``GraphedSteps`` on ``device``: on CUDA."""
+    return device.type == "cuda"
+
+
+class _Terms:
+    """The graph's own copies of the problem's terms (``problem``: the problem with them in place) and
+    the tensors they were copied from."""
+
+    def __init__(self, problem: Problem) -> None:
+        self.frames = {name: getattr(problem.frames, name) for name in FRAME_TERMS}
+        self.events = {name: getattr(problem.events, name) for name in EVENT_TERMS}
+        self.problem = dataclasses.replace(
+            problem,
+            frames=dataclasses.replace(problem.frames, **{k: _copy(v) for k, v in self.frames.items()}),
+            events=dataclasses.replace(problem.events, **{k: _copy(v) for k, v in self.events.items()}))
+
+    def refresh(self, problem: Problem) -> bool:
+        """Copy the problem's terms replaced since into the graph's own; False where one changed its
+        shape, dtype or presence (the graph must be captured again, on new copies)."""
+        for source, store, own in ((problem.frames, self.frames, self.problem.frames), (problem.events, self.events, self.problem.events)):
+            for name, was in store.items():
+                now = getattr(source, name)
+                if now is was:
+                    continue
+                kept = getattr(own, name)
+                if now is None or kept is None or now.shape != kept.shape or now.dtype != kept.dtype:
+                    return False
+                kept.copy_(now)
+                store[name] = now
+        return True
+
+
+def _copy(value: Tensor | None) -> Tensor | None:
+    return None if value is None else value.clone()
+
+
+class GraphedSteps:
+    """The mini-batch steps of one stage of ``train`` (module docstring).
+
+    Parameters
+    ----------
+    problem, field, model, config
+        As for ``losses``; the problem's terms are copied.
+    optimizer
+        Adam over the field's and the model's parameters: ``capturable`` with tensor learning rates
+        where ``use_graphs``.
+    use_graphs
+        Capture and replay CUDA graphs (the problem on a CUDA device); else every step runs eagerly.
+    """
+
+    def __init__(self, problem: Problem, field: nn.Module, model: FitModel, config: StageConfig,
+                 optimizer: torch.optim.Optimizer, use_graphs: bool) -> None:
+        self.problem, self.field, self.model, self.config, self.optimizer = problem, field, model, config, optimizer
+        self.use_graphs = use_graphs
+        self.terms = _Terms(problem)
+        self.capacity: Capacity | None = None
+        self.row: Tensor | None = None
+        self.unpack: Unpacker | None = None
+        self.graphs: dict[bool, Any] = {}
+        self.sums: dict[str, Tensor] = {}
+        self.names: dict[bool, list[str]] = {}
+        self.tv_share = torch.zeros((), dtype=problem.dtype, device=problem.device)
+
+    def epoch(self, batches: EpochBatches, tv_share: float) -> dict[str, Tensor]:
+        """One Adam step per batch of ``batches`` at λ_tv's share ``tv_share``; the means over the
+        steps of the loss and its parts (float64 0-dim tensors on the device, as ``train`` keeps them)."""
+        needed = batches.capacity()
+        if self.capacity is None or not self.capacity.covers(needed):
+            self.capacity = needed.grown(HEADROOM, ALIGN)
+            self.row = torch.zeros(self.capacity.width, dtype=torch.int64, device=self.problem.device)
+            self.unpack = Unpacker(self.capacity, self.problem.dtype, self.problem.device)
+            self.graphs.clear()
+        if not self.terms.refresh(self.problem):
+            self.terms = _Terms(self.problem)
+            self.graphs.clear()
+        assert self.row is not None
+        packed = batches.packed(self.capacity)
+        tv_on = tv_share > 0 and self.config.tv_weight > 0
+        self.tv_share.fill_(tv_share)
+        for value in self.sums.values():
+            value.zero_()
+        for b in range(len(batches)):
+            self.row.copy_(packed[b])
+            graph = self.graphs.get(tv_on)
+            if graph is not None:
+                graph.replay()
+                continue
+            self._eager(tv_on)
+            if self.use_graphs:
+                try:
+                    self.graphs[tv_on] = self._capture(tv_on)
+                except RuntimeError as error:
+                    # what capture refuses (an operation a later torch syncs on) costs speed, not the fit
+                    warnings.warn(f"dualres: a CUDA graph of the training step could not be captured, the steps run "
+                                  f"eagerly: {error}", RuntimeWarning, stacklevel=2)
+                    self.use_graphs = False
+        return {name: self.sums[name] / max(len(batches), 1) for name in self.names.get(tv_on, [])}
+
+    def _step(self, tv_on: bool) -> None:
+        """The step on the batch in ``row``: the losses, their gradient, Adam, the sums."""
+        assert self.row is not None and self.unpack is not None
+        batch = self.unpack(self.row)
+        loss, parts = losses(self.terms.problem, self.field, self.model, self.config, batch, self.tv_share if tv_on else 0.0)
+        loss.backward()
+        self.optimizer.step()
+        values = {"loss": loss.detach(), **parts}
+        self.names[tv_on] = list(values)
+        for name, value in values.items():
+            if name not in self.sums:
+                self.sums[name] = torch.zeros((), dtype=torch.float64, device=value.device)
+            self.sums[name].add_(value.to(torch.float64))
+
+    def _eager(self, tv_on: bool) -> None:
+        self.optimizer.zero_grad(set_to_none=True)
+        if not self.use_graphs:
+            self._step(tv_on)
+            return
+        side = torch.cuda.Stream()
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side):
+            self._step(tv_on)
+        torch.cuda.current_stream().wait_stream(side)
+
+    def _capture(self, tv_on: bool) -> Any:
+        # the graph's backward makes the gradients in its own memory, which later replays write
+        self.optimizer.zero_grad(set_to_none=True)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            self._step(tv_on)
+        return graph

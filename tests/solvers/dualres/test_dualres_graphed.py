@@ -1,0 +1,174 @@
+"""The paper preset's steps as a GPU replays them (``graphed``): an epoch's batches packed into rows of
+one size and unpacked again, a padded step's losses and gradients equal to its batch's own, and a stage
+of padded steps training as the plain one; on a GPU, CUDA graphs replaying those steps as they run
+eagerly (``pytest -m cuda``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import psfmt
+from pstoolkit._shared.progress import no_progress
+from pstoolkit.optics.brdf import GGX
+from pstoolkit.shadows.score import true_shadows
+from pstoolkit_dualres import graphed
+from pstoolkit_dualres.batches import Capacity, Tiling, Unpacker, epoch_batches
+from pstoolkit_dualres.fields import NeuralField
+from pstoolkit_dualres.losses import losses
+from pstoolkit_dualres.preprocess import PreprocessOptions, preprocess
+from pstoolkit_dualres.problem import Problem, build_problem
+from pstoolkit_dualres.reflectance import FitModel
+from pstoolkit_dualres.train import StageConfig, train
+
+STAGE = StageConfig(epochs=3, lr=1e-3, material_lr=1e-3, frame_weight=1.0, event_weight=0.05, event_huber=0.1,
+                    indirect_sparsity=0.01, tv_weight=0.02, tv_fraction=0.5, event_batch=0, batch_pixels=200, tile=8, seed=0)
+
+
+def _problem(path: Path, device: str = "cpu") -> Problem:
+    """The blobs' problem with the importance samples, under their true cast shadows."""
+    capture = psfmt.read(path)
+    pre = preprocess(capture, PreprocessOptions())
+    problem = build_problem(pre, capture.calibration.view_direction, device=device, frame_samples=0)
+    gt = capture.ground_truth
+    problem.apply_mask(true_shadows(gt.depth, gt.mask, pre.light, pre.t0_us, pre.period_us))
+    return problem
+
+
+@pytest.fixture(scope="module")
+def blobs(blobs_48: Path) -> Problem:
+    return _problem(blobs_48)
+
+
+def _angle_deg(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(N,) angles between unit rows, in float64 through atan2 (arccos resolves 0.02° at best in float32)."""
+    a, b = a.double(), b.double()
+    return torch.rad2deg(torch.atan2(torch.linalg.cross(a, b).norm(dim=1), torch.sum(a * b, dim=1)))
+
+
+def _fit(problem: Problem, seed: int = 0) -> tuple[NeuralField, FitModel]:
+    torch.manual_seed(seed)
+    model = FitModel(GGX(), indirect=True).to(problem.device)
+    field = NeuralField(problem.geometry.coords, model.raw_init("pixel"), model.raw_init("smooth"), width=32,
+                        material_width=16).to(problem.device)
+    return field, model
+
+
+def test_a_packed_row_unpacks_to_its_batch(blobs: Problem) -> None:
+    epoch = epoch_batches(blobs, Tiling.of(blobs), 200, 8, torch.Generator().manual_seed(1))
+    capacity = epoch.capacity().grown(1.25, 64)
+    assert capacity.covers(epoch.capacity()) and not epoch.capacity().covers(capacity)
+    packed = epoch.packed(capacity)
+    assert packed.shape == (len(epoch), capacity.width) and len(epoch) > 5
+    k, co = blobs.frames.count, capacity.own
+    unpack = Unpacker(capacity, torch.float32, torch.device("cpu"))
+    for row, batch in zip(packed, epoch.batches()):
+        padded = unpack(row)
+        n, pad = batch.frame_pixels, padded.padding
+        outside = batch.pixels.numel() - n
+        assert padded.frame_pixels == co and float(pad.pixel.count) == n + outside and float(pad.frame.count) == k * n
+        np.testing.assert_array_equal(padded.pixels[:n], batch.pixels[:n])
+        np.testing.assert_array_equal(padded.pixels[co:co + outside], batch.pixels[n:])
+        assert pad.pixel.mask.sum() == n + outside and pad.pixel.mask[:n].all() and pad.pixel.mask[co:co + outside].all()
+        rows = padded.frame_rows.view(k, co)
+        np.testing.assert_array_equal(rows[:, :n].reshape(-1), batch.frame_rows)
+        assert (pad.frame.mask.view(k, co)[:, :n] == 1).all() and (pad.frame.mask.view(k, co)[:, n:] == 0).all()
+        s = batch.samples.numel()
+        assert float(pad.sample.count) == s and pad.sample.mask[:s].all() and not pad.sample.mask[s:].any()
+        np.testing.assert_array_equal(padded.samples[:s], batch.samples)
+        np.testing.assert_array_equal(padded.sample_pixel[:s], batch.sample_pixel)
+        frame = batch.sample_group // n
+        np.testing.assert_array_equal(padded.sample_group[:s], frame * co + batch.sample_pixel)
+        e = batch.events.numel()
+        assert float(pad.event.count) == e
+        np.testing.assert_array_equal(padded.events[:e], batch.events)
+        # each tap reads the same pixel through the padded layout
+        np.testing.assert_array_equal(padded.pixels[padded.event_taps[:e]], batch.pixels[batch.event_taps])
+        q = batch.tv_pairs.shape[0]
+        assert float(pad.tv.count) == q
+        np.testing.assert_array_equal(padded.tv_pairs[:q], batch.tv_pairs)
+        # padding points at row 0 of whatever it indexes
+        assert (padded.samples[s:] == 0).all() and (padded.events[e:] == 0).all() and (padded.pixels[n:co] == 0).all()
+
+
+def test_capacities_grow_in_whole_multiples_and_an_empty_field_stays_empty() -> None:
+    grown = Capacity(own=512, outside=70, samples=39000, pairs=0, tv=890, frames=3, fan=4).grown(1.25, 64)
+    assert (grown.own, grown.outside, grown.samples, grown.pairs, grown.tv) == (640, 128, 48768, 0, 1152)
+    assert grown.width == 5 + 640 + 128 + 3 * 640 + 3 * 48768 + 0 + 2 * 1152
+
+
+def test_a_padded_step_has_its_batchs_losses_and_gradients(blobs: Problem) -> None:
+    field, model = _fit(blobs)
+    epoch = epoch_batches(blobs, Tiling.of(blobs), 200, 8, torch.Generator().manual_seed(2))
+    capacity = epoch.capacity().grown(1.25, 64)
+    packed = epoch.packed(capacity)
+    share = torch.tensor(0.7)
+    unpack = Unpacker(capacity, blobs.dtype, blobs.device)
+    for row, batch in list(zip(packed, epoch.batches()))[:4]:
+        results = []
+        for which, tv_share in ((batch, 0.7), (unpack(row), share)):
+            field.zero_grad()
+            loss, parts = losses(blobs, field, model, STAGE, which, tv_share)
+            loss.backward()
+            results.append((loss.detach(), parts, [p.grad.clone() for p in field.parameters()]))
+        (loss_a, parts_a, grads_a), (loss_b, parts_b, grads_b) = results
+        assert set(parts_a) == set(parts_b) == {"frame", "event", "tv", "indirect"}
+        # the plain batch's event term is the compiled float32 pass, the padded one torch's
+        torch.testing.assert_close(loss_b, loss_a, rtol=1e-5, atol=0)
+        for name in parts_a:
+            torch.testing.assert_close(parts_b[name], parts_a[name], rtol=1e-5, atol=1e-9)
+        for a, b in zip(grads_a, grads_b):
+            torch.testing.assert_close(b, a, rtol=1e-3, atol=1e-6 * float(a.abs().max()))
+
+
+def test_a_stage_of_padded_steps_trains_as_the_plain_one(blobs: Problem, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``train`` through ``GraphedSteps`` (eager on the CPU, ``graphed.wanted`` told so) against the
+    plain loop: the same losses, steps and normals to float rounding, with the pairs' targets replaced
+    between two epochs (as the thresholds' refit does), which the steps' own copies take up."""
+    pixels = int(blobs.events.pixel.max()) + 1
+    gains = np.random.default_rng(0).uniform(0.8, 1.2, (2, pixels))
+
+    def refit(epoch: int) -> None:
+        if epoch == 1:
+            blobs.events.apply_thresholds(gains[0], gains[1])
+
+    runs = []
+    try:
+        for padded in (False, True):
+            monkeypatch.setattr(graphed, "wanted", lambda device, padded=padded: padded)
+            blobs.events.apply_thresholds(np.ones(pixels), np.ones(pixels))
+            field, model = _fit(blobs)
+            history = train(blobs, field, model, STAGE, no_progress, before_epoch=refit)
+            with torch.no_grad():
+                runs.append((history, field()[0]))
+    finally:
+        blobs.events.apply_thresholds(np.ones(pixels), np.ones(pixels))
+    (plain, normal_a), (padded_run, normal_b) = runs
+    assert [h["steps"] for h in plain] == [h["steps"] for h in padded_run] and plain[0]["steps"] > 5
+    assert set(plain[0]) == set(padded_run[0]) and "tv" in plain[0]
+    for a, b in zip(plain, padded_run):
+        for name in a:
+            assert b[name] == pytest.approx(a[name], rel=1e-4), name
+    assert float(_angle_deg(normal_a, normal_b).max()) < 1e-4  # measured 6.5e-7°
+
+
+@pytest.mark.cuda
+def test_cuda_graphs_replay_the_steps_they_capture(blobs_48: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a GPU: a stage replayed as CUDA graphs against the same padded steps run eagerly there."""
+    problem = _problem(blobs_48, "cuda")
+    runs = []
+    for replay in (False, True):
+        field, model = _fit(problem)
+        if not replay:
+            monkeypatch.setattr(graphed.GraphedSteps, "_capture", lambda self, tv_on: None)
+        history = train(problem, field, model, STAGE, no_progress)
+        monkeypatch.undo()
+        with torch.no_grad():
+            runs.append((history, field()[0].cpu()))
+    (eager, normal_a), (replayed, normal_b) = runs
+    for a, b in zip(eager, replayed):
+        assert b["loss"] == pytest.approx(a["loss"], rel=1e-3)
+    assert float(_angle_deg(normal_a, normal_b).mean()) < 0.05
