@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 import psfmt
 from pstoolkit._shared.progress import no_progress
@@ -172,3 +173,43 @@ def test_cuda_graphs_replay_the_steps_they_capture(blobs_48: Path, monkeypatch: 
     for a, b in zip(eager, replayed):
         assert b["loss"] == pytest.approx(a["loss"], rel=1e-3)
     assert float(_angle_deg(normal_a, normal_b).mean()) < 0.05
+
+
+# Operations whose result waits for the device (a value read back, or a shape that depends on the data):
+# CUDA refuses them while it captures a graph.
+READS_BACK = {"_local_scalar_dense", "nonzero", "masked_select", "_unique", "_unique2", "unique_dim", "unique_consecutive",
+              "repeat_interleave", "is_nonzero", "equal", "allclose"}
+
+
+class _ReadsBack(TorchDispatchMode):
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: list[str] = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):  # type: ignore[no-untyped-def]
+        name = func.__name__.split(".")[0]
+        # a boolean index counts its true entries (a nonzero inside the indexing kernel)
+        masked = name.startswith("index") and len(args) > 1 and isinstance(args[1], (list, tuple)) and any(
+            isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in args[1])
+        if name in READS_BACK or masked:
+            self.seen.append(name)
+        return func(*args, **(kwargs or {}))
+
+
+def test_a_padded_step_reads_nothing_back_from_the_device(blobs: Problem) -> None:
+    """What a CUDA graph captures — unpacking the row, the losses and their gradient — holds no
+    operation that waits for the device (checked through torch on the CPU, which runs the same ops)."""
+    field, model = _fit(blobs)
+    epoch = epoch_batches(blobs, Tiling.of(blobs), 200, 8, torch.Generator().manual_seed(4))
+    capacity = epoch.capacity().grown(1.25, 64)
+    row = epoch.packed(capacity)[0]
+    unpack = Unpacker(capacity, blobs.dtype, blobs.device)
+    reads = _ReadsBack()
+    with reads:
+        loss, _ = losses(blobs, field, model, STAGE, unpack(row), torch.tensor(0.5))
+        loss.backward()
+    assert reads.seen == []
+    # the check sees what it looks for: a boolean mask reads its count back
+    with reads:
+        blobs.frames.sample_weight[blobs.frames.sample_weight[:, 0] > 0]
+    assert reads.seen == ["index"]
