@@ -14,7 +14,7 @@ of its row and a replay.
 - The problem's terms are copied into the graph's own before each epoch when an ``apply_`` replaced
   them (the thresholds' refit between epochs); a change of shape captures again.
 - λ_tv's share is a tensor the graph reads; once it reaches 0, a graph without the TV term.
-- Adam runs ``capturable``, its learning rates tensors the scheduler updates in place.
+- Adam runs fused and ``capturable``, its learning rates tensors the scheduler updates in place.
 - Each step adds its loss and parts to sums the graph owns; ``epoch`` returns their means.
 - A capture torch refuses leaves the steps eager, with a warning.
 
