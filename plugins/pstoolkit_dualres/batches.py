@@ -12,6 +12,8 @@ whole epoch: split into batches of their own sizes (``batches``), or packed into
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -96,15 +98,26 @@ class Capacity:
         return (COUNTS + self.own + self.outside + self.frames * self.own + 3 * self.samples
                 + self.pairs * (1 + self.fan) + 2 * self.tv)
 
+    def union(self, other: Capacity) -> Capacity:
+        """Each field's larger capacity of the two."""
+        return dataclasses.replace(self, **{name: max(getattr(self, name), getattr(other, name))
+                                            for name in ("own", "outside", "samples", "pairs", "tv")})
+
     def covers(self, other: Capacity) -> bool:
         """Whether every field of ``other`` fits in this one's."""
         return all(getattr(self, name) >= getattr(other, name) for name in ("own", "outside", "samples", "pairs", "tv"))
 
-    def grown(self, share: float, multiple: int) -> Capacity:
-        """Each field ``share`` times larger, rounded up to a ``multiple`` (an empty one stays empty)."""
+    def grown(self, share: float) -> Capacity:
+        """Each field at least ``share`` times larger, rounded up to the next 2^k or 3·2^k (an empty one
+        stays empty): epochs and stages whose batches differ a little share their capacities, and so a
+        compiled step (whose shapes are fixed) and its graph."""
         def up(n: int) -> int:
             # an empty field stays empty: a padded row must point at some row of the problem
-            return 0 if n == 0 else -(-int(np.ceil(n * share)) // multiple) * multiple
+            if n == 0:
+                return 0
+            need = int(np.ceil(n * share))
+            power = 1 << max(need - 1, 0).bit_length()
+            return 3 * power // 4 if power >= 4 and 3 * power // 4 >= need else power
 
         return Capacity(own=up(self.own), outside=up(self.outside), samples=up(self.samples), pairs=up(self.pairs),
                         tv=up(self.tv), frames=self.frames, fan=self.fan)
@@ -147,6 +160,70 @@ def _starts(count: np.ndarray) -> np.ndarray:
     return np.cumsum(count) - count
 
 
+@dataclass
+class _Grouping:
+    """The host's part of an epoch's batching (``epoch_batches``): the batch of each masked pixel,
+    pair and TV pair, their orders by batch, each batch's counts, each pixel's place among its
+    batch's own, and the pixels the pairs' footprints reach outside their batch (``extra_*``)."""
+
+    pixel_batch: np.ndarray
+    by_pixel: np.ndarray
+    by_event: np.ndarray
+    by_pair: np.ndarray
+    own_count: np.ndarray
+    event_count: np.ndarray
+    pair_count: np.ndarray
+    sample_count: np.ndarray
+    own_rank: np.ndarray
+    taps: np.ndarray
+    tap_batch: np.ndarray
+    outside: np.ndarray
+    extra_key: np.ndarray
+    extra_count: np.ndarray
+
+    @classmethod
+    def draw(cls, problem: Problem, tiling: Tiling, batch_pixels: int, tile: int, generator: torch.Generator) -> _Grouping:
+        """A random offset of the tiles of ``tile`` frame pixels a side, the tiles in random order
+        grouped into batches of about ``batch_pixels`` pixels, drawn from ``generator``; at least one
+        masked pixel."""
+        p = problem.geometry.pixels.size
+        shift = torch.randint(0, tile, (2,), generator=generator).numpy()
+        rows = (problem.geometry.height + tile) // tile + 1
+        cols = (problem.geometry.width + tile) // tile + 1
+        tile_of = ((tiling.row + shift[0]) // tile) * cols + (tiling.col + shift[1]) // tile
+        rank = torch.randperm(rows * cols, generator=generator).numpy()
+        # tiles in random order; a batch closes once it holds batch_pixels pixels
+        size = np.bincount(rank[tile_of], minlength=rows * cols)
+        batch_of_rank = _starts(size) // batch_pixels
+        # a tile larger than batch_pixels skips batch numbers: number the batches densely
+        pixel_batch = np.unique(batch_of_rank[rank[tile_of]], return_inverse=True)[1].reshape(-1)
+        event_batch = pixel_batch[tiling.event_anchor]
+        pair_batch = np.where(pixel_batch[tiling.tv_pairs[:, 0]] == pixel_batch[tiling.tv_pairs[:, 1]],
+                              pixel_batch[tiling.tv_pairs[:, 0]], -1)
+        by_pixel, by_event, by_pair = (np.argsort(b, kind="stable") for b in (pixel_batch, event_batch, pair_batch))
+        n_batches = int(pixel_batch.max()) + 1
+        own_count = np.bincount(pixel_batch, minlength=n_batches)
+        # each pixel's place among its batch's own pixels
+        own_rank = np.empty(p, dtype=np.int64)
+        own_rank[by_pixel] = np.arange(p) - np.repeat(_starts(own_count), own_count)
+        # the footprints' pixels outside their pair's batch, unique and ascending within each batch
+        taps = tiling.event_taps[by_event]
+        tap_batch = np.repeat(event_batch[by_event], taps.shape[1]).reshape(taps.shape)
+        outside = pixel_batch[taps] != tap_batch
+        extra_key = np.unique(tap_batch[outside] * p + taps[outside])
+        sample_count = np.bincount(pixel_batch, weights=tiling.sample_count.cpu().numpy(), minlength=n_batches)
+        return cls(pixel_batch=pixel_batch, by_pixel=by_pixel, by_event=by_event, by_pair=by_pair, own_count=own_count,
+                   event_count=np.bincount(event_batch, minlength=n_batches),
+                   pair_count=np.bincount(pair_batch[pair_batch >= 0], minlength=n_batches),
+                   sample_count=sample_count.astype(np.int64), own_rank=own_rank, taps=taps, tap_batch=tap_batch,
+                   outside=outside, extra_key=extra_key, extra_count=np.bincount(extra_key // p, minlength=n_batches))
+
+    def capacity(self, frames: int) -> Capacity:
+        """The rows of the largest batch in each field."""
+        return Capacity(own=int(self.own_count.max()), outside=int(self.extra_count.max()), samples=int(self.sample_count.max()),
+                        pairs=int(self.event_count.max()), tv=int(self.pair_count.max()), frames=frames, fan=int(self.taps.shape[1]))
+
+
 def epoch_batches(problem: Problem, tiling: Tiling, batch_pixels: int, tile: int, generator: torch.Generator) -> EpochBatches:
     """One epoch's mini-batches (see the module docstring): a random offset of the tiles of ``tile``
     frame pixels a side, the tiles in random order grouped into batches of about ``batch_pixels``
@@ -160,39 +237,14 @@ def epoch_batches(problem: Problem, tiling: Tiling, batch_pixels: int, tile: int
     frames = problem.frames.count
     if p == 0:
         return EpochBatches(np.zeros(0, np.int64), {}, {}, frames)
-    shift = torch.randint(0, tile, (2,), generator=generator).numpy()
-    rows = (problem.geometry.height + tile) // tile + 1
-    cols = (problem.geometry.width + tile) // tile + 1
-    tile_of = ((tiling.row + shift[0]) // tile) * cols + (tiling.col + shift[1]) // tile
-    rank = torch.randperm(rows * cols, generator=generator).numpy()
-    # tiles in random order; a batch closes once it holds batch_pixels pixels
-    size = np.bincount(rank[tile_of], minlength=rows * cols)
-    batch_of_rank = _starts(size) // batch_pixels
-    # a tile larger than batch_pixels skips batch numbers: number the batches densely
-    pixel_batch = np.unique(batch_of_rank[rank[tile_of]], return_inverse=True)[1].reshape(-1)
-    event_batch = pixel_batch[tiling.event_anchor]
-    pair_batch = np.where(pixel_batch[tiling.tv_pairs[:, 0]] == pixel_batch[tiling.tv_pairs[:, 1]],
-                          pixel_batch[tiling.tv_pairs[:, 0]], -1)
-    by_pixel, by_event, by_pair = (np.argsort(b, kind="stable") for b in (pixel_batch, event_batch, pair_batch))
-    n_batches = int(pixel_batch.max()) + 1
-    own_count = np.bincount(pixel_batch, minlength=n_batches)
-    event_count = np.bincount(event_batch, minlength=n_batches)
-    pair_count = np.bincount(pair_batch[pair_batch >= 0], minlength=n_batches)
-    # each pixel's place among its batch's own pixels, and its batch's count of them
-    own_rank = np.empty(p, dtype=np.int64)
-    own_rank[by_pixel] = np.arange(p) - np.repeat(_starts(own_count), own_count)
+    g = _Grouping.draw(problem, tiling, batch_pixels, tile, generator)
+    own_count, own_rank, by_pixel, pixel_batch = g.own_count, g.own_rank, g.by_pixel, g.pixel_batch
     own_of = own_count[pixel_batch[by_pixel]]
-    # the footprints' pixels outside their pair's batch, unique and ascending within each batch
-    taps = tiling.event_taps[by_event]
-    tap_batch = np.repeat(event_batch[by_event], taps.shape[1]).reshape(taps.shape)
-    outside = pixel_batch[taps] != tap_batch
-    extra_key = np.unique(tap_batch[outside] * p + taps[outside])
-    extra_batch, extra_pixel = np.divmod(extra_key, p)
-    extra_count = np.bincount(extra_batch, minlength=n_batches)
-    extra_place = own_count[extra_batch] + np.arange(extra_key.size) - np.repeat(_starts(extra_count), extra_count)
-    local_taps = own_rank[taps]
-    local_taps[outside] = extra_place[np.searchsorted(extra_key, tap_batch[outside] * p + taps[outside])]
-    pixel_count = own_count + extra_count
+    extra_batch, extra_pixel = np.divmod(g.extra_key, p)
+    extra_place = own_count[extra_batch] + np.arange(g.extra_key.size) - np.repeat(_starts(g.extra_count), g.extra_count)
+    local_taps = own_rank[g.taps]
+    local_taps[g.outside] = extra_place[np.searchsorted(g.extra_key, g.tap_batch[g.outside] * p + g.taps[g.outside])]
+    pixel_count = own_count + g.extra_count
     pixels = np.empty(int(pixel_count.sum()), dtype=np.int64)
     pixel_start = _starts(pixel_count)
     pixels[pixel_start[pixel_batch[by_pixel]] + own_rank[by_pixel]] = by_pixel
@@ -202,15 +254,23 @@ def epoch_batches(problem: Problem, tiling: Tiling, batch_pixels: int, tile: int
     row_start = frames * _starts(own_count)[pixel_batch[by_pixel]] + own_rank[by_pixel]
     for k in range(frames):
         frame_rows[row_start + k * own_of] = k * p + by_pixel
-    pairs = tiling.tv_pairs[by_pair[by_pair.size - int(pair_count.sum()):]]
-    sample_count = tiling.sample_count.cpu().numpy()
-    moved = _moved({"pixels": pixels, "frame_rows": frame_rows, "events": tiling.events[by_event], "event_taps": local_taps,
+    pairs = tiling.tv_pairs[g.by_pair[g.by_pair.size - int(g.pair_count.sum()):]]
+    moved = _moved({"pixels": pixels, "frame_rows": frame_rows, "events": tiling.events[g.by_event], "event_taps": local_taps,
                     "tv_pairs": own_rank[pairs]}, problem.device)
-    sample_rows = np.bincount(pixel_batch, weights=sample_count, minlength=n_batches).astype(np.int64)
-    rows = {"pixels": pixel_count, "frame_rows": frames * own_count, "samples": sample_rows, "sample_pixel": sample_rows,
-            "sample_group": sample_rows, "events": event_count, "event_taps": event_count, "tv_pairs": pair_count}
+    rows = {"pixels": pixel_count, "frame_rows": frames * own_count, "samples": g.sample_count, "sample_pixel": g.sample_count,
+            "sample_group": g.sample_count, "events": g.event_count, "event_taps": g.event_count, "tv_pairs": g.pair_count}
     fields = {**moved, **_samples(tiling, by_pixel, own_rank[by_pixel], own_of)}
     return EpochBatches(own_count, {name: fields[name] for name in rows}, rows, frames)
+
+
+def drawn_capacity(problem: Problem, tiling: Tiling, batch_pixels: int, tile: int, generator: torch.Generator, epochs: int) -> Capacity:
+    """The rows of the largest batch in each field over ``epochs`` epochs drawn from ``generator`` (the
+    batches' counts only, on the host)."""
+    frames = problem.frames.count
+    if problem.geometry.pixels.size == 0:
+        return Capacity(0, 0, 0, 0, 0, frames, 0)
+    needs = [_Grouping.draw(problem, tiling, batch_pixels, tile, generator).capacity(frames) for _ in range(epochs)]
+    return functools.reduce(Capacity.union, needs)
 
 
 def mini_batches(problem: Problem, tiling: Tiling, batch_pixels: int, tile: int, generator: torch.Generator) -> list[Batch]:

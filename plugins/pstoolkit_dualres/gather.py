@@ -64,7 +64,8 @@ def gather_sum(source: Tensor, index: Tensor, weight: Tensor) -> Tensor:
     """(N, C) rows ``Σ_f weight[n, f]·source[index[n, f]]`` of ``source`` (G, C), with ``index`` (N, F)
     int64 in [0, G) and ``weight`` (N, F) (constants: no gradient reaches them).
 
-    On CPU tensors through the compiled kernels above; on other devices through torch's indexing."""
-    if source.device.type != "cpu":
+    On CPU tensors through the compiled kernels above; on other devices, and where ``torch.compile``
+    traces it (the kernels are opaque to it), through torch's indexing."""
+    if source.device.type != "cpu" or torch.compiler.is_compiling():
         return torch.sum(source[index] * weight[..., None].to(source.dtype), dim=1)
     return _GatherSum.apply(source, index, weight)

@@ -7,8 +7,9 @@ every batch: the step reads its batch from one static row (``batches.EpochBatche
 padded to a ``Capacity``) and the problem's terms from copies the graph owns, so a step costs the copy
 of its row and a replay.
 
-- The epoch's largest batch, with ``HEADROOM``, sets the capacities; an epoch with a larger batch
-  captures again.
+- The largest batches of ``PROBE_EPOCHS`` epochs drawn aside (their counts only), with ``HEADROOM``
+  and rounded up (``Capacity.grown``), set the capacities; an epoch with a larger batch grows them
+  and captures again.
 - The step at which a graph is wanted runs eagerly first (on a side stream, so that capture finds
   every lazy initialisation done), then the graph is captured for the steps after it.
 - The problem's terms are copied into the graph's own before each epoch when an ``apply_`` replaced
@@ -17,9 +18,12 @@ of its row and a replay.
 - Adam runs fused and ``capturable``, its learning rates tensors the scheduler updates in place.
 - Each step adds its loss and parts to sums the graph owns; ``epoch`` returns their means.
 - A capture torch refuses leaves the steps eager, with a warning.
+- With ``StageConfig.compiled`` (the solver's ``compile``) the step's losses go through
+  ``torch.compile`` (``COMPILE_BACKEND``, the whole graph, static shapes): elementwise chains fused into
+  a few kernels, after a compile of some tens of seconds for each capacity (torch caches it on disk).
 
 Without CUDA (``use_graphs`` False) the same padded steps run eagerly: how the tests hold a padded
-step to the step of ``train`` on the same batch.
+step to the step of ``train`` on the same batch, and how ``compiled`` runs on the CPU.
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor, nn
 
-from pstoolkit_dualres.batches import Capacity, EpochBatches, Unpacker
+from pstoolkit_dualres.batches import EpochBatches, Tiling, Unpacker, drawn_capacity
 from pstoolkit_dualres.losses import losses
 from pstoolkit_dualres.problem import Problem
 from pstoolkit_dualres.reflectance import FitModel
@@ -39,10 +43,12 @@ from pstoolkit_dualres.reflectance import FitModel
 if TYPE_CHECKING:
     from pstoolkit_dualres.train import StageConfig
 
-# Capacities the epoch's largest batch asks for times this, rounded up to ALIGN rows: the batches of
-# a later epoch (another offset and order of the tiles) rarely outgrow them.
-HEADROOM = 1.25
-ALIGN = 64
+# Capacities at least the largest batch of PROBE_EPOCHS epochs drawn aside times HEADROOM: the batches
+# of the epochs trained (other offsets and orders of the tiles) rarely outgrow them.
+PROBE_EPOCHS = 4
+HEADROOM = 1.1
+# What compiles a step's losses where ``StageConfig.compiled`` asks (the tests trace with aot_eager).
+COMPILE_BACKEND = "inductor"
 # The terms of the problem a step reads, which the graph keeps its own copies of.
 FRAME_TERMS = ("shared_light", "shared_weight", "shared_visible", "sample_light", "sample_weight", "measured", "saturated",
                "energy")
@@ -50,9 +56,10 @@ EVENT_TERMS = ("taps", "tap_weight_now", "tap_weight_ref", "light_now", "light_r
                "target", "weight")
 
 
-def wanted(device: torch.device) -> bool:
-    """Whether ``train`` steps through ``GraphedSteps`` on ``device``: on CUDA."""
-    return device.type == "cuda"
+def wanted(device: torch.device, compiled: bool) -> bool:
+    """Whether ``train`` steps through ``GraphedSteps`` on ``device``: on CUDA, or where the steps are
+    ``compiled``."""
+    return device.type == "cuda" or compiled
 
 
 class _Terms:
@@ -94,6 +101,8 @@ class GraphedSteps:
     ----------
     problem, field, model, config
         As for ``losses``; the problem's terms are copied.
+    tiling
+        The problem's ``batches.Tiling``, which the epochs are drawn from.
     optimizer
         Adam over the field's and the model's parameters: ``capturable`` with tensor learning rates
         where ``use_graphs``.
@@ -101,32 +110,33 @@ class GraphedSteps:
         Capture and replay CUDA graphs (the problem on a CUDA device); else every step runs eagerly.
     """
 
-    def __init__(self, problem: Problem, field: nn.Module, model: FitModel, config: StageConfig,
+    def __init__(self, problem: Problem, tiling: Tiling, field: nn.Module, model: FitModel, config: StageConfig,
                  optimizer: torch.optim.Optimizer, use_graphs: bool) -> None:
         self.problem, self.field, self.model, self.config, self.optimizer = problem, field, model, config, optimizer
         self.use_graphs = use_graphs
         self.terms = _Terms(problem)
-        self.capacity: Capacity | None = None
-        self.row: Tensor | None = None
-        self.unpack: Unpacker | None = None
+        # the same draws for every stage: stages whose masks keep the same batches share the capacities
+        aside = torch.Generator().manual_seed(0)
+        self.capacity = drawn_capacity(problem, tiling, config.batch_pixels, config.tile, aside, PROBE_EPOCHS).grown(HEADROOM)
+        self._set_rows()
         self.graphs: dict[bool, Any] = {}
         self.sums: dict[str, Tensor] = {}
         self.names: dict[bool, list[str]] = {}
         self.tv_share = torch.zeros((), dtype=problem.dtype, device=problem.device)
+        self.losses = torch.compile(self._losses, backend=COMPILE_BACKEND, fullgraph=True, dynamic=False) \
+            if config.compiled else self._losses
 
     def epoch(self, batches: EpochBatches, tv_share: float) -> dict[str, Tensor]:
         """One Adam step per batch of ``batches`` at λ_tv's share ``tv_share``; the means over the
         steps of the loss and its parts (float64 0-dim tensors on the device, as ``train`` keeps them)."""
         needed = batches.capacity()
-        if self.capacity is None or not self.capacity.covers(needed):
-            self.capacity = needed.grown(HEADROOM, ALIGN)
-            self.row = torch.zeros(self.capacity.width, dtype=torch.int64, device=self.problem.device)
-            self.unpack = Unpacker(self.capacity, self.problem.dtype, self.problem.device)
+        if not self.capacity.covers(needed):
+            self.capacity = self.capacity.union(needed.grown(HEADROOM))
+            self._set_rows()
             self.graphs.clear()
         if not self.terms.refresh(self.problem):
             self.terms = _Terms(self.problem)
             self.graphs.clear()
-        assert self.row is not None
         packed = batches.packed(self.capacity)
         tv_on = tv_share > 0 and self.config.tv_weight > 0
         self.tv_share.fill_(tv_share)
@@ -149,11 +159,14 @@ class GraphedSteps:
                     self.use_graphs = False
         return {name: self.sums[name] / max(len(batches), 1) for name in self.names.get(tv_on, [])}
 
+    def _set_rows(self) -> None:
+        """The static row and its unpacker for the capacities now."""
+        self.row = torch.zeros(self.capacity.width, dtype=torch.int64, device=self.problem.device)
+        self.unpack = Unpacker(self.capacity, self.problem.dtype, self.problem.device)
+
     def _step(self, tv_on: bool) -> None:
         """The step on the batch in ``row``: the losses, their gradient, Adam, the sums."""
-        assert self.row is not None and self.unpack is not None
-        batch = self.unpack(self.row)
-        loss, parts = losses(self.terms.problem, self.field, self.model, self.config, batch, self.tv_share if tv_on else 0.0)
+        loss, parts = self.losses(self.row, self.tv_share if tv_on else 0.0)
         loss.backward()
         self.optimizer.step()
         values = {"loss": loss.detach(), **parts}
@@ -162,6 +175,10 @@ class GraphedSteps:
             if name not in self.sums:
                 self.sums[name] = torch.zeros((), dtype=torch.float64, device=value.device)
             self.sums[name].add_(value.to(torch.float64))
+
+    def _losses(self, row: Tensor, tv_share: float | Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+        """``losses`` of the batch packed in ``row``."""
+        return losses(self.terms.problem, self.field, self.model, self.config, self.unpack(row), tv_share)
 
     def _eager(self, tv_on: bool) -> None:
         self.optimizer.zero_grad(set_to_none=True)

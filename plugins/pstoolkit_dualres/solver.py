@@ -243,6 +243,10 @@ class DualRes(Solver):
         Option("batch_pixels", int, -1,
                "frame pixels per mini-batch, an epoch being a pass over all pixels; 0 = one full-batch step per "
                "epoch (−1 = the preset's: fast 0, paper 512)", minimum=-1),
+        Option("compile", bool, False,
+               "run the mini-batch steps (batch_pixels > 0, the paper preset) through torch.compile: fused kernels, "
+               "after a compile of some tens of seconds on first use (cached on disk); on a GPU the compiled steps are "
+               "replayed as CUDA graphs like the plain ones"),
         Option("scale_rule", str, "windows",
                "where the irradiance scale s may change: windows (exposure-window bounds) or spikes (the strongest "
                "event bursts, at most three values per turn, as in the paper)", choices=SCALE_RULES),
@@ -490,6 +494,7 @@ class DualRes(Solver):
             indirect_sparsity=options["indirect_sparsity"], tv_weight=preset.tv_weight,
             tv_fraction=preset.tv_fraction,
             event_batch=options["event_batch"], batch_pixels=preset.batch_pixels, tile=8, seed=seed,
+            compiled=options["compile"],
         )
 
     @staticmethod

@@ -34,7 +34,8 @@ class StageConfig:
     """One run of Adam: ``epochs``, learning rates of the surface (``lr``) and of the smooth
     materials (``material_lr``), the loss weights λ_f, λ_e, λ_tv of eq. 26 with the TV term fading
     linearly to zero over the first ``tv_fraction`` of the epochs, ``event_batch`` pairs per step,
-    ``batch_pixels``/``tile`` of the mini-batches (0: full batches) and the ``seed`` of the draws."""
+    ``batch_pixels``/``tile`` of the mini-batches (0: full batches), the ``seed`` of the draws, and
+    whether the mini-batch steps are ``compiled`` (``graphed``)."""
 
     epochs: int
     lr: float
@@ -49,6 +50,7 @@ class StageConfig:
     batch_pixels: int
     tile: int
     seed: int
+    compiled: bool = False
 
 
 def _event_sample(problem: Problem, config: StageConfig, generator: torch.Generator) -> Tensor:
@@ -88,9 +90,10 @@ def train(problem: Problem, field: nn.Module, model: FitModel, config: StageConf
     """
     generator = torch.Generator(device="cpu").manual_seed(config.seed)
     tiling = Tiling.of(problem) if config.batch_pixels > 0 else None
-    padded = tiling is not None and graphed.wanted(problem.device)
+    padded = tiling is not None and graphed.wanted(problem.device, config.compiled)
     optimizer = _adam(field, model, config, problem.device if padded else None)
-    steps = GraphedSteps(problem, field, model, config, optimizer, use_graphs=problem.device.type == "cuda") if padded else None
+    steps = GraphedSteps(problem, tiling, field, model, config, optimizer, use_graphs=problem.device.type == "cuda") \
+        if padded and tiling is not None else None
     scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, LR_DECAY ** (1.0 / max(config.epochs, 1)))
     history: list[dict[str, float]] = []
     warmup = max(config.tv_fraction * config.epochs, 1e-9)

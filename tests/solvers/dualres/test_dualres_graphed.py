@@ -5,6 +5,7 @@ eagerly (``pytest -m cuda``)."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -60,7 +61,7 @@ def _fit(problem: Problem, seed: int = 0) -> tuple[NeuralField, FitModel]:
 
 def test_a_packed_row_unpacks_to_its_batch(blobs: Problem) -> None:
     epoch = epoch_batches(blobs, Tiling.of(blobs), 200, 8, torch.Generator().manual_seed(1))
-    capacity = epoch.capacity().grown(1.25, 64)
+    capacity = epoch.capacity().grown(1.25)
     assert capacity.covers(epoch.capacity()) and not epoch.capacity().covers(capacity)
     packed = epoch.packed(capacity)
     assert packed.shape == (len(epoch), capacity.width) and len(epoch) > 5
@@ -95,16 +96,19 @@ def test_a_packed_row_unpacks_to_its_batch(blobs: Problem) -> None:
         assert (padded.samples[s:] == 0).all() and (padded.events[e:] == 0).all() and (padded.pixels[n:co] == 0).all()
 
 
-def test_capacities_grow_in_whole_multiples_and_an_empty_field_stays_empty() -> None:
-    grown = Capacity(own=512, outside=70, samples=39000, pairs=0, tv=890, frames=3, fan=4).grown(1.25, 64)
-    assert (grown.own, grown.outside, grown.samples, grown.pairs, grown.tv) == (640, 128, 48768, 0, 1152)
-    assert grown.width == 5 + 640 + 128 + 3 * 640 + 3 * 48768 + 0 + 2 * 1152
+def test_capacities_grow_to_the_next_power_of_two_or_three_times_one_and_an_empty_field_stays_empty() -> None:
+    grown = Capacity(own=512, outside=70, samples=39000, pairs=0, tv=890, frames=3, fan=4).grown(1.25)
+    assert (grown.own, grown.outside, grown.samples, grown.pairs, grown.tv) == (768, 96, 49152, 0, 1536)
+    assert grown.width == 5 + 768 + 96 + 3 * 768 + 3 * 49152 + 0 + 2 * 1536
+    ladder = [Capacity(n, 0, 0, 0, 0, 1, 1).grown(1.0).own for n in range(1, 50)]
+    assert sorted(set(ladder)) == [1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64]
+    assert all(c >= n for n, c in zip(range(1, 50), ladder))
 
 
 def test_a_padded_step_has_its_batchs_losses_and_gradients(blobs: Problem) -> None:
     field, model = _fit(blobs)
     epoch = epoch_batches(blobs, Tiling.of(blobs), 200, 8, torch.Generator().manual_seed(2))
-    capacity = epoch.capacity().grown(1.25, 64)
+    capacity = epoch.capacity().grown(1.25)
     packed = epoch.packed(capacity)
     share = torch.tensor(0.7)
     unpack = Unpacker(capacity, blobs.dtype, blobs.device)
@@ -139,7 +143,7 @@ def test_a_stage_of_padded_steps_trains_as_the_plain_one(blobs: Problem, monkeyp
     runs = []
     try:
         for padded in (False, True):
-            monkeypatch.setattr(graphed, "wanted", lambda device, padded=padded: padded)
+            monkeypatch.setattr(graphed, "wanted", lambda device, compiled, padded=padded: padded)
             blobs.events.apply_thresholds(np.ones(pixels), np.ones(pixels))
             field, model = _fit(blobs)
             history = train(blobs, field, model, STAGE, no_progress, before_epoch=refit)
@@ -154,6 +158,26 @@ def test_a_stage_of_padded_steps_trains_as_the_plain_one(blobs: Problem, monkeyp
         for name in a:
             assert b[name] == pytest.approx(a[name], rel=1e-4), name
     assert float(_angle_deg(normal_a, normal_b).max()) < 1e-4  # measured 6.5e-7°
+
+
+def test_compiled_steps_train_as_the_plain_ones(blobs: Problem, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``compiled`` steps trace the whole step in one graph (``fullgraph``: no break, so inductor may
+    fuse all of it; traced here with aot_eager, which runs the traced graph as torch would) and train
+    as the plain loop does."""
+    monkeypatch.setattr(graphed, "COMPILE_BACKEND", "aot_eager")
+    torch._dynamo.reset()
+    runs = []
+    for compiled in (False, True):
+        field, model = _fit(blobs)
+        history = train(blobs, field, model, dataclasses.replace(STAGE, compiled=compiled), no_progress)
+        with torch.no_grad():
+            runs.append((history, field()[0]))
+    # one graph with the TV term's share a tensor, one without the term (its share 0 from the third epoch)
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == 2
+    (plain, normal_a), (compiled_run, normal_b) = runs
+    for a, b in zip(plain, compiled_run):
+        assert b["loss"] == pytest.approx(a["loss"], rel=1e-4)
+    assert float(_angle_deg(normal_a, normal_b).max()) < 1e-4
 
 
 @pytest.mark.cuda
@@ -201,7 +225,7 @@ def test_a_padded_step_reads_nothing_back_from_the_device(blobs: Problem) -> Non
     operation that waits for the device (checked through torch on the CPU, which runs the same ops)."""
     field, model = _fit(blobs)
     epoch = epoch_batches(blobs, Tiling.of(blobs), 200, 8, torch.Generator().manual_seed(4))
-    capacity = epoch.capacity().grown(1.25, 64)
+    capacity = epoch.capacity().grown(1.25)
     row = epoch.packed(capacity)[0]
     unpack = Unpacker(capacity, blobs.dtype, blobs.device)
     reads = _ReadsBack()
