@@ -67,5 +67,10 @@ def gather_sum(source: Tensor, index: Tensor, weight: Tensor) -> Tensor:
     On CPU tensors through the compiled kernels above; on other devices, and where ``torch.compile``
     traces it (the kernels are opaque to it), through torch's indexing."""
     if source.device.type != "cpu" or torch.compiler.is_compiling():
-        return torch.sum(source[index] * weight[..., None].to(source.dtype), dim=1)
+        return gather_sum_torch(source, index, weight)
     return _GatherSum.apply(source, index, weight)
+
+
+def gather_sum_torch(source: Tensor, index: Tensor, weight: Tensor) -> Tensor:
+    """``gather_sum`` through torch's indexing, on any device."""
+    return torch.sum(source[index] * weight[..., None].to(source.dtype), dim=1)
