@@ -109,7 +109,7 @@ def main() -> None:
     finally:
         devices.on_host = on_host
     epoch = epoch_batches(problem, tiling, BATCH_PIXELS, 8, torch.Generator().manual_seed(1))
-    batches, capacity = epoch.batches(), epoch.capacity().grown(1.1)
+    batches, capacity = epoch.batches(), epoch.needs.grown(1.1)
     rows, unpack, share = epoch.packed(capacity), Unpacker(capacity, problem.dtype, problem.device), torch.tensor(0.5)
 
     def plain(i: int) -> None:

@@ -125,7 +125,7 @@ class Capacity:
 
 @dataclass
 class Tiling:
-    """What ``mini_batches`` needs of a problem: as numpy, each masked pixel's (row, column), each
+    """What ``epoch_batches`` needs of a problem: as numpy, each masked pixel's (row, column), each
     usable event pair (``events``, indices into all pairs) with its anchor pixel (its footprint's
     largest tap) and taps, and the TV pairs; on the problem's device, each pixel's first importance
     sample and count of them (the samples are stored by pixel) and each sample's frame."""
@@ -236,7 +236,7 @@ def epoch_batches(problem: Problem, tiling: Tiling, batch_pixels: int, tile: int
     p = problem.geometry.pixels.size
     frames = problem.frames.count
     if p == 0:
-        return EpochBatches(np.zeros(0, np.int64), {}, {}, frames)
+        return EpochBatches(np.zeros(0, np.int64), {}, {}, Capacity(0, 0, 0, 0, 0, frames, 0))
     g = _Grouping.draw(problem, tiling, batch_pixels, tile, generator)
     own_count, own_rank, by_pixel, pixel_batch = g.own_count, g.own_rank, g.by_pixel, g.pixel_batch
     own_of = own_count[pixel_batch[by_pixel]]
@@ -260,7 +260,7 @@ def epoch_batches(problem: Problem, tiling: Tiling, batch_pixels: int, tile: int
     rows = {"pixels": pixel_count, "frame_rows": frames * own_count, "samples": g.sample_count, "sample_pixel": g.sample_count,
             "sample_group": g.sample_count, "events": g.event_count, "event_taps": g.event_count, "tv_pairs": g.pair_count}
     fields = {**moved, **_samples(tiling, by_pixel, own_rank[by_pixel], own_of)}
-    return EpochBatches(own_count, {name: fields[name] for name in rows}, rows, frames)
+    return EpochBatches(own_count, {name: fields[name] for name in rows}, rows, g.capacity(frames))
 
 
 def drawn_capacity(problem: Problem, tiling: Tiling, batch_pixels: int, tile: int, generator: torch.Generator, epochs: int) -> Capacity:
@@ -282,12 +282,13 @@ def mini_batches(problem: Problem, tiling: Tiling, batch_pixels: int, tile: int,
 class EpochBatches:
     """An epoch's mini-batches as arrays over the epoch: ``own`` (B,) each batch's own frame pixels;
     ``fields`` by the name of ``Batch``'s field, the batches' rows one after the other, on the
-    problem's device; ``rows`` by name (B,) each batch's count of them; ``frames`` K."""
+    problem's device; ``rows`` by name (B,) each batch's count of them; ``needs`` the rows of the
+    largest batch in each field."""
 
     own: np.ndarray
     fields: dict[str, Tensor]
     rows: dict[str, np.ndarray]
-    frames: int
+    needs: Capacity
 
     def __len__(self) -> int:
         return int(self.own.size)
@@ -296,15 +297,6 @@ class EpochBatches:
         """Each batch with fields of its own sizes (views into the epoch's arrays)."""
         parts = {name: torch.split(value, self.rows[name].tolist()) for name, value in self.fields.items()}
         return [Batch(frame_pixels=int(n), **{name: split[b] for name, split in parts.items()}) for b, n in enumerate(self.own)]
-
-    def capacity(self) -> Capacity:
-        """The rows of the epoch's largest batch in each field."""
-        if not len(self):
-            return Capacity(0, 0, 0, 0, 0, self.frames, 0)
-        fan = int(self.fields["event_taps"].shape[1])
-        return Capacity(own=int(self.own.max()), outside=int((self.rows["pixels"] - self.own).max()),
-                        samples=int(self.rows["samples"].max()), pairs=int(self.rows["events"].max()),
-                        tv=int(self.rows["tv_pairs"].max()), frames=self.frames, fan=fan)
 
     def packed(self, capacity: Capacity) -> Tensor:
         """(B, ``capacity.width``) int64 on the fields' device, a row a batch: its counts (own pixels,

@@ -129,7 +129,7 @@ class GraphedSteps:
     def epoch(self, batches: EpochBatches, tv_share: float) -> dict[str, Tensor]:
         """One Adam step per batch of ``batches`` at λ_tv's share ``tv_share``; the means over the
         steps of the loss and its parts (float64 0-dim tensors on the device, as ``train`` keeps them)."""
-        needed = batches.capacity()
+        needed = batches.needs
         if not self.capacity.covers(needed):
             self.capacity = self.capacity.union(needed.grown(HEADROOM))
             self._set_rows()

@@ -6,6 +6,7 @@ eagerly (``pytest -m cuda``)."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +19,7 @@ from pstoolkit._shared.progress import no_progress
 from pstoolkit.optics.brdf import GGX
 from pstoolkit.shadows.score import true_shadows
 from pstoolkit_dualres import graphed
-from pstoolkit_dualres.batches import Capacity, Tiling, Unpacker, epoch_batches
+from pstoolkit_dualres.batches import Capacity, Tiling, Unpacker, drawn_capacity, epoch_batches
 from pstoolkit_dualres.fields import NeuralField
 from pstoolkit_dualres.losses import losses
 from pstoolkit_dualres.preprocess import PreprocessOptions, preprocess
@@ -61,8 +62,17 @@ def _fit(problem: Problem, seed: int = 0) -> tuple[NeuralField, FitModel]:
 
 def test_a_packed_row_unpacks_to_its_batch(blobs: Problem) -> None:
     epoch = epoch_batches(blobs, Tiling.of(blobs), 200, 8, torch.Generator().manual_seed(1))
-    capacity = epoch.capacity().grown(1.25)
-    assert capacity.covers(epoch.capacity()) and not epoch.capacity().covers(capacity)
+    capacity = epoch.needs.grown(1.25)
+    assert capacity.covers(epoch.needs) and not epoch.needs.covers(capacity)
+    # the needs drawn aside, from the counts alone, are those of the epochs built from the same draws
+    tiling, draws = Tiling.of(blobs), torch.Generator().manual_seed(1)
+    built = functools.reduce(Capacity.union, [epoch_batches(blobs, tiling, 200, 8, draws).needs for _ in range(3)])
+    assert drawn_capacity(blobs, tiling, 200, 8, torch.Generator().manual_seed(1), 3) == built
+    assert built.covers(epoch.needs)
+    batches = epoch.batches()
+    assert (epoch.needs.own, epoch.needs.outside, epoch.needs.samples, epoch.needs.pairs, epoch.needs.tv) == (
+        max(b.frame_pixels for b in batches), max(b.pixels.numel() - b.frame_pixels for b in batches),
+        max(b.samples.numel() for b in batches), max(b.events.numel() for b in batches), max(len(b.tv_pairs) for b in batches))
     packed = epoch.packed(capacity)
     assert packed.shape == (len(epoch), capacity.width) and len(epoch) > 5
     k, co = blobs.frames.count, capacity.own
@@ -108,7 +118,7 @@ def test_capacities_grow_to_the_next_power_of_two_or_three_times_one_and_an_empt
 def test_a_padded_step_has_its_batchs_losses_and_gradients(blobs: Problem) -> None:
     field, model = _fit(blobs)
     epoch = epoch_batches(blobs, Tiling.of(blobs), 200, 8, torch.Generator().manual_seed(2))
-    capacity = epoch.capacity().grown(1.25)
+    capacity = epoch.needs.grown(1.25)
     packed = epoch.packed(capacity)
     share = torch.tensor(0.7)
     unpack = Unpacker(capacity, blobs.dtype, blobs.device)
@@ -225,7 +235,7 @@ def test_a_padded_step_reads_nothing_back_from_the_device(blobs: Problem) -> Non
     operation that waits for the device (checked through torch on the CPU, which runs the same ops)."""
     field, model = _fit(blobs)
     epoch = epoch_batches(blobs, Tiling.of(blobs), 200, 8, torch.Generator().manual_seed(4))
-    capacity = epoch.capacity().grown(1.25)
+    capacity = epoch.needs.grown(1.25)
     row = epoch.packed(capacity)[0]
     unpack = Unpacker(capacity, blobs.dtype, blobs.device)
     reads = _ReadsBack()
