@@ -56,7 +56,9 @@ class Batch:
     (None: all); ``samples`` their importance samples (None: all) with ``sample_pixel`` and
     ``sample_group`` (frame·frame_pixels + pixel) in local positions; ``events`` the event pairs
     (indices into all pairs) with ``event_taps`` in local positions; ``tv_pairs`` local neighbour
-    pairs; ``padding`` the rows that hold data when the fields are padded (None: all do)."""
+    pairs; ``padding`` the rows that hold data when the fields are padded (None: all do);
+    ``frame_chunk`` pixels per chunk of the shared grid's frame term (None: as ``losses.frame_chunk``
+    finds the device's memory)."""
 
     pixels: Tensor | None
     frame_pixels: int | None
@@ -68,13 +70,16 @@ class Batch:
     event_taps: Tensor
     tv_pairs: Tensor
     padding: Padding | None = None
+    frame_chunk: int | None = None
 
 
-def full_batch(problem: Problem, events: Tensor) -> Batch:
-    """Every pixel and sample, the event pairs ``events``."""
+def full_batch(problem: Problem, events: Tensor, frame_chunk: int | None = None) -> Batch:
+    """Every pixel and sample, the event pairs ``events``, the frame term in chunks of ``frame_chunk``
+    pixels (None: as the device's memory allows)."""
     return Batch(pixels=None, frame_pixels=None, frame_rows=None, samples=None,
                  sample_pixel=problem.frames.sample_pixel, sample_group=problem.frames.sample_group,
-                 events=events, event_taps=problem.events.taps[events], tv_pairs=problem.geometry.tv_pairs)
+                 events=events, event_taps=problem.events.taps[events], tv_pairs=problem.geometry.tv_pairs,
+                 frame_chunk=frame_chunk)
 
 
 @dataclass(frozen=True)

@@ -1,11 +1,13 @@
-"""Mini-batch Adam steps replayed as CUDA graphs (the ``paper`` preset on a GPU).
+"""Adam steps replayed as CUDA graphs.
 
 A step of the paper's network on 512 pixels launches several hundred small kernels (the MLP, the
 rendering of its importance samples and event pairs, their backward, Adam); on a GPU their launches,
 not their work, set its time. ``GraphedSteps`` captures one step as a CUDA graph and replays it for
 every batch: the step reads its batch from one static row (``batches.EpochBatches.packed``, each field
 padded to a ``Capacity``) and the problem's terms from copies the graph owns, so a step costs the copy
-of its row and a replay.
+of its row and a replay. A full-batch step (the ``fast`` preset) reads the event pairs it draws from a
+static row likewise, up to ``FULL_BATCH_PIXELS`` masked pixels (above them its work outweighs its
+launches, and a graph would hold its memory for good).
 
 - The largest batches of ``PROBE_EPOCHS`` epochs drawn aside (their counts only), with ``HEADROOM``
   and rounded up (``Capacity.grown``), set the capacities; an epoch with a larger batch grows them
@@ -18,7 +20,7 @@ of its row and a replay.
 - Adam runs fused and ``capturable``, its learning rates tensors the scheduler updates in place.
 - Each step adds its loss and parts to sums the graph owns; ``epoch`` returns their means.
 - A capture torch refuses leaves the steps eager, with a warning.
-- With ``StageConfig.compiled`` (the solver's ``compile``) the step's losses go through
+- With ``StageConfig.compiled`` (the solver's ``compile``) a mini-batch step's losses go through
   ``torch.compile`` (``COMPILE_BACKEND``, the whole graph, static shapes): elementwise chains fused into
   a few kernels, after a compile of some tens of seconds for each capacity (torch caches it on disk).
 
@@ -35,8 +37,8 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor, nn
 
-from pstoolkit_dualres.batches import EpochBatches, Tiling, Unpacker, drawn_capacity
-from pstoolkit_dualres.losses import losses
+from pstoolkit_dualres.batches import EpochBatches, Tiling, Unpacker, drawn_capacity, full_batch
+from pstoolkit_dualres.losses import frame_chunk, losses
 from pstoolkit_dualres.problem import Problem
 from pstoolkit_dualres.reflectance import FitModel
 
@@ -49,6 +51,8 @@ PROBE_EPOCHS = 4
 HEADROOM = 1.1
 # What compiles a step's losses where ``StageConfig.compiled`` asks (the tests trace with aot_eager).
 COMPILE_BACKEND = "inductor"
+# The most masked pixels whose full-batch steps are replayed as graphs.
+FULL_BATCH_PIXELS = 1 << 19
 # The terms of the problem a step reads, which the graph keeps its own copies of.
 FRAME_TERMS = ("shared_light", "shared_weight", "shared_visible", "sample_light", "sample_weight", "measured", "saturated",
                "energy")
@@ -56,10 +60,13 @@ EVENT_TERMS = ("taps", "tap_weight_now", "tap_weight_ref", "light_now", "light_r
                "target", "weight")
 
 
-def wanted(device: torch.device, compiled: bool) -> bool:
-    """Whether ``train`` steps through ``GraphedSteps`` on ``device``: on CUDA, or where the steps are
-    ``compiled``."""
-    return device.type == "cuda" or compiled
+def wanted(problem: Problem, compiled: bool, mini_batches: bool) -> bool:
+    """Whether ``train`` steps through ``GraphedSteps``: ``mini_batches`` on CUDA or ``compiled``, full
+    batches on CUDA up to FULL_BATCH_PIXELS masked pixels."""
+    cuda = problem.device.type == "cuda"
+    if mini_batches:
+        return cuda or compiled
+    return cuda and problem.geometry.pixels.size <= FULL_BATCH_PIXELS
 
 
 class _Terms:
@@ -95,14 +102,16 @@ def _copy(value: Tensor | None) -> Tensor | None:
 
 
 class GraphedSteps:
-    """The mini-batch steps of one stage of ``train`` (module docstring).
+    """The steps of one stage of ``train`` (module docstring): ``epoch`` of mini-batches, or
+    ``full_epoch``.
 
     Parameters
     ----------
     problem, field, model, config
         As for ``losses``; the problem's terms are copied.
     tiling
-        The problem's ``batches.Tiling``, which the epochs are drawn from.
+        The problem's ``batches.Tiling``, which the mini-batch epochs are drawn from; None: full
+        batches.
     optimizer
         Adam over the field's and the model's parameters: ``capturable`` with tensor learning rates
         where ``use_graphs``.
@@ -110,19 +119,26 @@ class GraphedSteps:
         Capture and replay CUDA graphs (the problem on a CUDA device); else every step runs eagerly.
     """
 
-    def __init__(self, problem: Problem, tiling: Tiling, field: nn.Module, model: FitModel, config: StageConfig,
+    def __init__(self, problem: Problem, tiling: Tiling | None, field: nn.Module, model: FitModel, config: StageConfig,
                  optimizer: torch.optim.Optimizer, use_graphs: bool) -> None:
         self.problem, self.field, self.model, self.config, self.optimizer = problem, field, model, config, optimizer
         self.use_graphs = use_graphs
         self.terms = _Terms(problem)
-        # the same draws for every stage: stages whose masks keep the same batches share the capacities
-        aside = torch.Generator().manual_seed(0)
-        self.capacity = drawn_capacity(problem, tiling, config.batch_pixels, config.tile, aside, PROBE_EPOCHS).grown(HEADROOM)
-        self._set_rows()
         self.graphs: dict[bool, Any] = {}
         self.sums: dict[str, Tensor] = {}
         self.names: dict[bool, list[str]] = {}
         self.tv_share = torch.zeros((), dtype=problem.dtype, device=problem.device)
+        if tiling is None:
+            self.row = torch.zeros(0, dtype=torch.int64, device=problem.device)
+            # found once, outside any capture: the device's free memory is no question to ask in one
+            grid = problem.frames.shared_light
+            self.frame_chunk = frame_chunk(self.tv_share, 0 if grid is None else grid.shape[0])
+            self.losses = self._full_losses
+            return
+        # the same draws for every stage: stages whose masks keep the same batches share the capacities
+        aside = torch.Generator().manual_seed(0)
+        self.capacity = drawn_capacity(problem, tiling, config.batch_pixels, config.tile, aside, PROBE_EPOCHS).grown(HEADROOM)
+        self._set_rows()
         self.losses = torch.compile(self._losses, backend=COMPILE_BACKEND, fullgraph=True, dynamic=False) \
             if config.compiled else self._losses
 
@@ -134,16 +150,26 @@ class GraphedSteps:
             self.capacity = self.capacity.union(needed.grown(HEADROOM))
             self._set_rows()
             self.graphs.clear()
+        return self._run(batches.packed(self.capacity), tv_share)
+
+    def full_epoch(self, events: Tensor, tv_share: float) -> dict[str, Tensor]:
+        """One full-batch Adam step on the event pairs ``events`` (indices into all pairs), as ``epoch``."""
+        if self.row.shape != events.shape:
+            self.row = torch.empty_like(events)
+            self.graphs.clear()
+        return self._run(events[None], tv_share)
+
+    def _run(self, rows: Tensor, tv_share: float) -> dict[str, Tensor]:
+        """One step per row of ``rows`` (each copied into ``row``), as ``epoch``."""
         if not self.terms.refresh(self.problem):
             self.terms = _Terms(self.problem)
             self.graphs.clear()
-        packed = batches.packed(self.capacity)
         tv_on = tv_share > 0 and self.config.tv_weight > 0
         self.tv_share.fill_(tv_share)
         for value in self.sums.values():
             value.zero_()
-        for b in range(len(batches)):
-            self.row.copy_(packed[b])
+        for b in range(len(rows)):
+            self.row.copy_(rows[b])
             graph = self.graphs.get(tv_on)
             if graph is not None:
                 graph.replay()
@@ -157,7 +183,7 @@ class GraphedSteps:
                     warnings.warn(f"dualres: a CUDA graph of the training step could not be captured, the steps run "
                                   f"eagerly: {error}", RuntimeWarning, stacklevel=2)
                     self.use_graphs = False
-        return {name: self.sums[name] / max(len(batches), 1) for name in self.names.get(tv_on, [])}
+        return {name: self.sums[name] / max(len(rows), 1) for name in self.names.get(tv_on, [])}
 
     def _set_rows(self) -> None:
         """The static row and its unpacker for the capacities now."""
@@ -179,6 +205,11 @@ class GraphedSteps:
     def _losses(self, row: Tensor, tv_share: float | Tensor) -> tuple[Tensor, dict[str, Tensor]]:
         """``losses`` of the batch packed in ``row``."""
         return losses(self.terms.problem, self.field, self.model, self.config, self.unpack(row), tv_share)
+
+    def _full_losses(self, events: Tensor, tv_share: float | Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+        """``losses`` of the full batch with the event pairs ``events``."""
+        batch = full_batch(self.terms.problem, events, self.frame_chunk)
+        return losses(self.terms.problem, self.field, self.model, self.config, batch, tv_share)
 
     def _eager(self, tv_on: bool) -> None:
         self.optimizer.zero_grad(set_to_none=True)

@@ -226,7 +226,7 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
             measured, saturated = measured[batch.frame_rows], saturated[batch.frame_rows]
         if pad is None:
             lf = grid_frame_loss(model, own_normal, own_maps, frames.shared_light, frames.shared_weight, visible, view,
-                                 frames.count, measured, saturated, energy=frames.energy)
+                                 frames.count, measured, saturated, chunk=batch.frame_chunk, energy=frames.energy)
         else:
             predicted = frame_prediction_grid(model, own_normal, own_maps, frames.shared_light, frames.shared_weight, visible,
                                               view, frames.count, frames.energy)

@@ -90,10 +90,10 @@ def train(problem: Problem, field: nn.Module, model: FitModel, config: StageConf
     """
     generator = torch.Generator(device="cpu").manual_seed(config.seed)
     tiling = Tiling.of(problem) if config.batch_pixels > 0 else None
-    padded = tiling is not None and graphed.wanted(problem.device, config.compiled)
-    optimizer = _adam(field, model, config, problem.device if padded else None)
+    stepped = graphed.wanted(problem, config.compiled, tiling is not None)
+    optimizer = _adam(field, model, config, problem.device if stepped else None)
     steps = GraphedSteps(problem, tiling, field, model, config, optimizer, use_graphs=problem.device.type == "cuda") \
-        if padded and tiling is not None else None
+        if stepped else None
     scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, LR_DECAY ** (1.0 / max(config.epochs, 1)))
     history: list[dict[str, float]] = []
     warmup = max(config.tv_fraction * config.epochs, 1e-9)
@@ -101,7 +101,9 @@ def train(problem: Problem, field: nn.Module, model: FitModel, config: StageConf
         if before_epoch is not None:
             before_epoch(epoch)
         tv_share = 0.0 if warm_start else max(0.0, 1.0 - epoch / warmup)
-        if steps is not None:
+        if steps is not None and tiling is None:
+            totals, count = steps.full_epoch(_event_sample(problem, config, generator), tv_share), 1
+        elif steps is not None:
             padded_epoch = epoch_batches(problem, tiling, config.batch_pixels, config.tile, generator)
             totals, count = steps.epoch(padded_epoch, tv_share), len(padded_epoch)
         else:

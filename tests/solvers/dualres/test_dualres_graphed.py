@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import warnings
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -23,19 +25,22 @@ from pstoolkit_dualres.batches import Capacity, Tiling, Unpacker, drawn_capacity
 from pstoolkit_dualres.fields import NeuralField
 from pstoolkit_dualres.losses import losses
 from pstoolkit_dualres.preprocess import PreprocessOptions, preprocess
+from pstoolkit_dualres.presets import PRESETS
 from pstoolkit_dualres.problem import Problem, build_problem
 from pstoolkit_dualres.reflectance import FitModel
+from pstoolkit_dualres.solver import build_field
 from pstoolkit_dualres.train import StageConfig, train
 
 STAGE = StageConfig(epochs=3, lr=1e-3, material_lr=1e-3, frame_weight=1.0, event_weight=0.05, event_huber=0.1,
                     indirect_sparsity=0.01, tv_weight=0.02, tv_fraction=0.5, event_batch=0, batch_pixels=200, tile=8, seed=0)
 
 
-def _problem(path: Path, device: str = "cpu") -> Problem:
-    """The blobs' problem with the importance samples, under their true cast shadows."""
+def _problem(path: Path, device: str = "cpu", frame_samples: int = 0) -> Problem:
+    """The blobs' problem with the importance samples (or ``frame_samples`` a frame on a shared grid),
+    under their true cast shadows."""
     capture = psfmt.read(path)
     pre = preprocess(capture, PreprocessOptions())
-    problem = build_problem(pre, capture.calibration.view_direction, device=device, frame_samples=0)
+    problem = build_problem(pre, capture.calibration.view_direction, device=device, frame_samples=frame_samples)
     gt = capture.ground_truth
     problem.apply_mask(true_shadows(gt.depth, gt.mask, pre.light, pre.t0_us, pre.period_us))
     return problem
@@ -153,7 +158,7 @@ def test_a_stage_of_padded_steps_trains_as_the_plain_one(blobs: Problem, monkeyp
     runs = []
     try:
         for padded in (False, True):
-            monkeypatch.setattr(graphed, "wanted", lambda device, compiled, padded=padded: padded)
+            monkeypatch.setattr(graphed, "wanted", lambda problem, compiled, mini_batches, padded=padded: padded)
             blobs.events.apply_thresholds(np.ones(pixels), np.ones(pixels))
             field, model = _fit(blobs)
             history = train(blobs, field, model, STAGE, no_progress, before_epoch=refit)
@@ -168,6 +173,37 @@ def test_a_stage_of_padded_steps_trains_as_the_plain_one(blobs: Problem, monkeyp
         for name in a:
             assert b[name] == pytest.approx(a[name], rel=1e-4), name
     assert float(_angle_deg(normal_a, normal_b).max()) < 1e-4  # measured 6.5e-7°
+
+
+def test_full_batch_steps_train_as_the_plain_ones(blobs_48: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The ``fast`` preset's full-batch steps through ``GraphedSteps`` (eager on the CPU): the event
+    pairs each epoch draws read from the static row, the same losses and normals as the plain loop."""
+    problem = _problem(blobs_48, frame_samples=8)
+    config = dataclasses.replace(STAGE, epochs=6, lr=5e-3, material_lr=5e-2, event_weight=8.0, tv_weight=0.05, tv_fraction=0.3,
+                                 event_batch=problem.events.usable.numel() // 2, batch_pixels=0)
+    runs = []
+    for stepped in (False, True):
+        monkeypatch.setattr(graphed, "wanted", lambda problem, compiled, mini_batches, stepped=stepped: stepped)
+        torch.manual_seed(0)
+        model = FitModel(GGX(), indirect=True)
+        field = build_field(PRESETS["fast"], problem, model)
+        history = train(problem, field, model, config, no_progress)
+        with torch.no_grad():
+            runs.append((history, field()[0]))
+    (plain, normal_a), (stepped_run, normal_b) = runs
+    assert [h["steps"] for h in stepped_run] == [1.0, 1.0] and set(plain[0]) == set(stepped_run[0]) and "tv" in plain[0]
+    for a, b in zip(plain, stepped_run):
+        for name in a:
+            assert b[name] == pytest.approx(a[name], rel=1e-5), name
+    assert float(_angle_deg(normal_a, normal_b).max()) < 1e-4
+
+
+def test_full_batch_graphs_are_wanted_on_cuda_up_to_a_size(blobs: Problem) -> None:
+    cuda = SimpleNamespace(device=torch.device("cuda"), geometry=blobs.geometry)
+    assert graphed.wanted(cuda, False, False) and graphed.wanted(cuda, False, True)
+    assert not graphed.wanted(blobs, False, False) and not graphed.wanted(blobs, False, True) and graphed.wanted(blobs, True, True)
+    large = SimpleNamespace(device=torch.device("cuda"), geometry=SimpleNamespace(pixels=np.arange(graphed.FULL_BATCH_PIXELS + 1)))
+    assert not graphed.wanted(large, False, False) and graphed.wanted(large, False, True)
 
 
 def test_compiled_steps_train_as_the_plain_ones(blobs: Problem, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -191,18 +227,34 @@ def test_compiled_steps_train_as_the_plain_ones(blobs: Problem, monkeypatch: pyt
 
 
 @pytest.mark.cuda
-def test_cuda_graphs_replay_the_steps_they_capture(blobs_48: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """On a GPU: a stage replayed as CUDA graphs against the same padded steps run eagerly there."""
-    problem = _problem(blobs_48, "cuda")
+@pytest.mark.parametrize("batches", ["mini", "full"])
+def test_cuda_graphs_replay_the_steps_they_capture(blobs_48: Path, monkeypatch: pytest.MonkeyPatch, batches: str) -> None:
+    """On a GPU: a stage replayed as CUDA graphs (captured, no warning) against the same steps run
+    eagerly there, of mini-batches (the paper's network) and of full batches (the pyramid)."""
+    problem = _problem(blobs_48, "cuda", frame_samples=0 if batches == "mini" else 8)
+    config = STAGE if batches == "mini" else dataclasses.replace(
+        STAGE, epochs=6, lr=5e-3, material_lr=5e-2, event_weight=8.0, event_batch=problem.events.usable.numel() // 2, batch_pixels=0)
+    capture = graphed.GraphedSteps._capture
+    captures: list[bool] = []
     runs = []
     for replay in (False, True):
-        field, model = _fit(problem)
-        if not replay:
+        if batches == "mini":
+            field, model = _fit(problem)
+        else:
+            torch.manual_seed(0)
+            model = FitModel(GGX(), indirect=True).to(problem.device)
+            field = build_field(PRESETS["fast"], problem, model)
+        if replay:
+            monkeypatch.setattr(graphed.GraphedSteps, "_capture", lambda self, tv_on: captures.append(tv_on) or capture(self, tv_on))
+        else:
             monkeypatch.setattr(graphed.GraphedSteps, "_capture", lambda self, tv_on: None)
-        history = train(problem, field, model, STAGE, no_progress)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)
+            history = train(problem, field, model, config, no_progress)
         monkeypatch.undo()
         with torch.no_grad():
             runs.append((history, field()[0].cpu()))
+    assert True in captures and False in captures  # with the TV term, then without
     (eager, normal_a), (replayed, normal_b) = runs
     for a, b in zip(eager, replayed):
         assert b["loss"] == pytest.approx(a["loss"], rel=1e-3)
