@@ -15,7 +15,8 @@ Sections, each a table printed and stored in the JSON:
    epochs, or as many as a first timed run of ``PROBE_EPOCHS`` says fit in ``--paper-budget-s``
    (that first run also compiles, so the timed run's compiled steps come from torch's caches);
    seconds per epoch, the 1200 epochs they project to, and the errors.
-3. With ``--tests``: the suite's CUDA tests (``pytest -m cuda``), last, their summary line.
+3. With ``--tests``: the suite's CUDA tests (``pytest -m cuda``), their summary line; run first, since
+   they check what the timings rest on (and a run cut short at its limit keeps them).
 
 ``--profile SIZE …`` also runs cProfile over the cuda solve of that size (``paper``: the paper preset's
 runs) and writes the functions that take the most time (cumulative and own) to ``profile-SIZE.txt``
@@ -196,7 +197,7 @@ def main() -> None:
     parser.add_argument("--paper-compile", choices=("off", "on", "both"), default="both",
                         help="the paper runs with the solver's compile off, on, or both")
     parser.add_argument("--profile", nargs="*", default=[], help="sizes of --sizes whose cuda solve runs under cProfile, and/or 'paper'")
-    parser.add_argument("--tests", action="store_true", help="then run the suite's CUDA tests (pytest -m cuda)")
+    parser.add_argument("--tests", action="store_true", help="first run the suite's CUDA tests (pytest -m cuda)")
     parser.add_argument("--data", type=Path, help="folder to keep the captures in (default: a temporary one)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--device", default="cuda", help="the device under test (cpu only tries this script out)")
@@ -211,6 +212,9 @@ def main() -> None:
                     "python": platform.python_version(), "cpus": os.cpu_count(), "torch_threads": torch.get_num_threads()},
         "rows": [], "paper": [], "tests": None, "targets": None,
     }
+    if args.tests:
+        record["tests"] = cuda_tests()
+        write_results(args.out, record)
     with tempfile.TemporaryDirectory() as tmp:
         folder = args.data or Path(tmp)
         folder.mkdir(parents=True, exist_ok=True)
@@ -233,8 +237,6 @@ def main() -> None:
               f"(median {paper['median_deg']:.3f}°, p90 {paper['p90_deg']:.3f}°) after {paper['epochs_run']} epochs")
     record["targets"] = verdict(record["rows"], record["paper"])
     print("\ntargets:", json.dumps(record["targets"], indent=1))
-    if args.tests:
-        record["tests"] = cuda_tests()
     write_results(args.out, record)
     print(f"wrote {args.out}")
 
