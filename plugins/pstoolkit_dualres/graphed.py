@@ -165,6 +165,9 @@ class GraphedSteps:
             self.terms = _Terms(self.problem)
             self.graphs.clear()
         tv_on = tv_share > 0 and self.config.tv_weight > 0
+        if not tv_on:
+            # the share only falls within a stage: the graph with the term will not replay again, free its memory
+            self.graphs.pop(True, None)
         self.tv_share.fill_(tv_share)
         for value in self.sums.values():
             value.zero_()
