@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from pstoolkit_dualres.reflectance import FitModel
+from pstoolkit_dualres.reflectance import INDIRECT, FitModel
 
 Maps = dict[str, Tensor]
 
@@ -23,8 +23,16 @@ def _take(maps: Maps, index: Tensor) -> Maps:
     return {name: value[index] for name, value in maps.items()}
 
 
+def shade_rows(model: FitModel, normal: Tensor, maps: Maps, pixel: Tensor, light: Tensor, view: Tensor) -> Tensor:
+    """(N, 3) f_r·[n·l]₊ of the pixels ``pixel`` (N,) (rows of ``normal`` (P, 3) and ``maps``) under the
+    unit directions ``light`` (N, 3): the rendering ``frame_prediction`` and ``superpixel_grey`` sum, which
+    a caller may do once for both (``shaded``)."""
+    return model.shade(normal[pixel], light, view, _take(maps, pixel))
+
+
 def frame_prediction(model: FitModel, normal: Tensor, maps: Maps, sample_pixel: Tensor, sample_group: Tensor,
-                     light: Tensor, weight: Tensor, view: Tensor, groups: int, energy: Tensor | None = None) -> Tensor:
+                     light: Tensor, weight: Tensor, view: Tensor, groups: int, energy: Tensor | None = None,
+                     shaded: Tensor | None = None) -> Tensor:
     """Frame values Σ_samples f_r·[n·l]₊·(e·m_c·Δt) at per-pixel importance samples (eq. 21–22).
 
     Parameters
@@ -49,13 +57,16 @@ def frame_prediction(model: FitModel, normal: Tensor, maps: Maps, sample_pixel: 
         Number of output rows (frames·P).
     energy
         (K, 3) each frame's light energy, for a model with indirect light.
+    shaded
+        (M, 3) ``shade_rows`` of the samples, where the caller rendered them (None: rendered here).
 
     Returns
     -------
     Tensor
         (groups, 3) predicted frame values.
     """
-    shaded = model.shade(normal[sample_pixel], light, view, _take(maps, sample_pixel))
+    if shaded is None:
+        shaded = shade_rows(model, normal, maps, sample_pixel, light, view)
     out = torch.zeros((groups, 3), dtype=shaded.dtype, device=shaded.device)
     out = out.index_add_(0, sample_group, shaded * weight)
     return _with_indirect(model, maps, out, energy)
@@ -111,7 +122,8 @@ def frame_prediction_grid(model: FitModel, normal: Tensor, maps: Maps, light: Te
 
 
 def superpixel_grey(model: FitModel, normal: Tensor, maps: Maps, tap_pixel: Tensor, tap_weight: Tensor,
-                    light: Tensor, grey_intensity: Tensor, view: Tensor, tap_area: Tensor | None = None) -> Tensor:
+                    light: Tensor, grey_intensity: Tensor, view: Tensor, tap_area: Tensor | None = None,
+                    shaded: Tensor | None = None) -> Tensor:
     """Grey irradiance of event super pixels: Σ_taps weight × grey(f_r·[n·l]₊·e) over the frame pixels
     under each, at one light per row; with indirect light plus Σ_taps area × grey(ρ_d·b·e).
 
@@ -135,6 +147,9 @@ def superpixel_grey(model: FitModel, normal: Tensor, maps: Maps, tap_pixel: Tens
         (3,) unit direction to the camera.
     tap_area
         (E, F) each tap's area share without the mask, for a model with indirect light.
+    shaded
+        (E·F, 3) ``shade_rows`` of the taps (``tap_rows``), where the caller rendered them (None:
+        rendered here).
 
     Returns
     -------
@@ -142,13 +157,19 @@ def superpixel_grey(model: FitModel, normal: Tensor, maps: Maps, tap_pixel: Tens
         (E,) grey irradiance.
     """
     e, f = tap_pixel.shape
-    flat = tap_pixel.reshape(-1)
-    l = light[:, None, :].expand(e, f, 3).reshape(-1, 3)
-    taken = _take(maps, flat)
-    shaded = model.shade(normal[flat], l, view, taken).reshape(e, f, 3)
-    grey = torch.sum(torch.sum(shaded * grey_intensity[:, None, :], dim=-1) * tap_weight, dim=-1)
-    indirect = model.indirect_light(taken)
-    if indirect is None:
+    if shaded is None:
+        shaded = shade_rows(model, normal, maps, *tap_rows(tap_pixel, light), view)
+    grey = torch.sum(torch.sum(shaded.reshape(e, f, 3) * grey_intensity[:, None, :], dim=-1) * tap_weight, dim=-1)
+    if not model.indirect:
         return grey
-    assert tap_area is not None, "a model with indirect light needs the taps' areas"
+    flat = tap_pixel.reshape(-1)
+    indirect = model.indirect_light({name: maps[name][flat] for name in (model.diffuse, INDIRECT.name) if name is not None})
+    assert indirect is not None and tap_area is not None, "a model with indirect light needs the taps' areas"
     return grey + torch.sum(torch.sum(indirect.reshape(e, f, 3) * grey_intensity[:, None, :], dim=-1) * tap_area, dim=-1)
+
+
+def tap_rows(tap_pixel: Tensor, light: Tensor) -> tuple[Tensor, Tensor]:
+    """The rows ``shade_rows`` renders for ``superpixel_grey``: (E·F,) the taps' pixels, (E·F, 3) each
+    tap's super pixel's light (``tap_pixel`` (E, F), ``light`` (E, 3))."""
+    e, f = tap_pixel.shape
+    return tap_pixel.reshape(-1), light[:, None, :].expand(e, f, 3).reshape(-1, 3)

@@ -18,14 +18,14 @@ of pixels) or, without a shared time grid, through ``frame_prediction``; the eve
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 from torch import Tensor, nn
 
 from pstoolkit.events.rule import LOG_EPS
 from pstoolkit_dualres.event_kernel import fused_event_loss
-from pstoolkit_dualres.forward_model import frame_prediction, frame_prediction_grid, superpixel_grey
+from pstoolkit_dualres.forward_model import frame_prediction, frame_prediction_grid, shade_rows, superpixel_grey, tap_rows
 from pstoolkit_dualres.frame_kernel import fused_frame_loss, supports
 from pstoolkit_dualres.gather import gather_sum
 from pstoolkit_dualres.problem import EventTerms, Problem
@@ -215,6 +215,7 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
     normal, pixel_raw, smooth_raw = field(batch.pixels)
     maps = model.maps(pixel_raw, smooth_raw)
     n, pad = batch.frame_pixels, batch.padding
+    pair_shaded: Tensor | None = None
     own_normal, own_maps = (normal, maps) if n is None else (normal[:n], {k: v[:n] for k, v in maps.items()})
     frames, view = problem.frames, problem.geometry.view
     if frames.shared_light is not None:
@@ -237,8 +238,15 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
             light, weight = light[batch.samples], weight[batch.samples]
         if pad is not None:
             weight = weight * pad.sample.mask[:, None]
+        sample_shaded = None
+        if batch.events.numel() and config.event_weight > 0 and (pad is not None or not supports(model, normal)):
+            # the samples and the pairs' taps in one rendering: half the kernels of two (on a GPU, a step's time)
+            rows = pair_rows(batch.event_taps, problem.events, batch.events, area=False)
+            pixel, tap_light = tap_rows(rows.taps, rows.light)
+            shaded = shade_rows(model, normal, maps, torch.cat([batch.sample_pixel, pixel]), torch.cat([light, tap_light]), view)
+            sample_shaded, pair_shaded = shaded[: light.shape[0]], shaded[light.shape[0]:]
         predicted = frame_prediction(model, own_normal, own_maps, batch.sample_pixel, batch.sample_group, light, weight,
-                                     view, frames.count * own_normal.shape[0], energy=frames.energy)
+                                     view, frames.count * own_normal.shape[0], energy=frames.energy, shaded=sample_shaded)
         measured, saturated = frames.measured, frames.saturated
         if batch.frame_rows is not None:
             measured, saturated = measured[batch.frame_rows], saturated[batch.frame_rows]
@@ -253,7 +261,7 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
     e = batch.events
     if e.numel() and config.event_weight > 0:
         le = pair_event_loss(model, normal, maps, batch.event_taps, problem.events, e, view, config.event_huber,
-                             None if pad is None else pad.event)
+                             None if pad is None else pad.event, pair_shaded)
         total = total + config.event_weight * le
         parts["event"] = le.detach()
     if config.tv_weight > 0 and (isinstance(tv_share, Tensor) or tv_share > 0):
@@ -266,28 +274,47 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
 
 
 def pair_event_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], taps: Tensor, events: EventTerms, pairs: Tensor,
-                    view: Tensor, huber: float = 0.0, valid: Valid | None = None) -> Tensor:
+                    view: Tensor, huber: float = 0.0, valid: Valid | None = None, shaded: Tensor | None = None) -> Tensor:
     """The event term of eq. 25 over the event ``pairs`` (indices into ``events``) whose super pixels
     cover the frame pixels ``taps`` (E, F) of ``normal`` (P, 3) and ``maps``: one compiled pass
     (``event_kernel``) for the built-in GGX and Lambertian on the CPU, else ``superpixel_grey`` now and
     at the reference time through ``event_loss``; ``huber`` its δ (0: the square); over the pairs
-    ``valid`` marks, where given (through torch). The scalar loss, differentiable."""
-    if valid is None and supports(model, normal):
+    ``valid`` marks, where given, and with the taps' ``shaded`` rows of ``pair_grey``, where the caller
+    rendered them (both through torch). The scalar loss, differentiable."""
+    if valid is None and shaded is None and supports(model, normal):
         return fused_event_loss(model, normal, maps, taps, events, pairs, view, LOG_EPS, huber)
-    grey, grey_ref = pair_grey(model, normal, maps, taps, events, pairs, view)
+    grey, grey_ref = pair_grey(model, normal, maps, taps, events, pairs, view, shaded)
     return event_loss(grey, grey_ref, events.target[pairs], events.weight[pairs], LOG_EPS, huber, valid)
 
 
 
+class PairRows(NamedTuple):
+    """Event pairs now and at their reference times, one after the other, as ``superpixel_grey``
+    takes them: (2E, F) ``taps`` and their ``weight``, (2E, 3) ``light`` and ``grey`` intensities, and
+    (2E, F) the taps' ``area`` (None: not asked for)."""
+
+    taps: Tensor
+    weight: Tensor
+    light: Tensor
+    grey: Tensor
+    area: Tensor | None
+
+
+def pair_rows(taps: Tensor, events: EventTerms, pairs: Tensor, area: bool) -> PairRows:
+    """The ``pairs`` (E,) (indices into ``events``) whose super pixels cover ``taps`` (E, F) as
+    ``PairRows``, with their taps' areas where ``area``."""
+    return PairRows(torch.cat([taps, taps]), torch.cat([events.tap_weight_now[pairs], events.tap_weight_ref[pairs]]),
+                    torch.cat([events.light_now[pairs], events.light_ref[pairs]]),
+                    torch.cat([events.grey_now[pairs], events.grey_ref[pairs]]),
+                    torch.cat([events.tap_area[pairs]] * 2) if area else None)
+
+
 def pair_grey(model: FitModel, normal: Tensor, maps: dict[str, Tensor], taps: Tensor, events: EventTerms, pairs: Tensor,
-              view: Tensor) -> tuple[Tensor, Tensor]:
+              view: Tensor, shaded: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """(E,) each pair's ``superpixel_grey`` now and at its reference time, through torch, both in one
-    rendering (half the kernels of two: on a GPU, a step's time is their count)."""
+    rendering (half the kernels of two: on a GPU, a step's time is their count); ``shaded`` the
+    (2E·F, 3) rendering of ``pair_rows``' taps where the caller did it."""
     count = pairs.numel()
-    area = events.tap_area[pairs] if model.indirect else None
-    both = superpixel_grey(model, normal, maps, torch.cat([taps, taps]),
-                           torch.cat([events.tap_weight_now[pairs], events.tap_weight_ref[pairs]]),
-                           torch.cat([events.light_now[pairs], events.light_ref[pairs]]),
-                           torch.cat([events.grey_now[pairs], events.grey_ref[pairs]]), view,
-                           None if area is None else torch.cat([area, area]))
+    rows = pair_rows(taps, events, pairs, model.indirect)
+    both = superpixel_grey(model, normal, maps, rows.taps, rows.weight, rows.light, rows.grey, view, rows.area, shaded)
     return both[:count], both[count:]
