@@ -133,6 +133,8 @@ class GraphedSteps:
             # found once, outside any capture: the device's free memory is no question to ask in one
             grid = problem.frames.shared_light
             self.frame_chunk = frame_chunk(self.tv_share, 0 if grid is None else grid.shape[0])
+            # a frame term in several chunks differentiates each inside the step: left to eager steps
+            self.use_graphs = use_graphs and (grid is None or problem.geometry.pixels.size <= self.frame_chunk)
             self.losses = self._full_losses
             return
         # the same draws for every stage: stages whose masks keep the same batches share the capacities
