@@ -280,7 +280,8 @@ class DualRes(Solver):
         strings, defaults filled in), so result.json records what the run used. Idempotent: the
         preset stays named and the expanded values are the ones it would give. UserError for
         ``smoothness`` with a preset whose field is the MLP, which has no pyramid to smooth (its own
-        value, 0, is accepted: it is what the run uses); an unknown shadow detector or detector option."""
+        value, 0, is accepted: it is what the run uses); ``compile`` with full-batch steps, which it does
+        not compile; an unknown shadow detector or detector option."""
         named = PRESETS[options["preset"]]
         if named.field == "mlp" and options["smoothness"] >= 0 and options["smoothness"] != named.smoothness:
             raise UserError(
@@ -291,6 +292,9 @@ class DualRes(Solver):
             raise UserError(f"dualres: option bounce_reflectance={options['bounce_reflectance']:g} cannot apply with "
                             "interreflection=off: it is the reflectance of the bounce that option takes out")
         preset = resolve(options)
+        if options["compile"] and preset.batch_pixels == 0:
+            raise UserError("dualres: option compile=true cannot apply with full-batch steps (batch_pixels=0, as in "
+                            f"preset={preset.name}): it compiles the mini-batch steps; set batch_pixels or preset=paper")
         detector = get_registries().shadow_detectors.get(options["shadow_detector"])
         shadow = format_assignments(detector.parse_options(options["shadow"]), detector.options)
         return {**options, **{name: getattr(preset, name) for name in OVERRIDES}, "shadow": tuple(shadow)}

@@ -53,6 +53,14 @@ def test_smoothness_with_the_mlp_preset_is_an_error() -> None:
     assert _resolved("preset=paper", "smoothness=0")["smoothness"] == 0.0  # the preset's own value, as recorded
 
 
+def test_compile_with_full_batch_steps_is_an_error() -> None:
+    with pytest.raises(UserError, match=(r"^dualres: option compile=true cannot apply with full-batch steps \(batch_pixels=0, as "
+                                         r"in preset=fast\): it compiles the mini-batch steps; set batch_pixels or preset=paper$")):
+        _resolved("compile=true")
+    assert _resolved("preset=paper", "compile=true")["compile"] is True
+    assert _resolved("compile=true", "batch_pixels=256")["batch_pixels"] == 256
+
+
 def test_result_json_repeats_a_dualres_run(sphere_48: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Two epochs on the 48 px sphere, then the run again from its result.json: the same normal map
     within float noise (1e-6; measured bit-equal on the CPU, where torch's deterministic kernels
