@@ -215,7 +215,7 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
     normal, pixel_raw, smooth_raw = field(batch.pixels)
     maps = model.maps(pixel_raw, smooth_raw)
     n, pad = batch.frame_pixels, batch.padding
-    pair_shaded: Tensor | None = None
+    rendered: tuple[PairRows, Tensor] | None = None
     own_normal, own_maps = (normal, maps) if n is None else (normal[:n], {k: v[:n] for k, v in maps.items()})
     frames, view = problem.frames, problem.geometry.view
     if frames.shared_light is not None:
@@ -241,10 +241,10 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
         sample_shaded = None
         if batch.events.numel() and config.event_weight > 0 and (pad is not None or not supports(model, normal)):
             # the samples and the pairs' taps in one rendering: half the kernels of two (on a GPU, a step's time)
-            rows = pair_rows(batch.event_taps, problem.events, batch.events, area=False)
+            rows = pair_rows(batch.event_taps, problem.events, batch.events, model.indirect)
             pixel, tap_light = tap_rows(rows.taps, rows.light)
             shaded = shade_rows(model, normal, maps, torch.cat([batch.sample_pixel, pixel]), torch.cat([light, tap_light]), view)
-            sample_shaded, pair_shaded = shaded[: light.shape[0]], shaded[light.shape[0]:]
+            sample_shaded, rendered = shaded[: light.shape[0]], (rows, shaded[light.shape[0]:])
         predicted = frame_prediction(model, own_normal, own_maps, batch.sample_pixel, batch.sample_group, light, weight,
                                      view, frames.count * own_normal.shape[0], energy=frames.energy, shaded=sample_shaded)
         measured, saturated = frames.measured, frames.saturated
@@ -261,7 +261,7 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
     e = batch.events
     if e.numel() and config.event_weight > 0:
         le = pair_event_loss(model, normal, maps, batch.event_taps, problem.events, e, view, config.event_huber,
-                             None if pad is None else pad.event, pair_shaded)
+                             None if pad is None else pad.event, rendered)
         total = total + config.event_weight * le
         parts["event"] = le.detach()
     if config.tv_weight > 0 and (isinstance(tv_share, Tensor) or tv_share > 0):
@@ -274,18 +274,18 @@ def losses(problem: Problem, field: nn.Module, model: FitModel, config: StageCon
 
 
 def pair_event_loss(model: FitModel, normal: Tensor, maps: dict[str, Tensor], taps: Tensor, events: EventTerms, pairs: Tensor,
-                    view: Tensor, huber: float = 0.0, valid: Valid | None = None, shaded: Tensor | None = None) -> Tensor:
+                    view: Tensor, huber: float = 0.0, valid: Valid | None = None,
+                    rendered: tuple[PairRows, Tensor] | None = None) -> Tensor:
     """The event term of eq. 25 over the event ``pairs`` (indices into ``events``) whose super pixels
     cover the frame pixels ``taps`` (E, F) of ``normal`` (P, 3) and ``maps``: one compiled pass
     (``event_kernel``) for the built-in GGX and Lambertian on the CPU, else ``superpixel_grey`` now and
     at the reference time through ``event_loss``; ``huber`` its δ (0: the square); over the pairs
-    ``valid`` marks, where given, and with the taps' ``shaded`` rows of ``pair_grey``, where the caller
-    rendered them (both through torch). The scalar loss, differentiable."""
-    if valid is None and shaded is None and supports(model, normal):
+    ``valid`` marks, where given, and with the pairs' rows and their taps' shading ``rendered`` by the
+    caller (``pair_grey``; both through torch). The scalar loss, differentiable."""
+    if valid is None and rendered is None and supports(model, normal):
         return fused_event_loss(model, normal, maps, taps, events, pairs, view, LOG_EPS, huber)
-    grey, grey_ref = pair_grey(model, normal, maps, taps, events, pairs, view, shaded)
+    grey, grey_ref = pair_grey(model, normal, maps, taps, events, pairs, view, rendered)
     return event_loss(grey, grey_ref, events.target[pairs], events.weight[pairs], LOG_EPS, huber, valid)
-
 
 
 class PairRows(NamedTuple):
@@ -310,11 +310,12 @@ def pair_rows(taps: Tensor, events: EventTerms, pairs: Tensor, area: bool) -> Pa
 
 
 def pair_grey(model: FitModel, normal: Tensor, maps: dict[str, Tensor], taps: Tensor, events: EventTerms, pairs: Tensor,
-              view: Tensor, shaded: Tensor | None = None) -> tuple[Tensor, Tensor]:
+              view: Tensor, rendered: tuple[PairRows, Tensor] | None = None) -> tuple[Tensor, Tensor]:
     """(E,) each pair's ``superpixel_grey`` now and at its reference time, through torch, both in one
-    rendering (half the kernels of two: on a GPU, a step's time is their count); ``shaded`` the
-    (2E·F, 3) rendering of ``pair_rows``' taps where the caller did it."""
+    rendering (half the kernels of two: on a GPU, a step's time is their count); ``rendered`` the
+    ``pair_rows`` (with the areas where the model has indirect light) and the (2E·F, 3) rendering of
+    their taps, where the caller made them."""
     count = pairs.numel()
-    rows = pair_rows(taps, events, pairs, model.indirect)
+    rows, shaded = rendered if rendered is not None else (pair_rows(taps, events, pairs, model.indirect), None)
     both = superpixel_grey(model, normal, maps, rows.taps, rows.weight, rows.light, rows.grey, view, rows.area, shaded)
     return both[:count], both[count:]
