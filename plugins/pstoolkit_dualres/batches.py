@@ -278,11 +278,6 @@ def drawn_capacity(problem: Problem, tiling: Tiling, batch_pixels: int, tile: in
     return functools.reduce(Capacity.union, needs)
 
 
-def mini_batches(problem: Problem, tiling: Tiling, batch_pixels: int, tile: int, generator: torch.Generator) -> list[Batch]:
-    """``epoch_batches`` split into its batches."""
-    return epoch_batches(problem, tiling, batch_pixels, tile, generator).batches()
-
-
 @dataclass
 class EpochBatches:
     """An epoch's mini-batches as arrays over the epoch: ``own`` (B,) each batch's own frame pixels;

@@ -23,7 +23,7 @@ from pstoolkit.shadows import ShadowIntervals, ShadowMask
 from pstoolkit.shadows.score import true_shadows
 from pstoolkit.sim.config import SimulationConfig
 from pstoolkit.sim.simulator import simulate
-from pstoolkit_dualres.batches import Tiling, mini_batches
+from pstoolkit_dualres.batches import Tiling, epoch_batches
 from pstoolkit_dualres.fields import NeuralField, PyramidField, collapse, decompose
 from pstoolkit_dualres.forward_model import frame_prediction_grid, superpixel_grey
 from pstoolkit_dualres.frame_kernel import supports
@@ -54,7 +54,7 @@ def blobs(blobs_48: Path) -> tuple[psfmt.Capture, Preprocessed]:
 def test_an_epoch_covers_every_pixel_sample_and_usable_event_once(sphere: tuple[psfmt.Capture, Problem]) -> None:
     _, problem = sphere
     tiling = Tiling.of(problem)
-    batches = mini_batches(problem, tiling, STAGE.batch_pixels, STAGE.tile, torch.Generator().manual_seed(0))
+    batches = epoch_batches(problem, tiling, STAGE.batch_pixels, STAGE.tile, torch.Generator().manual_seed(0)).batches()
     geometry, frames = problem.geometry, problem.frames
     p = geometry.pixels.size
     assert abs(len(batches) - p / 256) <= 2
@@ -76,14 +76,14 @@ def test_an_epoch_covers_every_pixel_sample_and_usable_event_once(sphere: tuple[
         rows = b.frame_rows.numpy()
         np.testing.assert_array_equal(rows % p, np.tile(pixels[: b.frame_pixels], frames.count))
         assert (b.tv_pairs.numpy() < b.frame_pixels).all()
-    again = mini_batches(problem, tiling, STAGE.batch_pixels, STAGE.tile, torch.Generator().manual_seed(0))
+    again = epoch_batches(problem, tiling, STAGE.batch_pixels, STAGE.tile, torch.Generator().manual_seed(0)).batches()
     assert all(torch.equal(a.pixels, b.pixels) for a, b in zip(batches, again))
 
 
 def test_a_batchs_pixels_are_its_own_then_the_footprints_outside_ascending(sphere: tuple[psfmt.Capture, Problem]) -> None:
     _, problem = sphere
     tiling = Tiling.of(problem)
-    batches = mini_batches(problem, tiling, STAGE.batch_pixels, STAGE.tile, torch.Generator().manual_seed(3))
+    batches = epoch_batches(problem, tiling, STAGE.batch_pixels, STAGE.tile, torch.Generator().manual_seed(3)).batches()
     reached = 0
     for b in batches:
         pixels = b.pixels.numpy()
@@ -99,9 +99,9 @@ def test_the_samples_made_on_a_device_are_the_hosts(sphere: tuple[psfmt.Capture,
     """Torch on the CPU, ``devices.on_host`` told otherwise, makes the batches' samples as numpy does."""
     _, problem = sphere
     tiling = Tiling.of(problem)
-    host = mini_batches(problem, tiling, STAGE.batch_pixels, STAGE.tile, torch.Generator().manual_seed(5))
+    host = epoch_batches(problem, tiling, STAGE.batch_pixels, STAGE.tile, torch.Generator().manual_seed(5)).batches()
     monkeypatch.setattr(devices, "on_host", lambda device: False)
-    there = mini_batches(problem, tiling, STAGE.batch_pixels, STAGE.tile, torch.Generator().manual_seed(5))
+    there = epoch_batches(problem, tiling, STAGE.batch_pixels, STAGE.tile, torch.Generator().manual_seed(5)).batches()
     assert len(host) == len(there) > 1
     for a, b in zip(host, there):
         for name in ("pixels", "frame_rows", "samples", "sample_pixel", "sample_group", "events", "event_taps", "tv_pairs"):
