@@ -114,11 +114,11 @@ def main() -> None:
 
     def plain(i: int) -> None:
         field.zero_grad()
-        losses(problem, field, model, config, batches[i], 0.5)[0].backward()
+        losses(problem, field, model, config, batches[i % len(batches)], 0.5)[0].backward()
 
     def padded(i: int) -> None:
         field.zero_grad()
-        losses(problem, field, model, config, unpack(rows[i]), share)[0].backward()
+        losses(problem, field, model, config, unpack(rows[i % len(rows)]), share)[0].backward()
 
     ops: dict[str, dict[str, int]] = {}
     supports, gather = loss_module.supports, loss_module.gather_sum
@@ -147,7 +147,7 @@ def main() -> None:
 
         def compiled_step(i: int) -> None:
             field.zero_grad()
-            compiled(rows[i]).backward()
+            compiled(rows[i % len(rows)]).backward()
 
         step_ms["padded batch, torch.compile"] = milliseconds(compiled_step, STEPS)
     print(f"{args.size}²: {len(epoch)} batches an epoch, {record['samples_per_batch']:.0f} samples and "
