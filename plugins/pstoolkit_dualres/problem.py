@@ -1,5 +1,6 @@
 """A preprocessed capture as tensors on one device (``build_problem``), and the cast-shadow mask
-applied to it (``Problem.apply_mask``).
+applied to it (``Problem.apply_mask``; on a device that is not the CPU its lookups run there,
+``table_device``).
 
 A ``Problem`` is three parts and the units they share: the masked pixel grid the fit lives on with
 its start values (``Geometry``), the frame term of eq. 24 (``FrameTerms``) and the event term of
@@ -28,8 +29,10 @@ import torch
 from torch import Tensor
 
 from pstoolkit import GREY_WEIGHTS, US_PER_S, ShadowMask
+from pstoolkit._shared import devices
 from pstoolkit.grid import affine_footprints, bilinear_taps, frame_to_event
 from pstoolkit.optics.equivalent import sample_times
+from pstoolkit.shadows.table_device import DeviceShadowMask
 from pstoolkit_dualres.closed_form import ClosedFormStart
 from pstoolkit_dualres.preprocess import Preprocessed
 
@@ -91,7 +94,8 @@ class FrameTerms:
     under). ``source`` holds the numpy
     copies the mask is applied from: ``shared_t``/``shared_dt_us`` (K·S,) µs, or ``sample_t`` (M,) µs,
     ``sample_dt_s`` (M,) s and ``sample_weight`` (M, 3) without the mask; and ``measured`` as built
-    once ``apply_bounce`` has changed it."""
+    once ``apply_bounce`` has changed it. ``source_there``: those the mask reads, as tensors on a
+    device that is not the CPU, moved the first time a mask is applied there."""
 
     count: int
     exposure_s: float
@@ -106,10 +110,14 @@ class FrameTerms:
     saturated: Tensor
     energy: Tensor
     source: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+    source_there: dict[str, Tensor] = field(default_factory=dict, repr=False)
 
-    def apply_mask(self, shadows: ShadowMask, pixels: np.ndarray) -> np.ndarray:
+    def apply_mask(self, shadows: ShadowMask | DeviceShadowMask, pixels: np.ndarray) -> np.ndarray:
         """Weigh the samples by what ``shadows`` leaves lit at ``pixels`` (P,); returns (P,) the
-        exposure time in shadow, s."""
+        exposure time in shadow, s. A ``DeviceShadowMask`` is applied on the device
+        (``_apply_mask_there``)."""
+        if isinstance(shadows, DeviceShadowMask):
+            return self._apply_mask_there(shadows, pixels)
         src = self.source
         if "shared_t" in src:
             t, half = src["shared_t"], 0.5 * src["shared_dt_us"]
@@ -121,6 +129,22 @@ class FrameTerms:
         lit = ~shadows.contains(pixels[src["sample_pixel"]], src["sample_t"])
         self.sample_weight = _like(src["sample_weight"] * lit[:, None], self.measured)
         return np.bincount(src["sample_pixel"], weights=src["sample_dt_s"] * ~lit, minlength=pixels.size)
+
+    def _apply_mask_there(self, shadows: DeviceShadowMask, pixels: np.ndarray) -> np.ndarray:
+        """``apply_mask``'s expressions in torch, from ``source`` moved to the device once."""
+        src = _on_device(self.source_there, self.source, ("shared_t", "shared_dt_us", "sample_t", "sample_dt_s",
+                                                          "sample_weight"), shadows.device)
+        on = torch.as_tensor(pixels, dtype=torch.int64, device=shadows.device)
+        if "shared_t" in src:
+            t, half = src["shared_t"], 0.5 * src["shared_dt_us"]
+            shadowed = shadows.shadowed_grid(on, t - half, t + half)
+            visible = torch.clamp(1.0 - shadowed / (2.0 * half[:, None]), 0.0, 1.0)
+            self.shared_visible = visible.to(self.measured.dtype) if len(shadows) else None
+            return ((2.0 * half) @ (1.0 - visible) / US_PER_S).cpu().numpy()
+        lit = ~shadows.contains(on[self.sample_pixel], src["sample_t"])
+        self.sample_weight = (src["sample_weight"] * lit[:, None]).to(self.measured.dtype)
+        shadowed_s = torch.zeros(pixels.size, dtype=torch.float64, device=shadows.device)
+        return shadowed_s.index_add_(0, self.sample_pixel, src["sample_dt_s"] * ~lit).cpu().numpy()
 
     def apply_bounce(self, offset: np.ndarray) -> np.ndarray:
         """Set ``measured`` to the frames as built minus ``offset`` (K·P, 3), the light inter-reflection
@@ -146,7 +170,8 @@ class EventTerms:
     before any ``apply_gate``, and ``rise``/``fall`` (E,) the nominal thresholds of its positive and
     negative events (``target`` = rise − fall until ``apply_thresholds``); the three ``apply_`` methods
     after the mask keep what they set there (``steps``, ``gate``, ``bounce_*``), so that each composes
-    with the others."""
+    with the others. ``source_there``: what the mask reads of ``source``, as tensors on a device that
+    is not the CPU, moved the first time a mask is applied there."""
 
     taps: Tensor
     tap_weight_now: Tensor
@@ -160,10 +185,15 @@ class EventTerms:
     weight: Tensor
     usable: Tensor
     source: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+    source_there: dict[str, Tensor] = field(default_factory=dict, repr=False)
 
-    def apply_mask(self, shadows: ShadowMask) -> None:
+    def apply_mask(self, shadows: ShadowMask | DeviceShadowMask) -> None:
         """Keep each tap's area only where ``shadows`` leaves it lit, and only the pairs across which
-        no tap enters or leaves a shadow and some area stays lit at both ends."""
+        no tap enters or leaves a shadow and some area stays lit at both ends. A ``DeviceShadowMask``
+        is applied on the device (``_apply_mask_there``)."""
+        if isinstance(shadows, DeviceShadowMask):
+            self._apply_mask_there(shadows)
+            return
         src = self.source
         taps, area, t_now, t_ref = src["frame_taps"], src["area"], src["t_us"], src["t_ref_us"]
         n_taps = taps.shape[1]
@@ -178,6 +208,20 @@ class EventTerms:
         self.tap_weight_now = _like(weight_now, self.target)
         self.tap_weight_ref = _like(weight_ref, self.target)
         self.usable = torch.as_tensor(np.flatnonzero(usable), dtype=torch.int64, device=self.target.device)
+
+    def _apply_mask_there(self, shadows: DeviceShadowMask) -> None:
+        """``apply_mask``'s expressions in torch, from ``source`` moved to the device once."""
+        src = _on_device(self.source_there, self.source, ("frame_taps", "area", "t_us", "t_ref_us", "usable"), shadows.device)
+        taps, area, t_now, t_ref = src["frame_taps"], src["area"], src["t_us"][:, None], src["t_ref_us"][:, None]
+        lit_now, lit_ref = ~shadows.contains(taps, t_now), ~shadows.contains(taps, t_ref)
+        in_between = shadows.shadowed_us(taps, t_ref, t_now)
+        steady = (in_between <= 0.0) | (in_between >= t_now - t_ref)
+        weight_now, weight_ref = area * lit_now, area * lit_ref
+        usable = src["usable"] & torch.all(steady | (area <= 0), dim=1)
+        usable &= (weight_now.sum(dim=1) > 0) & (weight_ref.sum(dim=1) > 0)
+        self.tap_weight_now = weight_now.to(self.target.dtype)
+        self.tap_weight_ref = weight_ref.to(self.target.dtype)
+        self.usable = torch.nonzero(usable).reshape(-1)
 
     @property
     def pixel(self) -> np.ndarray:
@@ -251,15 +295,26 @@ class Problem:
         """Take the cast-shadow mask ``shadows`` into the frame weights and the event pairs."""
         geometry = self.geometry
         pixels = geometry.pixels
-        shadowed_s = self.frames.apply_mask(shadows, pixels)
+        # on a device the lookups run there, the table moved once for both terms
+        lookups = shadows if devices.on_host(self.device) else DeviceShadowMask(shadows, self.device)
+        shadowed_s = self.frames.apply_mask(lookups, pixels)
         self.shadow_fraction = np.zeros(geometry.height * geometry.width)
         self.shadow_fraction[pixels] = np.clip(shadowed_s / self.frames.exposure_s, 0.0, 1.0)
         self.shadow_fraction = self.shadow_fraction.reshape(geometry.height, geometry.width)
-        self.events.apply_mask(shadows)
+        self.events.apply_mask(lookups)
         usable = self.events.usable.numel()
         total = self.events.target.shape[0]
         self.diagnostics.update(event_pairs=usable, event_pairs_dropped=total - usable,
                                 cast_shadow_share=float(self.shadow_fraction.ravel()[pixels].mean()) if pixels.size else 0.0)
+
+
+def _on_device(there: dict[str, Tensor], source: dict[str, np.ndarray], names: tuple[str, ...], device: torch.device
+               ) -> dict[str, Tensor]:
+    """``there``, filled the first time with the ``names`` of ``source`` it has, as tensors on ``device``
+    (float64, int64 and bool as they are)."""
+    if not there:
+        there.update({name: torch.as_tensor(np.ascontiguousarray(source[name]), device=device) for name in names if name in source})
+    return there
 
 
 def _positions(pixels: np.ndarray, size: int) -> np.ndarray:

@@ -1,7 +1,7 @@
 """The stages a GPU runs as torch copies of the host's code (``devices.on_host``: the closed form's
-iteration, the surface's integration and shadow sweep, the runs and edges of its shadows), run end to
-end through torch on the CPU, give the host's result: CI has no GPU, so this is where the copies meet
-the rest of the pipeline."""
+iteration, the surface's integration and shadow sweep, the runs and edges of its shadows, the lookups
+of the masks the fit takes), run end to end through torch on the CPU, give the host's result: CI has no
+GPU, so this is where the copies meet the rest of the pipeline."""
 
 from __future__ import annotations
 
@@ -18,9 +18,11 @@ from pstoolkit.evaluation.metrics import angular_error_deg
 from pstoolkit.optics.shadow_sweep import ShadowCaster
 from pstoolkit.optics.shadow_sweep_device import DeviceCaster
 from pstoolkit.plugin.manager import get_registries
+from pstoolkit.shadows.base import ShadowMask
 from pstoolkit.shadows.device_tracking import DeviceEdgeTracker, DeviceRunCollector
 from pstoolkit.shadows.edge_tracking import EdgeTracker
 from pstoolkit.shadows.intervals import RunCollector
+from pstoolkit.shadows.table_device import DeviceShadowMask
 from pstoolkit.solve.base import SolverResult, run_solver
 from pstoolkit_dualres import closed_form
 
@@ -36,7 +38,8 @@ def test_the_device_path_on_the_cpu_gives_the_hosts_normals(blobs_48: Path, monk
     used = []
     for owner, name in ((closed_form, "device_fixed_point"), (integrate_device, "integrate_normals_on"),
                         (DeviceCaster, "margins"), (DeviceRunCollector, "intervals"), (DeviceEdgeTracker, "edges"),
-                        (EdgeTracker, "feed"), (ShadowCaster, "margins")):
+                        (EdgeTracker, "feed"), (ShadowCaster, "margins"), (DeviceShadowMask, "shadowed_us"),
+                        (ShadowMask, "shadowed_us")):
         real = getattr(owner, name)
         monkeypatch.setattr(owner, name, lambda *args, real=real, name=f"{owner.__name__}.{name}", **kwargs:
                             used.append(name) or real(*args, **kwargs))
@@ -51,6 +54,8 @@ def test_the_device_path_on_the_cpu_gives_the_hosts_normals(blobs_48: Path, monk
     # every sweep, its runs and edges on the device's side; the host's collectors see only the host's grids
     assert {"DeviceCaster.margins", "DeviceRunCollector.intervals", "DeviceEdgeTracker.edges"} <= set(used)
     assert not {"EdgeTracker.feed", "ShadowCaster.margins"} & set(used)
+    # every mask the fit takes is applied on the device's side
+    assert used.count("DeviceShadowMask.shadowed_us") >= 3 and "ShadowMask.shadowed_us" not in used
     assert fed and not any(isinstance(block, torch.Tensor) for block in fed)
     truth = capture.ground_truth
     assert np.array_equal(host.mask, there.mask)

@@ -140,6 +140,37 @@ def test_the_mask_reaches_the_frames_and_the_events(blobs: tuple[psfmt.Capture, 
         assert problem.events.usable.numel() == usable and problem.shadow_fraction.max() == 0.0
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+def test_a_mask_applied_on_the_device_weighs_as_the_hosts(blobs: tuple[psfmt.Capture, Preprocessed], device: str,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    capture, pre = blobs
+    gt = capture.ground_truth
+    truth = true_shadows(gt.depth, gt.mask, pre.light, pre.t0_us, pre.period_us)
+    monkeypatch.setattr(devices, "on_host", lambda where: False)  # the CPU down the device's path too
+    for frame_samples in (8, 0):
+        with monkeypatch.context() as m:
+            m.setattr(devices, "on_host", lambda where: True)
+            host = build_problem(pre, capture.calibration.view_direction, device="cpu", frame_samples=frame_samples)
+            host.apply_mask(truth)
+        there = build_problem(pre, capture.calibration.view_direction, device=device, frame_samples=frame_samples)
+        unmasked = there.events.usable.numel()
+        there.apply_mask(truth)
+        assert there.frames.source_there and there.events.source_there and not host.events.source_there
+        assert torch.equal(there.events.usable.cpu(), host.events.usable)
+        assert 0 < host.events.usable.numel() < host.events.target.shape[0]
+        for name in ("tap_weight_now", "tap_weight_ref"):
+            assert torch.equal(getattr(there.events, name).cpu(), getattr(host.events, name)), name
+        frames = ("shared_visible",) if frame_samples else ("sample_weight",)
+        for name in frames:
+            assert torch.equal(getattr(there.frames, name).cpu(), getattr(host.frames, name)), name
+        # summed in another order (a matrix product, an index_add): float64 rounding apart
+        np.testing.assert_allclose(there.shadow_fraction, host.shadow_fraction, rtol=0, atol=1e-12)
+        assert host.shadow_fraction.max() > 0.2
+        there.apply_mask(ShadowMask.none(pre.height * pre.width, pre.t0_us, pre.period_us))
+        assert there.events.usable.numel() == unmasked
+        assert there.frames.shared_visible is None and there.shadow_fraction.max() == 0.0
+
+
 def test_a_laplacian_pyramid_collapses_to_its_image() -> None:
     image = torch.rand(1, 4, 37, 50, dtype=torch.float64)
     levels = decompose(image, 4)
