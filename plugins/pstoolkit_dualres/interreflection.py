@@ -22,190 +22,36 @@ target the log ratio of the direct share of its super-pixel irradiance at its tw
 against ``direct_irradiance``; a pair whose direct share is below ``MIN_DIRECT_SHARE`` at either end says
 little of the direct shading and is left out).
 
-The sum runs on a grid of at most ``WORK_SIDE`` cells a side (the bounce is smooth at the scale of a
-pixel) over neighbours within ``RADIUS_CELLS`` cells, at ``PHASES`` light directions per turn.
+The sum runs on a grid of coarse cells (``bounce``: the bounce is smooth at the scale of a pixel), at
+``PHASES`` light directions per turn; on a fit that is not on the CPU, its work over the pixels runs on
+the fit's device (``bounce_device``).
 """
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
-
-import numba
 import numpy as np
 import torch
-from numba import prange
 from torch import Tensor
 
 from pstoolkit import ShadowMask
+from pstoolkit._shared import devices
 from pstoolkit.events.rule import LOG_EPS
 from pstoolkit.optics.lights import LightModel
 from pstoolkit.shadows.intervals import grid_times
+from pstoolkit.shadows.table_device import DeviceShadowMask
+from pstoolkit_dualres.bounce import Bounce, Cells, one_bounce
+from pstoolkit_dualres.bounce_device import DeviceBounce, cell_direct_there, event_offsets_there, frame_offsets_there
 from pstoolkit_dualres.forward_model import frame_prediction
 from pstoolkit_dualres.losses import event_loss, frame_loss, grid_frame_loss, pair_grey
 from pstoolkit_dualres.problem import EventTerms, FrameTerms, Problem
 from pstoolkit_dualres.reflectance import FitModel
 
-# Cells per side of the grid the bounce is summed on: the kernel's cost grows with the cells times
-# the neighbours.
-WORK_SIDE = 96
-# Neighbours within this many cells contribute (a concavity narrower than a third of the frame).
-RADIUS_CELLS = 32
 # Light directions per period the bounce is evaluated at (and interpolated between, cyclically).
 PHASES = 96
-# Smallest n_z taken for a patch's area (at most 1/MIN_NZ cells of surface per cell).
-MIN_NZ = 0.1
 # Pairs whose direct share of the irradiance is below this at either end are left out.
 MIN_DIRECT_SHARE = 0.2
 # Event pairs rendered at once for their direct irradiance.
 PAIR_CHUNK = 65536
-
-
-@numba.njit(cache=True, parallel=True, nogil=True)
-def _bounce(point: np.ndarray, normal: np.ndarray, albedo: np.ndarray, direct: np.ndarray, inside: np.ndarray,
-            height: np.ndarray, radius: int, out: np.ndarray) -> None:
-    """``out`` (Hc, Wc, T, 3) += the one-bounce sum of the module docstring (γ = 1) at every cell
-    inside; ``point``, ``normal`` (Hc, Wc, 3) in cell units, ``albedo`` (Hc, Wc, 3), ``direct``
-    (Hc, Wc, T), ``inside`` (Hc, Wc) bool, ``height`` (Hc, Wc) cell units."""
-    hc, wc = inside.shape
-    t_count = direct.shape[2]
-    for v in prange(hc):
-        for u in range(wc):
-            if not inside[v, u]:
-                continue
-            px, py, pz = point[v, u, 0], point[v, u, 1], point[v, u, 2]
-            nx, ny, nz = normal[v, u, 0], normal[v, u, 1], normal[v, u, 2]
-            for dv in range(-radius, radius + 1):
-                vy = v + dv
-                if vy < 0 or vy >= hc:
-                    continue
-                for du in range(-radius, radius + 1):
-                    uy = u + du
-                    if uy < 0 or uy >= wc or (du == 0 and dv == 0) or du * du + dv * dv > radius * radius:
-                        continue
-                    if not inside[vy, uy]:
-                        continue
-                    dx, dy, dz = point[vy, uy, 0] - px, point[vy, uy, 1] - py, point[vy, uy, 2] - pz
-                    r2 = dx * dx + dy * dy + dz * dz
-                    r = math.sqrt(r2)
-                    cos_x = (nx * dx + ny * dy + nz * dz) / r
-                    cos_y = -(normal[vy, uy, 0] * dx + normal[vy, uy, 1] * dy + normal[vy, uy, 2] * dz) / r
-                    if cos_x <= 0.0 or cos_y <= 0.0:
-                        continue
-                    # the segment between the two patches must pass above the height field
-                    steps = max(abs(du), abs(dv))
-                    blocked = False
-                    for s in range(1, steps):
-                        f = s / steps
-                        su = int(round(u + f * du))
-                        sv = int(round(v + f * dv))
-                        if inside[sv, su] and height[sv, su] > pz + f * dz + 0.5:
-                            blocked = True
-                            break
-                    if blocked:
-                        continue
-                    k = cos_x * cos_y / (math.pi * r2) / max(normal[vy, uy, 2], MIN_NZ)
-                    for t in range(t_count):
-                        d = direct[vy, uy, t]
-                        if d > 0.0:
-                            for c in range(3):
-                                out[v, u, t, c] += k * albedo[vy, uy, c] * d
-
-
-def _pool(values: np.ndarray, weight: np.ndarray, stride: int, shape: tuple[int, int]) -> np.ndarray:
-    """Weighted mean of ``values`` (H, W, ...) over stride×stride blocks into ``shape`` cells."""
-    h, w = weight.shape
-    hc, wc = shape
-    pad_h, pad_w = hc * stride - h, wc * stride - w
-    vals = np.pad(values * weight.reshape(h, w, *([1] * (values.ndim - 2))),
-                  [(0, pad_h), (0, pad_w)] + [(0, 0)] * (values.ndim - 2))
-    wts = np.pad(weight, [(0, pad_h), (0, pad_w)])
-    vals = vals.reshape(hc, stride, wc, stride, *values.shape[2:]).sum(axis=(1, 3))
-    wts = wts.reshape(hc, stride, wc, stride).sum(axis=(1, 3))
-    return vals / np.maximum(wts, 1e-12).reshape(hc, wc, *([1] * (values.ndim - 2)))
-
-
-@dataclass
-class Bounce:
-    """B/γ of the module docstring on the cells it was summed on: ``value`` (T, C, 3) at the phases
-    ``phase_us`` (T,) (µs since the phase origin, bin centres of one period ``period_us``), and
-    ``cell`` (P,) the cell of each masked frame pixel (the bounce is smooth at the scale of a cell)."""
-
-    value: np.ndarray
-    cell: np.ndarray
-    phase_us: np.ndarray
-    period_us: float
-
-    def _bracket(self, phase_us: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        t = len(self.phase_us)
-        pos = np.mod(np.asarray(phase_us, dtype=np.float64) / self.period_us * t - 0.5, t)
-        lo = np.floor(pos).astype(np.int64)
-        return lo, (lo + 1) % t, pos - lo
-
-    def at(self, phase_us: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        """(N, 3) at the pixels ``rows`` (N,) (positions among the P) and phases ``phase_us`` (N,),
-        linear in phase, cyclic."""
-        lo, hi, frac = self._bracket(phase_us)
-        cell = self.cell[rows]
-        return self.value[lo, cell] * (1.0 - frac[:, None]) + self.value[hi, cell] * frac[:, None]
-
-    def everywhere(self, phase_us: float) -> np.ndarray:
-        """(P, 3) at every masked pixel at one phase."""
-        lo, hi, frac = self._bracket(np.array([phase_us]))
-        return (self.value[lo[0]] * (1.0 - frac[0]) + self.value[hi[0]] * frac[0])[self.cell]
-
-
-def one_bounce(normal: np.ndarray, albedo: np.ndarray, height: np.ndarray, mask: np.ndarray, lit: np.ndarray,
-               directions: np.ndarray, phase_us: np.ndarray, period_us: float) -> Bounce:
-    """The one-bounce irradiance B/γ (module docstring) of a surface.
-
-    Parameters
-    ----------
-    normal
-        (H, W, 3) unit normals (camera frame: x right, y up, z towards the camera).
-    albedo
-        (H, W, 3) diffuse albedo, relative units.
-    height
-        (H, W) height towards the camera, frame pixels (``pstoolkit.surface.integrate_normals``).
-    mask
-        (H, W) bool, the pixels on the object.
-    lit
-        (T, P) bool, whether each masked pixel (flat order) is out of cast shadow at each phase.
-    directions
-        (T, 3) unit light directions at the phases ``phase_us`` (T,), grid bin centres of one period.
-    period_us
-        The light period, µs.
-
-    Returns
-    -------
-    Bounce
-        On a grid of at most ``WORK_SIDE`` cells a side, with the cell of each masked pixel.
-    """
-    h, w = mask.shape
-    stride = max(1, math.ceil(max(h, w) / WORK_SIDE))
-    shape = (math.ceil(h / stride), math.ceil(w / stride))
-    weight = mask.astype(np.float64)
-    pixels = np.flatnonzero(mask)
-    t_count = len(directions)
-    cell_normal = _pool(normal, weight, stride, shape)
-    cell_normal /= np.maximum(np.linalg.norm(cell_normal, axis=-1, keepdims=True), 1e-12)
-    cell_albedo = _pool(albedo, weight, stride, shape)
-    cell_height = _pool(height, weight, stride, shape) / stride
-    # the direct light a phase at a time: no (T, H·W) array at a large capture
-    cell_direct = np.zeros((*shape, t_count))
-    plane = np.zeros(h * w)
-    facing = normal.reshape(-1, 3)[pixels]
-    for t in range(t_count):
-        plane[pixels] = np.clip(facing @ directions[t], 0.0, None) * lit[t]
-        cell_direct[..., t] = _pool(plane.reshape(h, w), weight, stride, shape)
-    inside = _pool(weight, np.ones_like(weight), stride, shape) >= 0.5
-    v, u = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
-    point = np.stack([u, -v, cell_height], axis=-1)
-    out = np.zeros((*shape, t_count, 3))
-    _bounce(point, cell_normal, cell_albedo, cell_direct, inside, cell_height, RADIUS_CELLS, out)
-    pv, pu = np.divmod(pixels, w)
-    value = np.ascontiguousarray(np.moveaxis(out.reshape(-1, t_count, 3), 1, 0)).astype(np.float32)
-    return Bounce(value, (pv // stride) * shape[1] + pu // stride, np.asarray(phase_us, dtype=np.float64), float(period_us))
 
 
 def frame_offsets(frames: FrameTerms, bounce: Bounce, albedo: np.ndarray, t0_us: float, period_us: float) -> np.ndarray:
@@ -299,17 +145,23 @@ def remove_bounce(problem: Problem, model: FitModel, normal: Tensor, maps: dict[
     albedo = maps[model.diffuse].detach().cpu().numpy().astype(np.float64)
     full_normal, full_albedo = np.zeros((h * w, 3)), np.zeros((h * w, 3))
     full_normal[pixels], full_albedo[pixels] = normal_np, albedo
+    full_normal, full_albedo = full_normal.reshape(h, w, 3), full_albedo.reshape(h, w, 3)
     mask = np.zeros(h * w, dtype=bool)
     mask[pixels] = True
     mask = mask.reshape(h, w)
     phase = grid_times(period_us, PHASES)
-    lit = ~shadows.contains_grid(pixels, t0_us + phase) if len(shadows) else np.ones((PHASES, pixels.size), dtype=bool)
     directions = light.evaluate(t0_us + phase)[0]
-    bounce = one_bounce(full_normal.reshape(h, w, 3), full_albedo.reshape(h, w, 3), height, mask, lit, directions, phase, period_us)
-    offset = gamma * frame_offsets(problem.frames, bounce, albedo, t0_us, period_us)
+    if devices.on_host(problem.device):
+        lit = ~shadows.contains_grid(pixels, t0_us + phase) if len(shadows) else np.ones((PHASES, pixels.size), dtype=bool)
+        bounce = one_bounce(full_normal, full_albedo, height, mask, lit, directions, phase, period_us)
+        offset = gamma * frame_offsets(problem.frames, bounce, albedo, t0_us, period_us)
+        bounce_now, bounce_ref = event_offsets(problem.events, bounce, albedo, t0_us, period_us)
+    else:
+        offset, bounce_now, bounce_ref = _offsets_there(problem, normal, maps[model.diffuse], full_normal, full_albedo, height,
+                                                        mask, shadows, directions, phase, t0_us, period_us)
+        offset *= gamma
     measured = problem.frames.apply_bounce(offset)
     direct_now, direct_ref = direct_irradiance(model, normal, maps, problem.events, geometry.view)
-    bounce_now, bounce_ref = event_offsets(problem.events, bounce, albedo, t0_us, period_us)
     share_now = direct_now / np.maximum(direct_now + gamma * bounce_now, 1e-12)
     share_ref = direct_ref / np.maximum(direct_ref + gamma * bounce_ref, 1e-12)
     keep = (share_now >= MIN_DIRECT_SHARE) & (share_ref >= MIN_DIRECT_SHARE)
@@ -317,6 +169,25 @@ def remove_bounce(problem: Problem, model: FitModel, normal: Tensor, maps: dict[
     problem.events.apply_bounce(shift, keep, gamma * bounce_now, gamma * bounce_ref)
     return {"bounce_frame_share": float(np.mean(offset) / max(float(np.mean(measured)), 1e-12)),
             "bounce_pairs_dropped": float(np.mean(~keep)) if keep.size else 0.0}
+
+
+def _offsets_there(problem: Problem, normal: Tensor, albedo: Tensor, full_normal: np.ndarray, full_albedo: np.ndarray,
+                   height: np.ndarray, mask: np.ndarray, shadows: ShadowMask, directions: np.ndarray, phase_us: np.ndarray,
+                   t0_us: float, period_us: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``remove_bounce``'s bounce (γ = 1), its frame offsets and its pairs' irradiance, on the fit's device
+    (``bounce_device``): ``normal``/``albedo`` (P, 3) the fit's, ``full_normal``/``full_albedo`` (H, W, 3)
+    the same on the frame grid of ``mask``."""
+    device = problem.device
+    pixels = torch.as_tensor(problem.geometry.pixels, dtype=torch.int64, device=device)
+    times = torch.as_tensor(t0_us + phase_us, dtype=torch.float64, device=device)
+    lit = ~DeviceShadowMask(shadows, device).contains_grid(pixels, times)
+    cells = Cells.of(mask)
+    normal64, albedo64 = normal.detach().to(torch.float64), albedo.detach().to(torch.float64)
+    direct = cell_direct_there(cells, normal64, lit, directions)
+    there = DeviceBounce.of(cells.bounce(full_normal, full_albedo, height, direct, phase_us, period_us), device)
+    offset = frame_offsets_there(problem.frames, there, albedo64, t0_us, period_us)
+    now, ref = event_offsets_there(problem.events, there, albedo64, t0_us, period_us)
+    return offset.cpu().numpy(), now.cpu().numpy(), ref.cpu().numpy()
 
 
 def unexplained(problem: Problem, model: FitModel, normal: Tensor, maps: dict[str, Tensor], frame_weight: float,

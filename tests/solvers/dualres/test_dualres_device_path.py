@@ -1,7 +1,7 @@
 """The stages a GPU runs as torch copies of the host's code (``devices.on_host``: the closed form's
 iteration, the surface's integration and shadow sweep, the runs and edges of its shadows, the lookups
-of the masks the fit takes), run end to end through torch on the CPU, give the host's result: CI has no
-GPU, so this is where the copies meet the rest of the pipeline."""
+of the masks the fit takes, the bounce's work over the pixels), run end to end through torch on the CPU,
+give the host's result: CI has no GPU, so this is where the copies meet the rest of the pipeline."""
 
 from __future__ import annotations
 
@@ -25,6 +25,8 @@ from pstoolkit.shadows.intervals import RunCollector
 from pstoolkit.shadows.table_device import DeviceShadowMask
 from pstoolkit.solve.base import SolverResult, run_solver
 from pstoolkit_dualres import closed_form
+from pstoolkit_dualres.bounce import Bounce
+from pstoolkit_dualres.bounce_device import DeviceBounce
 
 
 def _solve(capture: psfmt.Capture) -> SolverResult:
@@ -39,7 +41,7 @@ def test_the_device_path_on_the_cpu_gives_the_hosts_normals(blobs_48: Path, monk
     for owner, name in ((closed_form, "device_fixed_point"), (integrate_device, "integrate_normals_on"),
                         (DeviceCaster, "margins"), (DeviceRunCollector, "intervals"), (DeviceEdgeTracker, "edges"),
                         (EdgeTracker, "feed"), (ShadowCaster, "margins"), (DeviceShadowMask, "shadowed_us"),
-                        (ShadowMask, "shadowed_us")):
+                        (ShadowMask, "shadowed_us"), (DeviceBounce, "at"), (Bounce, "at")):
         real = getattr(owner, name)
         monkeypatch.setattr(owner, name, lambda *args, real=real, name=f"{owner.__name__}.{name}", **kwargs:
                             used.append(name) or real(*args, **kwargs))
@@ -56,6 +58,8 @@ def test_the_device_path_on_the_cpu_gives_the_hosts_normals(blobs_48: Path, monk
     assert not {"EdgeTracker.feed", "ShadowCaster.margins"} & set(used)
     # every mask the fit takes is applied on the device's side
     assert used.count("DeviceShadowMask.shadowed_us") >= 3 and "ShadowMask.shadowed_us" not in used
+    # the bounce the fit tries is read back at the pairs' taps there
+    assert "DeviceBounce.at" in used and "Bounce.at" not in used
     assert fed and not any(isinstance(block, torch.Tensor) for block in fed)
     truth = capture.ground_truth
     assert np.array_equal(host.mask, there.mask)

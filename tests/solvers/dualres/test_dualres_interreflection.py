@@ -1,5 +1,5 @@
-"""One bounce of inter-reflection from the fitted surface (``pstoolkit_dualres.interreflection``,
-option ``interreflection``)."""
+"""One bounce of inter-reflection from the fitted surface (``pstoolkit_dualres.interreflection`` and
+``bounce``, option ``interreflection``), on the host and on a device (``bounce_device``)."""
 
 from __future__ import annotations
 
@@ -8,15 +8,22 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 import psfmt
+from pstoolkit._shared import devices
 from pstoolkit.errors import UserError
+from pstoolkit.optics.brdf import Lambertian
+from pstoolkit.shadows.score import true_shadows
 from pstoolkit.sim.config import SimulationConfig
 from pstoolkit.sim.simulator import simulate
 from pstoolkit.solve.api import solve_capture
-from pstoolkit_dualres.interreflection import MIN_NZ, one_bounce
+from pstoolkit.surface import integrate_normals
+from pstoolkit_dualres.bounce import MIN_NZ, one_bounce
+from pstoolkit_dualres.interreflection import remove_bounce
 from pstoolkit_dualres.preprocess import PreprocessOptions, preprocess
 from pstoolkit_dualres.problem import build_problem
+from pstoolkit_dualres.reflectance import FitModel
 
 
 def _groove(size: int, depth_per_px: float) -> tuple[np.ndarray, np.ndarray]:
@@ -175,6 +182,39 @@ def test_a_bounce_the_measurements_do_not_have_is_tried_and_left_out(hollows_48:
     brighter = solve_capture(hollows_48, "dualres", epochs=30, interreflection="on", bounce_reflectance=1.2)
     more = next(stage for stage in brighter.diagnostics["stages"] if "bounce_frame_share" in stage)
     assert more["bounce_frame_share"] > 1.5 * record["bounce_frame_share"]
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+def test_the_bounce_taken_out_on_the_device_is_the_hosts(hollows_48: Path, device: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``remove_bounce`` down the device's path (``bounce_device``) changes the frames and the pairs as the
+    host's does, for the shared grid's samples and the importance samples."""
+    capture = psfmt.read(hollows_48)
+    pre = preprocess(capture, PreprocessOptions())
+    gt = capture.ground_truth
+    truth = true_shadows(gt.depth, gt.mask, pre.light, pre.t0_us, pre.period_us)
+    height = integrate_normals(gt.normal, gt.mask)
+    model = FitModel(Lambertian())
+    monkeypatch.setattr(devices, "on_host", lambda where: False)  # the CPU down the device's path too
+    for frame_samples in (8, 0):
+        with monkeypatch.context() as m:
+            m.setattr(devices, "on_host", lambda where: True)
+            host = build_problem(pre, capture.calibration.view_direction, device="cpu", frame_samples=frame_samples)
+            host.apply_mask(truth)
+            p = host.geometry.pixels.size
+            normal = torch.as_tensor(gt.normal.reshape(-1, 3)[host.geometry.pixels], dtype=torch.float32)
+            maps = model.maps(torch.full((p, model.pixel_channels), 0.3), torch.zeros(p, model.smooth_channels))
+            expected = remove_bounce(host, model, normal, maps, height, truth, pre.light, pre.t0_us, pre.period_us, 0.8)
+        there = build_problem(pre, capture.calibration.view_direction, device=device, frame_samples=frame_samples)
+        there.apply_mask(truth)
+        got = remove_bounce(there, model.to(device), normal.to(device), {k: v.to(device) for k, v in maps.items()}, height,
+                            truth, pre.light, pre.t0_us, pre.period_us, 0.8)
+        assert expected["bounce_frame_share"] > 0.002 and 0.0 < expected["bounce_pairs_dropped"] < 0.5
+        assert got == pytest.approx(expected, rel=1e-6)
+        # the cells' and the samples' sums are taken in another order: float rounding apart
+        np.testing.assert_allclose(there.frames.measured.cpu().numpy(), host.frames.measured.numpy(), rtol=1e-6, atol=1e-7)
+        for name in ("bounce_now", "bounce_ref", "bounce_shift"):
+            np.testing.assert_allclose(there.events.source[name], host.events.source[name], rtol=1e-6, atol=1e-9, err_msg=name)
+        assert np.array_equal(there.events.source["bounce_keep"], host.events.source["bounce_keep"])
 
 
 def test_the_bounce_takes_the_height_the_detector_integrated(hollows_48: Path, monkeypatch: pytest.MonkeyPatch) -> None:
