@@ -11,7 +11,8 @@ Sections, each a table printed and stored in the JSON:
    solve of a 64² capture on the same device in this process, so numba's kernels are compiled and
    CUDA's context and libraries loaded before any timed run ("second run").
 2. ``paper`` (the paper's MLP) at each of ``--paper-sizes`` on cuda, its mini-batch steps replayed as
-   CUDA graphs, with the solver's ``compile`` off and on (``--paper-compile``): ``--paper-epochs``
+   CUDA graphs, with the solver's ``compile`` off and on (``--paper-compile``) and any more options
+   (``--paper-options``, such as ``batch_pixels=4096``): ``--paper-epochs``
    epochs, or as many as a first timed run of ``PROBE_EPOCHS`` says fit in ``--paper-budget-s``
    (that first run also compiles, so the timed run's compiled steps come from torch's caches);
    seconds per epoch, the 1200 epochs they project to, and the errors.
@@ -127,18 +128,20 @@ def fast_rows(folder: Path, gpu: str, sizes: list[str], cpu_sizes: list[str], op
     return rows
 
 
-def paper_row(folder: Path, gpu: str, size: str, epochs: int, budget_s: float, compiled: bool, profile: Path | None) -> dict[str, Any]:
-    """The paper preset on ``gpu`` (``compiled``: the solver's ``compile``): a probe of PROBE_EPOCHS
-    epochs, then ``epochs`` or as many as fit the budget."""
+def paper_row(folder: Path, gpu: str, size: str, epochs: int, budget_s: float, compiled: bool, extra: list[str],
+              profile: Path | None) -> dict[str, Any]:
+    """The paper preset on ``gpu`` (``compiled``: the solver's ``compile``; ``extra``: more assignments,
+    such as another ``batch_pixels``): a probe of PROBE_EPOCHS epochs, then ``epochs`` or as many as fit
+    the budget."""
     path = capture_path(folder, parse_size(size), 0)
-    options = ["preset=paper", f"compile={'true' if compiled else 'false'}"]
+    options = ["preset=paper", f"compile={'true' if compiled else 'false'}", *extra]
     probe = solve(path, gpu, [*options, f"epochs={PROBE_EPOCHS}"])
     per_epoch = probe["seconds"] / PROBE_EPOCHS
     run = min(epochs, max(PROBE_EPOCHS, int(budget_s / per_epoch)))
     row = solve(path, gpu, [*options, f"epochs={run}"], profile)
     print(f"  paper {size_name(parse_size(size))} {gpu} compile={compiled}: {run} epochs in {row['seconds']:.1f} s "
           f"({row['seconds'] / run * 1e3:.1f} ms/epoch; probe {probe['seconds']:.1f} s), MAE {row['mae_deg']:.3f}°", flush=True)
-    return {"size": size_name(parse_size(size)), "compile": compiled, "probe_seconds": probe["seconds"],
+    return {"size": size_name(parse_size(size)), "compile": compiled, "options": extra, "probe_seconds": probe["seconds"],
             "probe_seconds_per_epoch": per_epoch, "epochs_run": run, "seconds_per_epoch": row["seconds"] / run,
             "projected_seconds": row["seconds"] / run * PAPER_EPOCHS, **row}
 
@@ -196,6 +199,8 @@ def main() -> None:
     parser.add_argument("--paper-budget-s", type=float, default=60.0, help="at most this long a paper run (fewer epochs)")
     parser.add_argument("--paper-compile", choices=("off", "on", "both"), default="both",
                         help="the paper runs with the solver's compile off, on, or both")
+    parser.add_argument("--paper-options", nargs="*", default=[],
+                        help="extra --set assignments of the paper runs (batch_pixels=4096: fewer, larger steps an epoch)")
     parser.add_argument("--profile", nargs="*", default=[], help="sizes of --sizes whose cuda solve runs under cProfile, and/or 'paper'")
     parser.add_argument("--tests", action="store_true", help="first run the suite's CUDA tests (pytest -m cuda)")
     parser.add_argument("--data", type=Path, help="folder to keep the captures in (default: a temporary one)")
@@ -207,7 +212,8 @@ def main() -> None:
     record: dict[str, Any] = {
         "benchmark": "gpu", "config": {"scene": "blobs", "sizes": args.sizes, "cpu_sizes": args.cpu_sizes,
                                        "dualres_options": args.dualres_options, "paper_sizes": args.paper_sizes,
-                                       "paper_epochs": args.paper_epochs, "paper_compile": args.paper_compile},
+                                       "paper_epochs": args.paper_epochs, "paper_compile": args.paper_compile,
+                                       "paper_options": args.paper_options},
         "machine": {"gpu": torch.cuda.get_device_name() if args.device == "cuda" else None, "torch": torch.__version__,
                     "python": platform.python_version(), "cpus": os.cpu_count(), "torch_threads": torch.get_num_threads()},
         "rows": [], "paper": [], "tests": None, "targets": None,
@@ -229,7 +235,8 @@ def main() -> None:
         for size in args.paper_sizes:
             for compiled in compiles:
                 profile = args.out.parent / f"profile-paper-{size}{'-compiled' if compiled else ''}.txt" if "paper" in args.profile else None
-                record["paper"].append(paper_row(folder, args.device, size, args.paper_epochs, args.paper_budget_s, compiled, profile))
+                record["paper"].append(paper_row(folder, args.device, size, args.paper_epochs, args.paper_budget_s, compiled,
+                                                 args.paper_options, profile))
                 write_results(args.out, record)
     for paper in record["paper"]:
         print(f"\npaper {paper['size']} compile={paper['compile']}: {paper['seconds_per_epoch'] * 1e3:.1f} ms/epoch, {PAPER_EPOCHS} epochs ≈ "

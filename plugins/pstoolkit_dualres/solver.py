@@ -427,7 +427,11 @@ class DualRes(Solver):
                 records, fitted = fit_from(1, 0.0, bar)
                 return records, fitted, {"kept": False, **seen}
             # both fits are judged on the pairs both masks leave usable: neither gains by leaving more out
-            compared = np.intersect1d(usable_a, problem.events.usable.cpu().numpy())
+            # both lists ascend: a lookup table intersects them in order (np.intersect1d sorts them again, 1.3 s at 1024²)
+            usable_b = problem.events.usable.cpu().numpy()
+            in_a = np.zeros(problem.events.target.shape[0], dtype=bool)
+            in_a[usable_a] = True
+            compared = usable_b[in_a[usable_b]]
             records_b, fitted_b = fit_from(1, gamma, (bar[0], middle))
             bounced = FitState.take(problem, field, model, shadows, gains)
             weights = self._stage(preset, options, 0, options["seed"])
