@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from helpers.device_path import masked_problems, on_the_host
 
 import psfmt
-from pstoolkit._shared import devices
 from pstoolkit.errors import UserError
 from pstoolkit.optics.brdf import Lambertian
 from pstoolkit.shadows.score import true_shadows
@@ -194,18 +194,13 @@ def test_the_bounce_taken_out_on_the_device_is_the_hosts(hollows_48: Path, devic
     truth = true_shadows(gt.depth, gt.mask, pre.light, pre.t0_us, pre.period_us)
     height = integrate_normals(gt.normal, gt.mask)
     model = FitModel(Lambertian())
-    monkeypatch.setattr(devices, "on_host", lambda where: False)  # the CPU down the device's path too
     for frame_samples in (8, 0):
-        with monkeypatch.context() as m:
-            m.setattr(devices, "on_host", lambda where: True)
-            host = build_problem(pre, capture.calibration.view_direction, device="cpu", frame_samples=frame_samples)
-            host.apply_mask(truth)
-            p = host.geometry.pixels.size
-            normal = torch.as_tensor(gt.normal.reshape(-1, 3)[host.geometry.pixels], dtype=torch.float32)
-            maps = model.maps(torch.full((p, model.pixel_channels), 0.3), torch.zeros(p, model.smooth_channels))
+        host, there = masked_problems(pre, capture.calibration.view_direction, truth, frame_samples, device, monkeypatch)
+        p = host.geometry.pixels.size
+        normal = torch.as_tensor(gt.normal.reshape(-1, 3)[host.geometry.pixels], dtype=torch.float32)
+        maps = model.maps(torch.full((p, model.pixel_channels), 0.3), torch.zeros(p, model.smooth_channels))
+        with on_the_host(monkeypatch):
             expected = remove_bounce(host, model, normal, maps, height, truth, pre.light, pre.t0_us, pre.period_us, 0.8)
-        there = build_problem(pre, capture.calibration.view_direction, device=device, frame_samples=frame_samples)
-        there.apply_mask(truth)
         got = remove_bounce(there, model.to(device), normal.to(device), {k: v.to(device) for k, v in maps.items()}, height,
                             truth, pre.light, pre.t0_us, pre.period_us, 0.8)
         assert expected["bounce_frame_share"] > 0.002 and 0.0 < expected["bounce_pairs_dropped"] < 0.5

@@ -12,6 +12,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+from helpers.device_path import masked_problems
 
 import psfmt
 from pstoolkit._shared import devices
@@ -146,15 +147,8 @@ def test_a_mask_applied_on_the_device_weighs_as_the_hosts(blobs: tuple[psfmt.Cap
     capture, pre = blobs
     gt = capture.ground_truth
     truth = true_shadows(gt.depth, gt.mask, pre.light, pre.t0_us, pre.period_us)
-    monkeypatch.setattr(devices, "on_host", lambda where: False)  # the CPU down the device's path too
     for frame_samples in (8, 0):
-        with monkeypatch.context() as m:
-            m.setattr(devices, "on_host", lambda where: True)
-            host = build_problem(pre, capture.calibration.view_direction, device="cpu", frame_samples=frame_samples)
-            host.apply_mask(truth)
-        there = build_problem(pre, capture.calibration.view_direction, device=device, frame_samples=frame_samples)
-        unmasked = there.events.usable.numel()
-        there.apply_mask(truth)
+        host, there = masked_problems(pre, capture.calibration.view_direction, truth, frame_samples, device, monkeypatch)
         assert there.frames.source_there and there.events.source_there and not host.events.source_there
         assert torch.equal(there.events.usable.cpu(), host.events.usable)
         assert 0 < host.events.usable.numel() < host.events.target.shape[0]
@@ -167,7 +161,7 @@ def test_a_mask_applied_on_the_device_weighs_as_the_hosts(blobs: tuple[psfmt.Cap
         np.testing.assert_allclose(there.shadow_fraction, host.shadow_fraction, rtol=0, atol=1e-12)
         assert host.shadow_fraction.max() > 0.2
         there.apply_mask(ShadowMask.none(pre.height * pre.width, pre.t0_us, pre.period_us))
-        assert there.events.usable.numel() == unmasked
+        assert there.events.usable.numel() == np.count_nonzero(there.events.source["usable"])
         assert there.frames.shared_visible is None and there.shadow_fraction.max() == 0.0
 
 
