@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from torch import Tensor
 
 from pstoolkit import GREY_WEIGHTS, LightModel
 from pstoolkit._shared import devices
@@ -38,8 +39,9 @@ from pstoolkit_dualres.fixed_point import fixed_point
 # Gaussian widths (pixels) of the normalised convolution that fills pixels from their neighbours.
 FILL_SIGMAS = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0)
 
-Visibility = Callable[[np.ndarray, np.ndarray], np.ndarray]
-"""``visibility(t_us (T,), pixel (P,)) -> (T, P) bool``: 1 − m_c at frame pixels (flat indices)."""
+Visibility = Callable[[np.ndarray, np.ndarray], np.ndarray | Tensor]
+"""``visibility(t_us (T,), pixel (P,)) -> (T, P) bool``: 1 − m_c at frame pixels (flat indices); a
+tensor on the device where the fixed point runs there (``closed_form_device``)."""
 
 
 @dataclass

@@ -64,7 +64,7 @@ def _solve(grey_lights: Tensor, grey: Tensor, usable: Tensor) -> Tensor:
     return b
 
 
-def device_fixed_point(light: LightModel, windows_us: np.ndarray, grey: np.ndarray, masks: list[np.ndarray] | None, *,
+def device_fixed_point(light: LightModel, windows_us: np.ndarray, grey: np.ndarray, masks: list[np.ndarray | Tensor] | None, *,
                        iterations: int, n_samples: int, device: str | torch.device) -> FixedPoint:
     """``fixed_point.fixed_point`` on ``device`` (module docstring); the same arguments, and a
     ``FixedPoint`` whose lights stay there (``DeviceLights``)."""

@@ -31,13 +31,17 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+import torch
+from torch import Tensor
 
 import psfmt
 from pstoolkit import GREY_WEIGHTS, LightModel, Progress, UserError, build_light_model, no_progress
+from pstoolkit._shared import devices
 from pstoolkit.events.rule import capture_rule
 from pstoolkit.grid import check_footprint_extent, default_affine, nearest_super_pixel, to_frames
 from pstoolkit.shadows import ShadowEvidence, ShadowMask, interval_profile
 from pstoolkit.shadows.spikes import spike_threshold
+from pstoolkit.shadows.table_device import DeviceShadowMask
 from pstoolkit_dualres.closed_form import ClosedFormStart, closed_form
 from pstoolkit_dualres.irradiance import Irradiance, approximate
 from pstoolkit_dualres.pairs import EventSamples, event_samples
@@ -225,9 +229,16 @@ def start(per_window: np.ndarray, windows_us: np.ndarray, mask: np.ndarray, ligh
         Normal, albedo and number of effective lights per pixel.
     """
     visibility = None
-    if shadows is not None and len(shadows):
+    if shadows is not None and len(shadows) and devices.on_host(device):
         def visibility(t_us: np.ndarray, pixels: np.ndarray) -> np.ndarray:
             return ~shadows.contains_grid(pixels, t_us)
+    elif shadows is not None and len(shadows):
+        # the fixed point runs on the device: the lookups too, their answers left there
+        there = DeviceShadowMask(shadows, device)
+
+        def visibility(t_us: np.ndarray, pixels: np.ndarray) -> Tensor:
+            return ~there.contains_grid(torch.as_tensor(pixels, dtype=torch.int64, device=there.device),
+                                        torch.as_tensor(t_us, dtype=torch.float64, device=there.device))
 
     closed = closed_form(per_window, windows_us, mask, light, visibility=visibility, iterations=options.init_iterations,
                          n_samples=options.light_samples, super_normal=super_normal, base=base, device=device)

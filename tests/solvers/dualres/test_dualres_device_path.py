@@ -41,7 +41,8 @@ def test_the_device_path_on_the_cpu_gives_the_hosts_normals(blobs_48: Path, monk
     for owner, name in ((closed_form, "device_fixed_point"), (integrate_device, "integrate_normals_on"),
                         (DeviceCaster, "margins"), (DeviceRunCollector, "intervals"), (DeviceEdgeTracker, "edges"),
                         (EdgeTracker, "feed"), (ShadowCaster, "margins"), (DeviceShadowMask, "shadowed_us"),
-                        (ShadowMask, "shadowed_us"), (DeviceBounce, "at"), (Bounce, "at")):
+                        (DeviceShadowMask, "contains_grid"), (ShadowMask, "shadowed_us"), (ShadowMask, "contains"),
+                        (ShadowMask, "contains_grid"), (ShadowMask, "shadowed_grid"), (DeviceBounce, "at"), (Bounce, "at")):
         real = getattr(owner, name)
         monkeypatch.setattr(owner, name, lambda *args, real=real, name=f"{owner.__name__}.{name}", **kwargs:
                             used.append(name) or real(*args, **kwargs))
@@ -56,8 +57,9 @@ def test_the_device_path_on_the_cpu_gives_the_hosts_normals(blobs_48: Path, monk
     # every sweep, its runs and edges on the device's side; the host's collectors see only the host's grids
     assert {"DeviceCaster.margins", "DeviceRunCollector.intervals", "DeviceEdgeTracker.edges"} <= set(used)
     assert not {"EdgeTracker.feed", "ShadowCaster.margins"} & set(used)
-    # every mask the fit takes is applied on the device's side
-    assert used.count("DeviceShadowMask.shadowed_us") >= 3 and "ShadowMask.shadowed_us" not in used
+    # every mask the fit and the closed form take is looked up on the device's side
+    assert used.count("DeviceShadowMask.shadowed_us") >= 3 and "DeviceShadowMask.contains_grid" in used
+    assert not [name for name in used if name.startswith("ShadowMask.")]
     # the bounce the fit tries is read back at the pairs' taps there
     assert "DeviceBounce.at" in used and "Bounce.at" not in used
     assert fed and not any(isinstance(block, torch.Tensor) for block in fed)
