@@ -470,26 +470,30 @@ def start_values(normal: np.ndarray, albedo: np.ndarray, pixels: np.ndarray, sca
 
 def _pixel_samples(pre: Preprocessed, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The importance samples of each masked frame pixel (its super pixel's, shifted to each frame's
-    period), grouped by pixel: (position, frame, t_us, dt_s)."""
+    period), grouped by pixel, then by frame, then by phase: (position, frame, t_us, dt_s). Each frame's
+    samples are written straight to their places (no sort of the tens of millions of them)."""
     samples = pre.samples
     order = np.lexsort((samples.phase_us, samples.pixel, samples.window))
     window, owner_of = samples.window[order], samples.pixel[order]
     phase, dt = samples.phase_us[order], samples.dt_s[order]
     n_super = pre.event_height * pre.event_width
-    out: list[list[np.ndarray]] = [[], [], [], []]
-    for k, j in enumerate(pre.frame_window):
-        sel = np.flatnonzero(window == j)
-        counts = np.bincount(owner_of[sel], minlength=n_super)
-        offsets = np.cumsum(counts) - counts
-        per_pixel = counts[pre.super_pixel[pixels]]
-        owner = np.repeat(np.arange(pixels.size), per_pixel)
-        local = np.arange(owner.size) - np.repeat(np.cumsum(per_pixel) - per_pixel, per_pixel)
-        index = sel[offsets[pre.super_pixel[pixels[owner]]] + local]
-        shift = float(pre.t_start_us[k]) - (pre.t0_us + pre.windows_us[j, 0])
-        out[0].append(owner)
-        out[1].append(np.full(owner.size, k, dtype=np.int64))
-        out[2].append(pre.t0_us + phase[index] + shift)
-        out[3].append(dt[index])
-    pos, frame, t, dt_s = (np.concatenate(part) for part in out)
-    by_pixel = np.argsort(pos, kind="stable")
-    return pos[by_pixel].astype(np.int64), frame[by_pixel], t[by_pixel].astype(np.float64), dt_s[by_pixel].astype(np.float64)
+    covering = pre.super_pixel[pixels]
+    chosen = [np.flatnonzero(window == j) for j in pre.frame_window]
+    counts = [np.bincount(owner_of[sel], minlength=n_super) for sel in chosen]
+    per_pixel = [count[covering] for count in counts]
+    total = np.sum(per_pixel, axis=0, dtype=np.int64)
+    # a pixel's samples start after all earlier pixels', each frame's after the earlier frames'
+    at = np.cumsum(total) - total
+    pos = np.repeat(np.arange(pixels.size, dtype=np.int64), total)
+    frame, t, dt_s = np.empty(pos.size, dtype=np.int64), np.empty(pos.size), np.empty(pos.size)
+    for k, (sel, count, own) in enumerate(zip(chosen, counts, per_pixel, strict=True)):
+        runs = np.cumsum(own) - own
+        local = np.arange(int(own.sum())) - np.repeat(runs, own)
+        index = sel[np.repeat((np.cumsum(count) - count)[covering], own) + local]
+        dest = np.repeat(at, own) + local
+        shift = float(pre.t_start_us[k]) - (pre.t0_us + pre.windows_us[pre.frame_window[k], 0])
+        frame[dest] = k
+        t[dest] = pre.t0_us + phase[index] + shift
+        dt_s[dest] = dt[index]
+        at += own
+    return pos, frame, t, dt_s
