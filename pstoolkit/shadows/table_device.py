@@ -52,6 +52,12 @@ class DeviceShadowMask:
     def _key(self, cell: Tensor, phase_us: Tensor) -> Tensor:
         return self._base(cell) + phase_us
 
+    def _phase(self, t_us: Tensor) -> Tensor:
+        """``t_us`` modulo the period as ``numpy.mod`` takes it: fmod (exact), then + period where negative;
+        the same bits on every device, where a remainder by a - b·floor(a / b) may round."""
+        mod = torch.fmod(t_us, self.period_us)
+        return torch.where(mod < 0, mod + self.period_us, mod)
+
     def _batched(self, compute: Callable[..., Tensor], *arrays: Tensor) -> Tensor:
         """``compute`` of the flattened (broadcast) ``arrays`` a batch at a time, in their shape."""
         arrays = torch.broadcast_tensors(*arrays)
@@ -68,7 +74,7 @@ class DeviceShadowMask:
         return self._batched(self._contains, frame_pixel, t_us)
 
     def _contains(self, frame_pixel: Tensor, t_us: Tensor) -> Tensor:
-        key = self._key(self.cell[frame_pixel], torch.remainder(t_us - self.t0_us, self.period_us))
+        key = self._key(self.cell[frame_pixel], self._phase(t_us - self.t0_us))
         slot = torch.searchsorted(self.start, key, right=True) - 1
         safe = slot.clamp(min=0)
         return (slot >= 0) & (key <= self.end[safe]) & (key >= self.start[safe])
@@ -99,7 +105,7 @@ class DeviceShadowMask:
         period = self.period_us
         # the host's span: t1 relative to the phase origin as t0 + (t1 − t0)
         span = torch.clamp((t0 + (t1_us - t0_us)) - t0, 0.0, period)
-        a = torch.remainder(t0, period)
+        a = self._phase(t0)
         b = a + span
         wraps = b > period
         low = self._cumulative(self._key(cell, a))
@@ -114,7 +120,7 @@ class DeviceShadowMask:
         intervals as ``interval_kernels.overlap_on_grid`` sums them."""
         period = self.period_us
         t0 = t0_us - self.t0_us
-        a = torch.remainder(t0, period)
+        a = self._phase(t0)
         b = a + torch.clamp((t1_us - self.t0_us) - t0, 0.0, period)
         out = torch.zeros((a.numel(), frame_pixel.numel()), dtype=torch.float64, device=self.device)
         if len(self) == 0 or frame_pixel.numel() == 0:
