@@ -69,8 +69,9 @@ class DeviceBounce:
     def _bracket(self, phase_us: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         t = self.value.shape[0]
         pos = torch.remainder(phase_us / self.period_us * t - 0.5, t)
-        lo = torch.floor(pos)
-        return lo.to(torch.int64), (lo.to(torch.int64) + 1) % t, pos - lo
+        floor = torch.floor(pos)
+        lo = floor.to(torch.int64)
+        return lo, (lo + 1) % t, pos - floor
 
     def at(self, phase_us: Tensor, rows: Tensor) -> Tensor:
         """``Bounce.at``: (N, 3) float64 at the pixels ``rows`` (N,) and float64 phases ``phase_us`` (N,)."""
