@@ -225,7 +225,7 @@ def main() -> None:
         folder = args.data or Path(tmp)
         folder.mkdir(parents=True, exist_ok=True)
         warm = capture_path(folder, (WARM_UP, WARM_UP), 0)
-        for device in dict.fromkeys((args.device, "cpu")):
+        for device in dict.fromkeys((args.device, *(("cpu",) if args.cpu_sizes else ()))):
             solve(warm, device, ["epochs=10"])
         # each section's numbers are written as soon as they are in: a run cut short keeps them
         record["rows"] = fast_rows(folder, args.device, args.sizes, args.cpu_sizes, args.dualres_options, args.profile, args.out)

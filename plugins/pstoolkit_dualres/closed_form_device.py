@@ -19,6 +19,8 @@ from pstoolkit import GREY_WEIGHTS, US_PER_S, LightModel
 from pstoolkit.optics.equivalent import sample_times
 from pstoolkit_dualres.fixed_point import EFFECTIVE_SHARE, MOVED_COS, FixedPoint
 
+EIGH_BATCH = 16384
+
 
 @dataclass
 class DeviceLights:
@@ -51,13 +53,20 @@ def _unit(vectors: Tensor) -> Tensor:
     return torch.where(norm > 0, vectors / torch.where(norm > 0, norm, 1.0), 0.0)
 
 
+def _eigvalsh(matrices: Tensor) -> Tensor:
+    """(B, 3) ascending eigenvalues of the symmetric (B, 3, 3) ``matrices``, ``EIGH_BATCH`` at a time:
+    on CUDA one batched call of more (65 536 at 256²) fails inside cuSOLVER (an internal error, or a
+    workspace of terabytes at 5 M), and each matrix's eigenvalues do not depend on its batch."""
+    return torch.cat([torch.linalg.eigvalsh(chunk) for chunk in torch.split(matrices, EIGH_BATCH)])
+
+
 def _solve(grey_lights: Tensor, grey: Tensor, usable: Tensor) -> Tensor:
     """``fixed_point._solve``: b = ρ·n per pixel, least squares over the usable windows, zero where
     fewer than three or a singular system."""
     w = usable.to(grey.dtype)
     lhs = torch.einsum("jp,jpx,jpy->pxy", w, grey_lights, grey_lights)
     rhs = torch.einsum("jp,jpx,jp->px", w, grey_lights, grey)
-    eig = torch.linalg.eigvalsh(lhs)
+    eig = _eigvalsh(lhs)
     ok = (usable.sum(dim=0) >= 3) & (eig[:, 0] > 1e-9 * torch.clamp(eig[:, 2], min=1e-300))
     b = torch.zeros_like(rhs)
     b[ok] = torch.linalg.solve(lhs[ok], rhs[ok])

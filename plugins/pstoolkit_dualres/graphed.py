@@ -19,7 +19,11 @@ launches, and a graph would hold its memory for good).
 - λ_tv's share is a tensor the graph reads; once it reaches 0, a graph without the TV term.
 - Adam runs fused and ``capturable``, its learning rates tensors the scheduler updates in place.
 - Each step adds its loss and parts to sums the graph owns; ``epoch`` returns their means.
-- A capture torch refuses leaves the steps eager, with a warning.
+- A stage's graphs are freed when it ends (``release``), and Python's garbage collector is off while a
+  graph is captured: a collection during a capture that destroys another graph (an earlier stage's, a
+  finished solve's) makes a call CUDA forbids then, and the capture fails (seen on an H200, now and then).
+- A capture that fails is tried again at the next step (the step itself ran eagerly first, so nothing
+  is lost); after ``CAPTURE_TRIES`` failures the steps stay eager, with a warning.
 - With ``StageConfig.compiled`` (the solver's ``compile``) a mini-batch step's losses go through
   ``torch.compile`` (``COMPILE_BACKEND``, the whole graph, static shapes): elementwise chains fused into
   a few kernels, after a compile of some tens of seconds for each capacity (torch caches it on disk).
@@ -31,6 +35,7 @@ step to the step of ``train`` on the same batch, and how ``compiled`` runs on th
 from __future__ import annotations
 
 import dataclasses
+import gc
 import warnings
 from typing import TYPE_CHECKING, Any
 
@@ -49,6 +54,8 @@ if TYPE_CHECKING:
 # of the epochs trained (other offsets and orders of the tiles) rarely outgrow them.
 PROBE_EPOCHS = 4
 HEADROOM = 1.1
+# Failed captures of one stage's step before its steps stay eager.
+CAPTURE_TRIES = 3
 # What compiles a step's losses where ``StageConfig.compiled`` asks (the tests trace with aot_eager).
 COMPILE_BACKEND = "inductor"
 # The most masked pixels whose full-batch steps are replayed as graphs.
@@ -123,6 +130,7 @@ class GraphedSteps:
                  optimizer: torch.optim.Optimizer, use_graphs: bool) -> None:
         self.problem, self.field, self.model, self.config, self.optimizer = problem, field, model, config, optimizer
         self.use_graphs = use_graphs
+        self.failed_captures = 0
         self.terms = _Terms(problem)
         self.graphs: dict[bool, Any] = {}
         self.sums: dict[str, Tensor] = {}
@@ -161,6 +169,11 @@ class GraphedSteps:
             self.graphs.clear()
         return self._run(events[None], tv_share)
 
+    def release(self) -> None:
+        """Free the graphs (the stage is over): now, by their count of references, and not when a garbage
+        collection reaches them, which may be during a later capture."""
+        self.graphs.clear()
+
     def _run(self, rows: Tensor, tv_share: float) -> dict[str, Tensor]:
         """One step per row of ``rows`` (each copied into ``row``), as ``epoch``."""
         if not self.terms.refresh(self.problem):
@@ -185,9 +198,11 @@ class GraphedSteps:
                     self.graphs[tv_on] = self._capture(tv_on)
                 except RuntimeError as error:
                     # what capture refuses (an operation a later torch syncs on) costs speed, not the fit
-                    warnings.warn(f"dualres: a CUDA graph of the training step could not be captured, the steps run "
-                                  f"eagerly: {error}", RuntimeWarning, stacklevel=2)
-                    self.use_graphs = False
+                    self.failed_captures += 1
+                    if self.failed_captures >= CAPTURE_TRIES:
+                        warnings.warn(f"dualres: a CUDA graph of the training step could not be captured in "
+                                      f"{CAPTURE_TRIES} tries, the steps run eagerly: {error}", RuntimeWarning, stacklevel=2)
+                        self.use_graphs = False
         return {name: self.sums[name] / max(len(rows), 1) for name in self.names.get(tv_on, [])}
 
     def _set_rows(self) -> None:
@@ -231,6 +246,12 @@ class GraphedSteps:
         # the graph's backward makes the gradients in its own memory, which later replays write
         self.optimizer.zero_grad(set_to_none=True)
         graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph):
-            self._step(tv_on)
+        collecting = gc.isenabled()
+        gc.disable()
+        try:
+            with torch.cuda.graph(graph):
+                self._step(tv_on)
+        finally:
+            if collecting:
+                gc.enable()
         return graph

@@ -93,7 +93,9 @@ def tv_loss(values: Tensor, pairs: Tensor, valid: Valid | None = None) -> Tensor
     marks, where given)."""
     if pairs.numel() == 0:
         return values.sum() * 0.0
-    difference = values.new_tensor([1.0, -1.0]).expand(pairs.shape[0], 2)
+    # the signs made on the device: a tensor of host data is a copy that a CUDA graph cannot capture
+    ones = values.new_ones((pairs.shape[0], 1))
+    difference = torch.cat([ones, -ones], dim=1)
     return share_mean(gather_sum(values, pairs, difference).abs(), valid)
 
 

@@ -115,6 +115,8 @@ def train(problem: Problem, field: nn.Module, model: FitModel, config: StageConf
             means = {name: float(value) for name, value in totals.items()}
             history.append({"epoch": float(epoch), "steps": float(count), **means})
             progress((epoch + 1) / config.epochs, f"epoch {epoch + 1}/{config.epochs} loss {means['loss']:.4g}")
+    if steps is not None:
+        steps.release()
     return history
 
 

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 import psfmt
 from pstoolkit import GREY_WEIGHTS, ShadowMask
@@ -16,6 +17,7 @@ from pstoolkit.grid import bilinear_taps, to_frames
 from pstoolkit.optics.equivalent import sample_times
 from pstoolkit.plugin.options import defaults
 from pstoolkit.shadows.fused import FusedDetector
+from pstoolkit_dualres import closed_form_device
 from pstoolkit_dualres.closed_form import closed_form
 from pstoolkit_dualres.closed_form_device import device_fixed_point
 from pstoolkit_dualres.fixed_point import FixedPoint, fixed_point
@@ -100,6 +102,20 @@ def _fixed_points(pre: Preprocessed, shadows: ShadowMask | None, device: str) ->
     common = {"iterations": options.init_iterations, "n_samples": options.light_samples}
     return (fixed_point(pre.light, windows, grey, masks, **common),
             device_fixed_point(pre.light, windows, grey, masks, device=device, **common), grey)
+
+
+def test_the_device_iteration_is_the_same_in_batches_of_any_size(sphere: tuple[psfmt.Capture, Preprocessed],
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """The 3×3 systems' eigenvalues go to torch ``EIGH_BATCH`` at a time (cuSOLVER fails on one call of
+    65 536): batches of another size give the same fixed point, bit for bit."""
+    whole = _fixed_points(sphere[1], None, "cpu")[1]
+    eigvalsh, sizes = torch.linalg.eigvalsh, []
+    monkeypatch.setattr(torch.linalg, "eigvalsh", lambda matrices: sizes.append(len(matrices)) or eigvalsh(matrices))
+    monkeypatch.setattr(closed_form_device, "EIGH_BATCH", 97)
+    split = _fixed_points(sphere[1], None, "cpu")[1]
+    assert max(sizes) == 97 and len(sizes) > 2 * whole.iterations
+    for name in ("normal", "effective", "solved"):
+        np.testing.assert_array_equal(getattr(split, name), getattr(whole, name), err_msg=name)
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])

@@ -5,8 +5,10 @@ eagerly (``pytest -m cuda``)."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
+import gc
 import warnings
 from pathlib import Path
 from types import SimpleNamespace
@@ -20,8 +22,9 @@ import psfmt
 from pstoolkit._shared.progress import no_progress
 from pstoolkit.optics.brdf import GGX
 from pstoolkit.shadows.score import true_shadows
-from pstoolkit_dualres import graphed
-from pstoolkit_dualres.batches import Capacity, Tiling, Unpacker, drawn_capacity, epoch_batches
+from pstoolkit_dualres import gather, graphed
+from pstoolkit_dualres import losses as losses_module
+from pstoolkit_dualres.batches import Capacity, Tiling, Unpacker, drawn_capacity, epoch_batches, full_batch
 from pstoolkit_dualres.fields import NeuralField
 from pstoolkit_dualres.losses import losses
 from pstoolkit_dualres.preprocess import PreprocessOptions, preprocess
@@ -226,6 +229,46 @@ def test_compiled_steps_train_as_the_plain_ones(blobs: Problem, monkeypatch: pyt
     assert float(_angle_deg(normal_a, normal_b).max()) < 1e-4
 
 
+def test_a_capture_that_fails_is_tried_again_then_left_eager(blobs: Problem, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A failed capture (on a GPU: a garbage collection that destroyed another graph during it, say) is
+    tried again at the next step, and after ``CAPTURE_TRIES`` the steps stay eager with one warning;
+    the collector is off while a step is captured (CUDA's capture stood in for on the CPU)."""
+    fails: list[bool] = []
+    collecting: list[bool] = []
+    replays: list[int] = []
+
+    class Graph:
+        def replay(self) -> None:
+            replays.append(1)
+
+    @contextlib.contextmanager
+    def capture(graph: Graph):  # type: ignore[no-untyped-def]
+        collecting.append(gc.isenabled())
+        yield
+        if fails.pop(0) if fails else True:
+            raise RuntimeError("CUDA error: operation failed due to a previous error during capture")
+
+    monkeypatch.setattr(torch.cuda, "CUDAGraph", Graph)
+    monkeypatch.setattr(torch.cuda, "graph", capture)
+    monkeypatch.setattr(graphed.GraphedSteps, "_eager", lambda self, tv_on: self._step(tv_on))
+    epoch = epoch_batches(blobs, Tiling.of(blobs), 200, 8, torch.Generator().manual_seed(4))
+    assert len(epoch) > 5
+    for plan in ([True, True, False], [True] * 10):
+        fails[:], collecting[:], replays[:] = plan, [], []
+        field, model = _fit(blobs)
+        optimizer = torch.optim.Adam([*field.parameters(), *model.parameters()], lr=1e-3)
+        steps = graphed.GraphedSteps(blobs, Tiling.of(blobs), field, model, STAGE, optimizer, use_graphs=True)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            steps.epoch(epoch, 0.5)
+        assert collecting == [False] * graphed.CAPTURE_TRIES and gc.isenabled()
+        messages = [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
+        if plan[2]:
+            assert not steps.use_graphs and replays == [] and len(messages) == 1 and "in 3 tries" in messages[0]
+        else:
+            assert steps.use_graphs and len(replays) == len(epoch) - 3 and messages == []
+
+
 @pytest.mark.cuda
 @pytest.mark.parametrize("batches", ["mini", "full"])
 def test_cuda_graphs_replay_the_steps_they_capture(blobs_48: Path, monkeypatch: pytest.MonkeyPatch, batches: str) -> None:
@@ -261,10 +304,11 @@ def test_cuda_graphs_replay_the_steps_they_capture(blobs_48: Path, monkeypatch: 
     assert float(_angle_deg(normal_a, normal_b).mean()) < 0.05
 
 
-# Operations whose result waits for the device (a value read back, or a shape that depends on the data):
-# CUDA refuses them while it captures a graph.
+# Operations whose result waits for the device (a value read back, or a shape that depends on the data),
+# and host data made a tensor (``lift_fresh``: on a GPU, a copy from the host): CUDA refuses them while it
+# captures a graph.
 READS_BACK = {"_local_scalar_dense", "nonzero", "masked_select", "_unique", "_unique2", "unique_dim", "unique_consecutive",
-              "repeat_interleave", "is_nonzero", "equal", "allclose"}
+              "repeat_interleave", "is_nonzero", "equal", "allclose", "lift_fresh"}
 
 
 class _ReadsBack(TorchDispatchMode):
@@ -282,20 +326,50 @@ class _ReadsBack(TorchDispatchMode):
         return func(*args, **(kwargs or {}))
 
 
-def test_a_padded_step_reads_nothing_back_from_the_device(blobs: Problem) -> None:
+def _as_on_a_gpu(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The losses through torch as on a GPU, where the CPU takes its compiled passes (``frame_kernel``,
+    ``event_kernel``, ``gather``), which read numpy arrays."""
+    monkeypatch.setattr(losses_module, "supports", lambda model, normal: False)
+    monkeypatch.setattr(gather._GatherSum, "apply", staticmethod(gather.gather_sum_torch))
+
+
+def test_a_padded_step_reads_nothing_back_from_the_device(blobs: Problem, monkeypatch: pytest.MonkeyPatch) -> None:
     """What a CUDA graph captures — unpacking the row, the losses and their gradient — holds no
-    operation that waits for the device (checked through torch on the CPU, which runs the same ops)."""
+    operation that waits for the device or copies from the host (checked through torch on the CPU,
+    which runs the same ops)."""
     field, model = _fit(blobs)
     epoch = epoch_batches(blobs, Tiling.of(blobs), 200, 8, torch.Generator().manual_seed(4))
     capacity = epoch.needs.grown(1.25)
     row = epoch.packed(capacity)[0]
     unpack = Unpacker(capacity, blobs.dtype, blobs.device)
+    share = torch.tensor(0.5)
+    _as_on_a_gpu(monkeypatch)
     reads = _ReadsBack()
     with reads:
-        loss, _ = losses(blobs, field, model, STAGE, unpack(row), torch.tensor(0.5))
+        loss, _ = losses(blobs, field, model, STAGE, unpack(row), share)
         loss.backward()
     assert reads.seen == []
-    # the check sees what it looks for: a boolean mask reads its count back
+    # the check sees what it looks for: a boolean mask reads its count back, a literal is host data
     with reads:
         blobs.frames.sample_weight[blobs.frames.sample_weight[:, 0] > 0]
-    assert reads.seen == ["index"]
+        blobs.frames.sample_weight.new_tensor([1.0, -1.0])
+    assert reads.seen == ["index", "lift_fresh"]
+
+
+def test_a_full_batch_step_reads_nothing_back_from_the_device(blobs_48: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The ``fast`` preset's full-batch step as a CUDA graph captures it (``GraphedSteps._full_losses``:
+    the pairs drawn, the losses in one frame chunk, their gradient) holds no operation that waits for the
+    device or copies from the host."""
+    problem = _problem(blobs_48, frame_samples=8)
+    torch.manual_seed(0)
+    model = FitModel(GGX(), indirect=True)
+    field = build_field(PRESETS["fast"], problem, model)
+    config = dataclasses.replace(STAGE, event_weight=8.0, tv_weight=0.05, batch_pixels=0)
+    events, share = problem.events.usable[::2], torch.tensor(0.5)
+    _as_on_a_gpu(monkeypatch)
+    reads = _ReadsBack()
+    with reads:
+        batch = full_batch(problem, events, problem.geometry.pixels.size)
+        loss, parts = losses(problem, field, model, config, batch, share)
+        loss.backward()
+    assert reads.seen == [] and {"frame", "event", "tv"} <= set(parts)

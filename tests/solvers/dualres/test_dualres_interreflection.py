@@ -207,8 +207,12 @@ def test_the_bounce_taken_out_on_the_device_is_the_hosts(hollows_48: Path, devic
         assert got == pytest.approx(expected, rel=1e-6)
         # the cells' and the samples' sums are taken in another order: float rounding apart
         np.testing.assert_allclose(there.frames.measured.cpu().numpy(), host.frames.measured.numpy(), rtol=1e-6, atol=1e-7)
-        for name in ("bounce_now", "bounce_ref", "bounce_shift"):
+        for name in ("bounce_now", "bounce_ref"):
             np.testing.assert_allclose(there.events.source[name], host.events.source[name], rtol=1e-6, atol=1e-9, err_msg=name)
+        # the shift is a log ratio of the fit's own float32 rendering of the pairs, which a GPU rounds
+        # otherwise (a few ulps: 4.2e-7 at most on an H200)
+        np.testing.assert_allclose(there.events.source["bounce_shift"], host.events.source["bounce_shift"], rtol=1e-6,
+                                   atol=1e-9 if device == "cpu" else 2e-6)
         assert np.array_equal(there.events.source["bounce_keep"], host.events.source["bounce_keep"])
 
 
