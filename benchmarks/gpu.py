@@ -15,13 +15,18 @@ Sections, each a table printed and stored in the JSON:
    (``--paper-options``, such as ``batch_pixels=4096``): ``--paper-epochs``
    epochs, or as many as a first timed run of ``PROBE_EPOCHS`` says fit in ``--paper-budget-s``
    (that first run also compiles, so the timed run's compiled steps come from torch's caches);
-   seconds per epoch, the 1200 epochs they project to, and the errors.
+   the training stages' seconds per epoch (``train_*`` of the stage table, over the epochs asked for,
+   which ``interreflection=auto`` trains partly twice), the 1200 epochs they project to beside the
+   solve's other stages, and the errors.
 3. With ``--tests``: the suite's CUDA tests (``pytest -m cuda``), their summary line; run first, since
    they check what the timings rest on (and a run cut short at its limit keeps them).
 
 ``--profile SIZE …`` also runs cProfile over the cuda solve of that size (``paper``: the paper preset's
 runs) and writes the functions that take the most time (cumulative and own) to ``profile-SIZE.txt``
 beside the JSON.
+
+A solve that fails is a row with its ``error`` (printed, and kept in the JSON), and the runs after it go
+on: one fault costs its row, not the device session.
 
 Targets (issue 36, one H100, printed with the table): fast 256² ≤ 2 s, 1024² ≤ 8 s, 2048×2448 ≤ 40 s,
 each MAE within 0.02° of the CPU's; paper 1200 epochs at 256² ≤ 60 s. Seconds are wall seconds, the
@@ -44,6 +49,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import traceback
 from pathlib import Path
 from typing import Any
 
@@ -112,15 +118,28 @@ def write_profile(profiler: cProfile.Profile, path: Path) -> None:
     path.write_text(text.getvalue())
 
 
+def failed(what: str, error: Exception) -> dict[str, Any]:
+    """The record of a run that raised: its error, printed (the runs after it go on)."""
+    text = f"{type(error).__name__}: {error}"
+    print(f"  {what}: FAILED {text}", flush=True)
+    traceback.print_exc()
+    return {"error": text}
+
+
 def fast_rows(folder: Path, gpu: str, sizes: list[str], cpu_sizes: list[str], options: list[str], profile: list[str],
               out: Path) -> list[dict[str, Any]]:
     rows = []
     for text in sizes:
         shape = parse_size(text)
-        path = capture_path(folder, shape, 0)
         for device in (gpu, "cpu") if text in cpu_sizes else (gpu,):
             where = out.parent / f"profile-{text}.txt" if device == gpu and text in profile else None
-            row = {"size": size_name(shape), **solve(path, device, options, where)}
+            row: dict[str, Any] = {"size": size_name(shape), "device": device}
+            try:
+                row.update(solve(capture_path(folder, shape, 0), device, options, where))
+            except Exception as error:  # noqa: BLE001 -- one failed row must not end the device session
+                row.update(failed(f"fast {row['size']} {device}", error))
+                rows.append(row)
+                continue
             rows.append(row)
             print(f"  fast {row['size']} {device}: {row['seconds']:.2f} s, MAE {row['mae_deg']:.3f}° "
                   f"(median {row['median_deg']:.3f}°, p90 {row['p90_deg']:.3f}°); stages {row['stages']}; "
@@ -128,22 +147,36 @@ def fast_rows(folder: Path, gpu: str, sizes: list[str], cpu_sizes: list[str], op
     return rows
 
 
+def training_seconds(row: dict[str, Any]) -> float:
+    """The seconds of a solve's training stages (``train_*`` of its stage table)."""
+    return sum(seconds for stage, seconds in row["stages"].items() if stage.startswith("train"))
+
+
 def paper_row(folder: Path, gpu: str, size: str, epochs: int, budget_s: float, compiled: bool, extra: list[str],
               profile: Path | None) -> dict[str, Any]:
     """The paper preset on ``gpu`` (``compiled``: the solver's ``compile``; ``extra``: more assignments,
     such as another ``batch_pixels``): a probe of PROBE_EPOCHS epochs, then ``epochs`` or as many as fit
-    the budget."""
-    path = capture_path(folder, parse_size(size), 0)
+    the budget. An epoch's seconds are the training stages' over the epochs asked for; the projection of
+    PAPER_EPOCHS adds the solve's other stages once."""
+    name = size_name(parse_size(size))
+    record: dict[str, Any] = {"size": name, "device": gpu, "compile": compiled, "options": extra}
     options = ["preset=paper", f"compile={'true' if compiled else 'false'}", *extra]
-    probe = solve(path, gpu, [*options, f"epochs={PROBE_EPOCHS}"])
-    per_epoch = probe["seconds"] / PROBE_EPOCHS
-    run = min(epochs, max(PROBE_EPOCHS, int(budget_s / per_epoch)))
-    row = solve(path, gpu, [*options, f"epochs={run}"], profile)
-    print(f"  paper {size_name(parse_size(size))} {gpu} compile={compiled}: {run} epochs in {row['seconds']:.1f} s "
-          f"({row['seconds'] / run * 1e3:.1f} ms/epoch; probe {probe['seconds']:.1f} s), MAE {row['mae_deg']:.3f}°", flush=True)
-    return {"size": size_name(parse_size(size)), "compile": compiled, "options": extra, "probe_seconds": probe["seconds"],
-            "probe_seconds_per_epoch": per_epoch, "epochs_run": run, "seconds_per_epoch": row["seconds"] / run,
-            "projected_seconds": row["seconds"] / run * PAPER_EPOCHS, **row}
+    try:
+        path = capture_path(folder, parse_size(size), 0)
+        probe = solve(path, gpu, [*options, f"epochs={PROBE_EPOCHS}"])
+        per_epoch = max(training_seconds(probe), 1e-9) / PROBE_EPOCHS
+        fixed = probe["seconds"] - training_seconds(probe)
+        run = min(epochs, max(PROBE_EPOCHS, int((budget_s - fixed) / per_epoch)))
+        row = solve(path, gpu, [*options, f"epochs={run}"], profile)
+    except Exception as error:  # noqa: BLE001 -- one failed row must not end the device session
+        return {**record, **failed(f"paper {name} {gpu} compile={compiled}", error)}
+    per_epoch = training_seconds(row) / run
+    projected = row["seconds"] - training_seconds(row) + per_epoch * PAPER_EPOCHS
+    print(f"  paper {name} {gpu} compile={compiled}: {run} epochs in {row['seconds']:.1f} s, training "
+          f"{training_seconds(row):.1f} s ({per_epoch * 1e3:.1f} ms/epoch; probe {probe['seconds']:.1f} s), "
+          f"MAE {row['mae_deg']:.3f}°", flush=True)
+    return {**record, "probe_seconds": probe["seconds"], "probe_seconds_per_epoch": training_seconds(probe) / PROBE_EPOCHS,
+            "epochs_run": run, "seconds_per_epoch": per_epoch, "projected_seconds": projected, **row}
 
 
 def cuda_tests() -> dict[str, Any]:
@@ -158,6 +191,9 @@ def cuda_tests() -> dict[str, Any]:
 
 def table(rows: list[dict[str, Any]]) -> None:
     print(f"\n{'fast':>10} {'device':>6} {'seconds':>8} {'target':>7} {'MAE°':>7} {'median°':>8} {'p90°':>6} {'GPU GB':>7}")
+    for r in (r for r in rows if "error" in r):
+        print(f"{r['size']:>10} {r['device']:>6}   failed: {r['error'][:160]}")
+    rows = [r for r in rows if "error" not in r]
     for r in rows:
         target = TARGET_S.get(r["size"]) if r["device"] == "cuda" else None
         gpu = f"{r['gpu_peak_gb']:.2f}" if r["gpu_peak_gb"] is not None else "-"
@@ -175,6 +211,7 @@ def table(rows: list[dict[str, Any]]) -> None:
 def verdict(rows: list[dict[str, Any]], papers: list[dict[str, Any]]) -> dict[str, Any]:
     """The issue's targets, each True/False (None where its run is missing)."""
     checks: dict[str, Any] = {}
+    rows, papers = [r for r in rows if "error" not in r], [p for p in papers if "error" not in p]
     for size, limit in TARGET_S.items():
         gpu = next((r for r in rows if r["size"] == size and r["device"] == "cuda"), None)
         cpu = next((r for r in rows if r["size"] == size and r["device"] == "cpu"), None)
@@ -239,6 +276,9 @@ def main() -> None:
                                                  args.paper_options, profile))
                 write_results(args.out, record)
     for paper in record["paper"]:
+        if "error" in paper:
+            print(f"\npaper {paper['size']} compile={paper['compile']}: failed: {paper['error'][:160]}")
+            continue
         print(f"\npaper {paper['size']} compile={paper['compile']}: {paper['seconds_per_epoch'] * 1e3:.1f} ms/epoch, {PAPER_EPOCHS} epochs ≈ "
               f"{paper['projected_seconds']:.0f} s (target {PAPER_TARGET_S:g} s at 256²); MAE {paper['mae_deg']:.3f}° "
               f"(median {paper['median_deg']:.3f}°, p90 {paper['p90_deg']:.3f}°) after {paper['epochs_run']} epochs")
