@@ -9,6 +9,7 @@ took 10 s a solve; the lights stay on the device for the albedo.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,7 +20,7 @@ from pstoolkit import GREY_WEIGHTS, US_PER_S, LightModel
 from pstoolkit.optics.equivalent import sample_times
 from pstoolkit_dualres.fixed_point import EFFECTIVE_SHARE, MOVED_COS, FixedPoint
 
-EIGH_BATCH = 16384
+LINALG_BATCH = 16384
 
 
 @dataclass
@@ -53,11 +54,11 @@ def _unit(vectors: Tensor) -> Tensor:
     return torch.where(norm > 0, vectors / torch.where(norm > 0, norm, 1.0), 0.0)
 
 
-def _eigvalsh(matrices: Tensor) -> Tensor:
-    """(B, 3) ascending eigenvalues of the symmetric (B, 3, 3) ``matrices``, ``EIGH_BATCH`` at a time:
-    on CUDA one batched call of more (65 536 at 256²) fails inside cuSOLVER (an internal error, or a
-    workspace of terabytes at 5 M), and each matrix's eigenvalues do not depend on its batch."""
-    return torch.cat([torch.linalg.eigvalsh(chunk) for chunk in torch.split(matrices, EIGH_BATCH)])
+def _in_batches(op: Callable[..., Tensor], *tensors: Tensor) -> Tensor:
+    """``op`` of a batch of small systems (``tensors``, the same length B), ``LINALG_BATCH`` systems a
+    call: on CUDA one batched ``eigvalsh`` of more (65 536 at 256²) fails inside cuSOLVER (an internal
+    error, or a workspace of terabytes at 5 M), and a system's answer does not depend on its batch."""
+    return torch.cat([op(*parts) for parts in zip(*(torch.split(t, LINALG_BATCH) for t in tensors))])
 
 
 def _solve(grey_lights: Tensor, grey: Tensor, usable: Tensor) -> Tensor:
@@ -66,10 +67,10 @@ def _solve(grey_lights: Tensor, grey: Tensor, usable: Tensor) -> Tensor:
     w = usable.to(grey.dtype)
     lhs = torch.einsum("jp,jpx,jpy->pxy", w, grey_lights, grey_lights)
     rhs = torch.einsum("jp,jpx,jp->px", w, grey_lights, grey)
-    eig = _eigvalsh(lhs)
+    eig = _in_batches(torch.linalg.eigvalsh, lhs)
     ok = (usable.sum(dim=0) >= 3) & (eig[:, 0] > 1e-9 * torch.clamp(eig[:, 2], min=1e-300))
     b = torch.zeros_like(rhs)
-    b[ok] = torch.linalg.solve(lhs[ok], rhs[ok])
+    b[ok] = _in_batches(torch.linalg.solve, lhs[ok], rhs[ok])
     return b
 
 

@@ -106,14 +106,15 @@ def _fixed_points(pre: Preprocessed, shadows: ShadowMask | None, device: str) ->
 
 def test_the_device_iteration_is_the_same_in_batches_of_any_size(sphere: tuple[psfmt.Capture, Preprocessed],
                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
-    """The 3×3 systems' eigenvalues go to torch ``EIGH_BATCH`` at a time (cuSOLVER fails on one call of
-    65 536): batches of another size give the same fixed point, bit for bit."""
+    """The 3×3 systems go to torch ``LINALG_BATCH`` at a time (cuSOLVER fails on one call of 65 536
+    eigenvalue problems): batches of another size give the same fixed point, bit for bit."""
     whole = _fixed_points(sphere[1], None, "cpu")[1]
-    eigvalsh, sizes = torch.linalg.eigvalsh, []
+    eigvalsh, solve, sizes = torch.linalg.eigvalsh, torch.linalg.solve, []
     monkeypatch.setattr(torch.linalg, "eigvalsh", lambda matrices: sizes.append(len(matrices)) or eigvalsh(matrices))
-    monkeypatch.setattr(closed_form_device, "EIGH_BATCH", 97)
+    monkeypatch.setattr(torch.linalg, "solve", lambda a, b: sizes.append(len(a)) or solve(a, b))
+    monkeypatch.setattr(closed_form_device, "LINALG_BATCH", 97)
     split = _fixed_points(sphere[1], None, "cpu")[1]
-    assert max(sizes) == 97 and len(sizes) > 2 * whole.iterations
+    assert max(sizes) == 97 and len(sizes) > 4 * whole.iterations
     for name in ("normal", "effective", "solved"):
         np.testing.assert_array_equal(getattr(split, name), getattr(whole, name), err_msg=name)
 
