@@ -94,8 +94,8 @@ def tv_loss(values: Tensor, pairs: Tensor, valid: Valid | None = None) -> Tensor
     if pairs.numel() == 0:
         return values.sum() * 0.0
     # the signs made on the device: a tensor of host data is a copy that a CUDA graph cannot capture
-    ones = values.new_ones((pairs.shape[0], 1))
-    difference = torch.cat([ones, -ones], dim=1)
+    one = values.new_ones((1, 1))
+    difference = torch.cat([one, -one], dim=1).expand(pairs.shape[0], 2)
     return share_mean(gather_sum(values, pairs, difference).abs(), valid)
 
 
