@@ -138,12 +138,11 @@ def fast_rows(folder: Path, gpu: str, sizes: list[str], cpu_sizes: list[str], op
                 row.update(solve(capture_path(folder, shape, 0), device, options, where))
             except Exception as error:  # noqa: BLE001 -- one failed row must not end the device session
                 row.update(failed(f"fast {row['size']} {device}", error))
-                rows.append(row)
-                continue
+            else:
+                print(f"  fast {row['size']} {device}: {row['seconds']:.2f} s, MAE {row['mae_deg']:.3f}° "
+                      f"(median {row['median_deg']:.3f}°, p90 {row['p90_deg']:.3f}°); stages {row['stages']}; "
+                      f"preprocess {row['preprocess_split']}", flush=True)
             rows.append(row)
-            print(f"  fast {row['size']} {device}: {row['seconds']:.2f} s, MAE {row['mae_deg']:.3f}° "
-                  f"(median {row['median_deg']:.3f}°, p90 {row['p90_deg']:.3f}°); stages {row['stages']}; "
-                  f"preprocess {row['preprocess_split']}", flush=True)
     return rows
 
 
@@ -164,19 +163,18 @@ def paper_row(folder: Path, gpu: str, size: str, epochs: int, budget_s: float, c
     try:
         path = capture_path(folder, parse_size(size), 0)
         probe = solve(path, gpu, [*options, f"epochs={PROBE_EPOCHS}"])
-        per_epoch = max(training_seconds(probe), 1e-9) / PROBE_EPOCHS
+        probe_per_epoch = training_seconds(probe) / PROBE_EPOCHS
         fixed = probe["seconds"] - training_seconds(probe)
-        run = min(epochs, max(PROBE_EPOCHS, int((budget_s - fixed) / per_epoch)))
+        run = min(epochs, max(PROBE_EPOCHS, int((budget_s - fixed) / max(probe_per_epoch, 1e-9))))
         row = solve(path, gpu, [*options, f"epochs={run}"], profile)
     except Exception as error:  # noqa: BLE001 -- one failed row must not end the device session
         return {**record, **failed(f"paper {name} {gpu} compile={compiled}", error)}
-    per_epoch = training_seconds(row) / run
-    projected = row["seconds"] - training_seconds(row) + per_epoch * PAPER_EPOCHS
-    print(f"  paper {name} {gpu} compile={compiled}: {run} epochs in {row['seconds']:.1f} s, training "
-          f"{training_seconds(row):.1f} s ({per_epoch * 1e3:.1f} ms/epoch; probe {probe['seconds']:.1f} s), "
-          f"MAE {row['mae_deg']:.3f}°", flush=True)
-    return {**record, "probe_seconds": probe["seconds"], "probe_seconds_per_epoch": training_seconds(probe) / PROBE_EPOCHS,
-            "epochs_run": run, "seconds_per_epoch": per_epoch, "projected_seconds": projected, **row}
+    trained = training_seconds(row)
+    per_epoch = trained / run
+    print(f"  paper {name} {gpu} compile={compiled}: {run} epochs in {row['seconds']:.1f} s, training {trained:.1f} s "
+          f"({per_epoch * 1e3:.1f} ms/epoch; probe {probe['seconds']:.1f} s), MAE {row['mae_deg']:.3f}°", flush=True)
+    return {**record, "probe_seconds": probe["seconds"], "probe_seconds_per_epoch": probe_per_epoch, "epochs_run": run,
+            "seconds_per_epoch": per_epoch, "projected_seconds": row["seconds"] - trained + per_epoch * PAPER_EPOCHS, **row}
 
 
 def cuda_tests() -> dict[str, Any]:
