@@ -255,18 +255,18 @@ def _with_start_normal(closed: ClosedFormStart, start_normal: np.ndarray | None,
 
 def _profile_start(irradiance: Irradiance, light: LightModel, view: np.ndarray, mask: np.ndarray,
                    super_pixel: np.ndarray, affine: np.ndarray, t0_us: float, period_us: float,
-                   event_shape: tuple[int, int], rule: str) -> tuple[float | None, np.ndarray | None]:
+                   event_shape: tuple[int, int], rule: str, device: str) -> tuple[float | None, np.ndarray | None]:
     """The specular weight of the profiles of the super pixels on the object, and by ``rule``
     (``PreprocessOptions.start``) the profile start's normals at the frame pixels (H, W, 3) or None
-    (``profile_start.capture_start``); the weight is None where ``rule`` is "closed" or no super pixel
-    sees light."""
+    (``profile_start.capture_start``, its fits on the torch ``device``); the weight is None where
+    ``rule`` is "closed" or no super pixel sees light."""
     if rule == "closed":
         return None, None
     event_height, event_width = event_shape
     height, width = mask.shape
     n_events_px = event_height * event_width
     on_object = np.unique(super_pixel[mask.ravel()])
-    weight, normal = capture_start(irradiance, light, view, t0_us, period_us, on_object, rule)
+    weight, normal = capture_start(irradiance, light, view, t0_us, period_us, on_object, rule, device)
     if normal is None:
         return weight, None
     values = np.zeros((n_events_px, 3))
@@ -331,9 +331,9 @@ def _super_pixel_values(values: np.ndarray, super_pixel: np.ndarray, mask: np.nd
 
 def preprocess(capture: psfmt.Capture, options: PreprocessOptions, progress: Progress = no_progress,
                device: str = "cpu") -> Preprocessed:
-    """Preprocess a hybrid capture (see the module docstring) on the host, the irradiance scale's fit
-    and the closed form's iteration on the torch ``device`` (which the evidence keeps for the shadow
-    detectors); UserError on unusable input."""
+    """Preprocess a hybrid capture (see the module docstring) on the host, the irradiance scale's fit,
+    the closed form's iteration and the profile start's fits on the torch ``device`` (which the evidence
+    keeps for the shadow detectors); UserError on unusable input."""
     options.check()
     started = time.perf_counter()
     seconds: dict[str, float] = {}
@@ -391,7 +391,7 @@ def preprocess(capture: psfmt.Capture, options: PreprocessOptions, progress: Pro
     super_normal = to_frames(coarse, coarse_known, affine, height, width, event_height, event_width)[0].reshape(height, width, 3)
     closed = start(per_window, windows + t0, mask, light, super_normal, options, None, device=device)
     weight, start_normal = _profile_start(irradiance, light, capture.calibration.view_direction, mask, super_pixel,
-                                          affine, t0, period, (event_height, event_width), options.start)
+                                          affine, t0, period, (event_height, event_width), options.start, device)
     init = _with_start_normal(closed, start_normal, mask)
     seconds["init"] = time.perf_counter() - tick
     progress(1.0, "done")

@@ -16,7 +16,9 @@ The simulator's plastics and path-traced rough plastic give w ≤ 0.1 (≤ 0.5 t
 sensor, whose refractory sharpens the profiles), path-traced copper 0.9–1.
 
 ``capture_start`` runs both for the solver: the weight from at most ``SELECT_PROFILES`` super pixels, the
-normals ``BLOCK`` super pixels at a time.
+normals ``BLOCK`` super pixels at a time. On a solver's torch device (``devices.on_host`` false) the
+shapes and their residuals are computed there, in float64 as on the host, and only the choices come back:
+the same choices but where two shapes fit a profile equally to rounding.
 
 ``profile_normals``: each super pixel's candidate normal (a Fibonacci grid of the hemisphere up to
 ``MAX_TILT_DEG``, ~3.5° apart) whose shape at that w and r fits its profile best. It is only a start, and
@@ -28,8 +30,10 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from pstoolkit import LightModel
+from pstoolkit._shared import devices
 from pstoolkit.events.relation import grey_light
 from pstoolkit.optics.brdf import GGX
 from pstoolkit_dualres.irradiance import Irradiance
@@ -66,72 +70,89 @@ def profiles(irradiance: Irradiance, light: LightModel, t0_us: float, period_us:
 
 
 def capture_start(irradiance: Irradiance, light: LightModel, view: np.ndarray, t0_us: float, period_us: float,
-                  pixels: np.ndarray, rule: str) -> tuple[float | None, np.ndarray | None]:
+                  pixels: np.ndarray, rule: str, device: str = "cpu") -> tuple[float | None, np.ndarray | None]:
     """The specular weight of the event pixels ``pixels`` (P,) (``specular_weight`` on at most
     ``SELECT_PROFILES`` of them, evenly spread) and, by ``rule`` ("auto": where the weight reaches
     ``PROFILE_START_WEIGHT``; "profile": always), their profile normals (P, 3) (zero where a profile
     sees no light), else None. The weight is None where no profile sees light. Profiles are made
-    ``BLOCK`` pixels at a time, so memory does not grow with the capture."""
+    ``BLOCK`` pixels at a time, so memory does not grow with the capture; their fits run on the torch
+    ``device`` (module docstring)."""
     chosen = pixels[np.unique(np.linspace(0, len(pixels) - 1, min(len(pixels), SELECT_PROFILES)).astype(np.int64))]
     y, lit, grey = profiles(irradiance, light, t0_us, period_us, chosen)
     if not lit.any():
         return None, None
-    weight, roughness = specular_weight(y[lit], grey, view)
+    weight, roughness = specular_weight(y[lit], grey, view, device)
     if rule == "auto" and weight < PROFILE_START_WEIGHT:
         return weight, None
     normal = np.zeros((len(pixels), 3))
     for start in range(0, len(pixels), BLOCK):
         y, lit, grey = profiles(irradiance, light, t0_us, period_us, pixels[start:start + BLOCK])
         if lit.any():
-            normal[start:start + BLOCK][lit] = profile_normals(y[lit], grey, view, weight, roughness)
+            normal[start:start + BLOCK][lit] = profile_normals(y[lit], grey, view, weight, roughness, device)
     return weight, normal
 
 
-def _bases(normal: np.ndarray, light: np.ndarray, view: np.ndarray, roughness: float) -> tuple[np.ndarray, np.ndarray]:
-    """Diffuse D = [n·l]₊|l| and lobe S (GGX, F0 = 1) × |l|, each (N, T), of unit normals (N, 3) under grey
-    lights ``light`` (T, 3) (direction × luma)."""
+def _bases(normal: np.ndarray, light: np.ndarray, view: np.ndarray, roughness: float, device: str = "cpu"
+           ) -> tuple[Tensor, Tensor]:
+    """Diffuse D = [n·l]₊|l| and lobe S (GGX, F0 = 1) × |l|, each (N, T) float64 on the torch ``device``,
+    of unit normals (N, 3) under grey lights ``light`` (T, 3) (direction × luma)."""
     strength = np.linalg.norm(light, axis=1)
     direction = light / np.maximum(strength, 1e-12)[:, None]
-    n = torch.as_tensor(normal, dtype=torch.float64)[:, None, :]
-    l = torch.as_tensor(direction, dtype=torch.float64)[None, :, :]
-    v = torch.as_tensor(view, dtype=torch.float64).expand(1, 1, 3)
-    zero, one = torch.zeros(1, dtype=torch.float64), torch.ones(1, dtype=torch.float64)
-    r = torch.tensor(roughness, dtype=torch.float64)
+    n = torch.as_tensor(normal, dtype=torch.float64, device=device)[:, None, :]
+    l = torch.as_tensor(direction, dtype=torch.float64, device=device)[None, :, :]
+    v = torch.as_tensor(view, dtype=torch.float64, device=device).expand(1, 1, 3)
+    zero, one = torch.zeros(1, dtype=torch.float64, device=device), torch.ones(1, dtype=torch.float64, device=device)
+    r = torch.tensor(roughness, dtype=torch.float64, device=device)
+    strength_there = torch.as_tensor(strength, device=device)
     with torch.no_grad():
-        lobe = GGX().shade(n, l, v, albedo=zero, f0=one, roughness=r)[..., 0].numpy()
-        diffuse = GGX().shade(n, l, v, albedo=one, f0=zero, roughness=r)[..., 0].numpy()
-    return diffuse * strength, lobe * strength
+        lobe = GGX().shade(n, l, v, albedo=zero, f0=one, roughness=r)[..., 0]
+        diffuse = GGX().shade(n, l, v, albedo=one, f0=zero, roughness=r)[..., 0]
+    return diffuse * strength_there, lobe * strength_there
 
 
 def _mixtures(normal: np.ndarray, light: np.ndarray, view: np.ndarray, roughness: float,
-              weights: tuple[float, ...]) -> np.ndarray:
+              weights: tuple[float, ...], device: str = "cpu") -> np.ndarray | Tensor:
     """(len(weights), N, T): the profiles (1 − w)·D/ΣD + w·S/ΣS of unit normals (N, 3) for each specular
-    weight w (``_bases``' D, S, each scaled to sum to one over the turn)."""
-    diffuse, lobe = _bases(normal, light, view, roughness)
-    diffuse = diffuse / np.maximum(diffuse.sum(axis=1, keepdims=True), 1e-30)
-    lobe = lobe / np.maximum(lobe.sum(axis=1, keepdims=True), 1e-30)
-    return np.stack([(1.0 - w) * diffuse + w * lobe for w in weights])
+    weight w (``_bases``' D, S, each scaled to sum to one over the turn); a tensor on ``device`` where
+    that is not the host."""
+    diffuse, lobe = _bases(normal, light, view, roughness, device)
+    if devices.on_host(device):
+        diffuse, lobe = diffuse.numpy(), lobe.numpy()
+        stack = np.stack
+    else:
+        stack = torch.stack
+    diffuse = diffuse / diffuse.sum(axis=1, keepdims=True).clip(min=1e-30)
+    lobe = lobe / lobe.sum(axis=1, keepdims=True).clip(min=1e-30)
+    return stack([(1.0 - w) * diffuse + w * lobe for w in weights])
 
 
-def _residuals(y: np.ndarray, shapes: np.ndarray) -> np.ndarray:
+def _residuals(y: np.ndarray | Tensor, shapes: np.ndarray | Tensor) -> np.ndarray | Tensor:
     """(P, N) relative squared residual |y − a·m|²/|y|² of each profile of ``y`` (P, T) under its best
-    scale a ≥ 0 for each shape m of ``shapes`` (N, T)."""
-    yy = np.maximum((y * y).sum(axis=1), 1e-30)
-    projection = np.maximum(y @ shapes.T, 0.0)
-    return 1.0 - projection**2 / np.maximum((shapes * shapes).sum(axis=1), 1e-30) / yy[:, None]
+    scale a ≥ 0 for each shape m of ``shapes`` (N, T): arrays, or tensors on one device."""
+    yy = (y * y).sum(axis=1).clip(min=1e-30)
+    projection = (y @ shapes.T).clip(min=0.0)
+    return 1.0 - projection**2 / (shapes * shapes).sum(axis=1).clip(min=1e-30) / yy[:, None]
 
 
-def specular_weight(y: np.ndarray, light: np.ndarray, view: np.ndarray) -> tuple[float, float]:
+def specular_weight(y: np.ndarray, light: np.ndarray, view: np.ndarray, device: str = "cpu") -> tuple[float, float]:
     """The weight w of ``SPECULAR_WEIGHTS`` and roughness of ``ROUGHNESSES`` whose profile family fits
     the profiles ``y`` (P, T) best, each profile at its best normal among ``SELECT_CANDIDATES`` (the mean
-    relative residual over the profiles; ``capture_start`` gives it at most ``SELECT_PROFILES``)."""
+    relative residual over the profiles; ``capture_start`` gives it at most ``SELECT_PROFILES``),
+    computed on the torch ``device``."""
     candidates = candidate_normals(SELECT_CANDIDATES)
-    best = (np.inf, 0.0, ROUGHNESSES[0])
+    there = not devices.on_host(device)
+    profiles_y = torch.as_tensor(y, device=device) if there else y
+    fits = []
     for r in ROUGHNESSES:
-        for w, shapes in zip(SPECULAR_WEIGHTS, _mixtures(candidates, light, view, r, SPECULAR_WEIGHTS)):
-            residual = float(_residuals(y, shapes).min(axis=1).mean())
-            if residual < best[0]:
-                best = (residual, w, r)
+        for shapes in _mixtures(candidates, light, view, r, SPECULAR_WEIGHTS, device):
+            residual = _residuals(profiles_y, shapes)
+            fits.append(residual.amin(dim=1).mean() if there else residual.min(axis=1).mean())
+    # one read back of them all on a device
+    residuals = torch.stack(fits).cpu().tolist() if there else [float(fit) for fit in fits]
+    best = (np.inf, 0.0, ROUGHNESSES[0])
+    for (r, w), residual in zip(((r, w) for r in ROUGHNESSES for w in SPECULAR_WEIGHTS), residuals, strict=True):
+        if residual < best[0]:
+            best = (residual, w, r)
     return best[1], best[2]
 
 
@@ -146,12 +167,18 @@ def candidate_normals(count: int = CANDIDATES, max_tilt_deg: float = MAX_TILT_DE
     return grid[z >= np.cos(np.radians(max_tilt_deg))]
 
 
-def profile_normals(y: np.ndarray, light: np.ndarray, view: np.ndarray, weight: float, roughness: float) -> np.ndarray:
+def profile_normals(y: np.ndarray, light: np.ndarray, view: np.ndarray, weight: float, roughness: float,
+                    device: str = "cpu") -> np.ndarray:
     """Per profile of ``y`` (P, T) the candidate normal (``candidate_normals``) whose profile of specular
-    ``weight`` and ``roughness`` (``specular_weight``) fits it best up to scale: (P, 3) unit normals."""
+    ``weight`` and ``roughness`` (``specular_weight``) fits it best up to scale: (P, 3) unit normals,
+    the fits computed on the torch ``device``."""
     candidates = candidate_normals()
-    shapes = _mixtures(candidates, light, view, roughness, (weight,))[0]
+    shapes = _mixtures(candidates, light, view, roughness, (weight,), device)[0]
     best = np.zeros(len(y), dtype=np.int64)
     for start in range(0, len(y), BLOCK):
-        best[start:start + BLOCK] = np.argmin(_residuals(y[start:start + BLOCK], shapes), axis=1)
+        if devices.on_host(device):
+            best[start:start + BLOCK] = np.argmin(_residuals(y[start:start + BLOCK], shapes), axis=1)
+        else:
+            block = torch.as_tensor(y[start:start + BLOCK], device=device)
+            best[start:start + BLOCK] = torch.argmin(_residuals(block, shapes), dim=1).cpu().numpy()
     return candidates[best]

@@ -113,7 +113,8 @@ class ShadowEvidence:
     surface's integration and sweep do, ``surface_sweep``). ``memo``: shared by the evidence and its
     copies with another surface (``with_normal``; any other copy starts an empty one), where a detector
     keeps what it computed from the surface (``of_surface``), so a solver that asks again of the same
-    surface (told something else of it) does not pay twice."""
+    surface (told something else of it) does not pay twice; ``kept``, shared the same way, what it
+    computed from the capture alone (``of_capture``), for every surface."""
 
     frame_shape: tuple[int, int]
     event_shape: tuple[int, int]
@@ -134,12 +135,13 @@ class ShadowEvidence:
     inter_reflected: bool = False
     device: str = "cpu"
     memo: dict[Hashable, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
+    kept: dict[Hashable, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def with_normal(self, normal: np.ndarray, fitted: bool = False, inter_reflected: bool = False) -> ShadowEvidence:
         """The same evidence with the surface estimate ``normal`` (H, W, 3), ``fitted`` to the
         measurements or a start, ``inter_reflected`` light taken out or not."""
         copy = replace(self, normal=np.asarray(normal, dtype=np.float32), fitted=fitted, inter_reflected=inter_reflected)
-        copy.memo = self.memo
+        copy.memo, copy.kept = self.memo, self.kept
         return copy
 
     def of_surface(self, key: Hashable, compute: Callable[[], T]) -> T:
@@ -154,6 +156,14 @@ class ShadowEvidence:
         if key not in self.memo:
             self.memo[key] = compute()
         return self.memo[key]
+
+    def of_capture(self, key: Hashable, compute: Callable[[], T]) -> T:
+        """``compute()``, a value computed from the capture alone (not the surface), once per ``key``
+        (which names the options it used) for this evidence and its copies, whatever surface they ask
+        of. The value is shared: whoever takes it must not change it."""
+        if key not in self.kept:
+            self.kept[key] = compute()
+        return self.kept[key]
 
     def forget(self) -> None:
         """Drop what ``of_surface`` keeps, for this evidence and its copies: a solver that will not ask

@@ -39,8 +39,8 @@ class DeviceRunCollector:
         self.previous = block[-1].clone()
         self.rows += block.shape[0]
 
-    def intervals(self, period_us: float, pixels: np.ndarray | None = None) -> ShadowIntervals:
-        """``RunCollector.intervals``: every run of the rows fed so far, column by column in time order."""
+    def _changes(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(row, column) of every run's opening and of its closing (runs still open close at the rows fed)."""
         device = self.previous.device
         still = torch.nonzero(self.previous, as_tuple=True)[0]
         empty = torch.empty(0, dtype=torch.int64, device=device)
@@ -48,6 +48,25 @@ class DeviceRunCollector:
         closes = [(empty, empty), *self._closes, (torch.full_like(still, self.rows), still)]
         open_row, open_column = (torch.cat([part[i] for part in opens]) for i in range(2))
         close_row, close_column = (torch.cat([part[i] for part in closes]) for i in range(2))
+        return open_row, open_column, close_row, close_column
+
+    def grid_at(self, columns: Tensor) -> Tensor:
+        """(rows fed, C) bool: the rows fed so far at ``columns`` (C,) int64 on the device, distinct,
+        rebuilt from the runs: the +1 of each opening and −1 of each closing written into a table (no two
+        changes of a column share a row), its running sum over the rows."""
+        open_row, open_column, close_row, close_column = self._changes()
+        count = columns.numel()
+        # the changes of other columns go to a last column, dropped: no boolean index, no read back
+        position = torch.full((self.previous.numel(),), count, dtype=torch.int64, device=columns.device)
+        position[columns] = torch.arange(count, device=columns.device)
+        table = torch.zeros((self.rows + 1, count + 1), dtype=torch.int8, device=columns.device)
+        for row, column, sign in ((open_row, open_column, 1), (close_row, close_column, -1)):
+            table[row, position[column]] = sign
+        return torch.cumsum(table[:-1, :count], dim=0, dtype=torch.int8) > 0
+
+    def intervals(self, period_us: float, pixels: np.ndarray | None = None) -> ShadowIntervals:
+        """``RunCollector.intervals``: every run of the rows fed so far, column by column in time order."""
+        open_row, open_column, close_row, close_column = self._changes()
         # a column's changes alternate from an opening: its k-th opening and k-th closing make its k-th run
         stride = self.rows + 1
         order = torch.argsort(open_column * stride + open_row)

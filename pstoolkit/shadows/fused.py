@@ -34,17 +34,18 @@ import numpy as np
 from pstoolkit._shared import devices
 from pstoolkit.plugin.options import Option
 from pstoolkit.shadows.base import ShadowDetector, ShadowEvidence, ShadowMask
-from pstoolkit.shadows.device_tracking import edge_tracker, run_collector
+from pstoolkit.shadows.device_tracking import DeviceRunCollector, edge_tracker, run_collector
 from pstoolkit.shadows.edge_seen import SeenShadows, seen_edges
 from pstoolkit.shadows.edge_tracking import SuperPixels
 from pstoolkit.shadows.geometry import GEOMETRY_OPTIONS, shadow_height
-from pstoolkit.shadows.intervals import ShadowIntervals, intervals_from_grid, rasterize
+from pstoolkit.shadows.intervals import RunCollector, ShadowIntervals, intervals_from_grid, rasterize
 from pstoolkit.shadows.silences import dark_spans, min_gap_us
 from pstoolkit.shadows.surface_sweep import surface_shadow_blocks
 
-# Frame pixels at a time whose surface shadows are checked against the seen ones: a (steps, chunk) grid
-# of bytes (5.9 MB at 720 steps).
+# Frame pixels at a time whose surface shadows are checked against the seen ones on the host: a
+# (steps, chunk) grid of bytes (5.9 MB at 720 steps); on a device, at most this many bytes of work.
 SEEN_CHUNK = 8192
+SEEN_BYTES = 1 << 30
 
 
 def event_darkness(evidence: ShadowEvidence, steps: int, min_gap: float) -> np.ndarray:
@@ -54,7 +55,8 @@ def event_darkness(evidence: ShadowEvidence, steps: int, min_gap: float) -> np.n
     dark = rasterize(spans, n_events, evidence.period_us, steps)
     silent = np.ones(n_events, dtype=bool)
     silent[evidence.profile.pixel] = False
-    dark[:, silent] = True
+    # row by row: a column assignment strides across the whole map
+    dark |= silent
     return dark
 
 
@@ -83,8 +85,15 @@ class FusedDetector(ShadowDetector):
         height, chosen = shadow_height(evidence, options)
 
         @functools.cache
-        def dark() -> np.ndarray:
-            return event_darkness(evidence, options["time_steps"], min_gap_us(options["min_gap_ms"], evidence.refractory_us, 1.0))
+        def dark() -> Any:
+            steps, gap = options["time_steps"], min_gap_us(options["min_gap_ms"], evidence.refractory_us, 1.0)
+            if devices.on_host(evidence.device):
+                return event_darkness(evidence, steps, gap)
+            import torch  # deferred: only a solver on a device sweeps there
+
+            # the same map at every detection of a solve: moved to the device once
+            return evidence.of_capture(("fused_dark", steps, gap), lambda: torch.as_tensor(
+                event_darkness(evidence, steps, gap), device=evidence.device))
 
         # the same surface told only that inter-reflection is taken out confirms the same shadows at its own height
         key = ("fused_confirmed", evidence.fitted, *sorted((k, v) for k, v in options.items() if k != "reflected_scale"))
@@ -97,11 +106,12 @@ class FusedDetector(ShadowDetector):
         return replace(evidence.frame_mask(shadows), diagnostics=chosen)
 
 
-def _confirmed(evidence: ShadowEvidence, options: dict[str, Any], height: np.ndarray, dark: np.ndarray
+def _confirmed(evidence: ShadowEvidence, options: dict[str, Any], height: np.ndarray, dark: Any
                ) -> tuple[ShadowIntervals, dict[str, int]]:
     """The shadows of the surface of ``height`` that the events confirm (module docstring), keyed by flat
     frame pixel, and the record of the edges seen (empty when the options take none). ``dark``:
-    ``event_darkness`` on the options' time grid."""
+    ``event_darkness`` on the options' time grid, a tensor on the evidence's device where that is not
+    the host."""
     steps = options["time_steps"]
     pixels = np.flatnonzero(np.asarray(evidence.mask).ravel())
     covering = evidence.super_pixel[pixels]
@@ -124,38 +134,41 @@ def _confirmed(evidence: ShadowEvidence, options: dict[str, Any], height: np.nda
     if not edges:
         return shadows, {}
     seen = seen_edges(evidence, tracker, options["edge_tolerance_deg"])
-    extra = _seen_at_pixels(evidence, seen, surface.intervals(evidence.period_us), pixels, edge_share)
+    extra = _seen_at_pixels(evidence, seen, surface, pixels, edge_share)
     # the table merges what overlaps or touches: the union of both kinds of confirmation
     return ShadowIntervals.concatenate([shadows, extra]), seen.record()
 
 
-def _dark_columns(dark: np.ndarray, covering: np.ndarray, device: str) -> Callable[[int, int], Any]:
+def _dark_columns(dark: Any, covering: np.ndarray, device: str) -> Callable[[int, int], Any]:
     """``at(start, n)``: (n, P) bool, the rows ``start``… of ``dark`` (steps, He·We) at the super pixels
     ``covering`` (P,) the masked frame pixels, where ``surface_shadow_blocks`` gives its blocks on
-    ``device``: there the map is moved once."""
+    ``device`` (``dark`` a tensor there)."""
     if devices.on_host(device):
         # np.take gathers a block's columns 5× faster than indexing with an index array
         return lambda start, n: np.take(dark[start : start + n], covering, axis=1)
     import torch  # deferred: only a solver on a device sweeps there
 
-    there = torch.as_tensor(dark, device=device)
     columns = torch.as_tensor(covering, device=device)
-    return lambda start, n: there[start : start + n].index_select(1, columns)
+    return lambda start, n: dark[start : start + n].index_select(1, columns)
 
 
-def _seen_at_pixels(evidence: ShadowEvidence, seen: SeenShadows, surface: ShadowIntervals, pixels: np.ndarray,
-                    edge_share: float) -> ShadowIntervals:
+def _seen_at_pixels(evidence: ShadowEvidence, seen: SeenShadows, surface: RunCollector | DeviceRunCollector,
+                    pixels: np.ndarray, edge_share: float) -> ShadowIntervals:
     """The surface's shadows where the events saw their super pixel's edges, at the frame pixels the
     surface shadows for at most ``edge_share`` of the period. ``surface``: the surface's shadows of the
-    masked frame pixels ``pixels`` (P,), keyed by their position among them; the result is keyed by
-    flat pixel. Worked through SEEN_CHUNK pixels at a time on the time grid of ``seen``."""
-    steps = seen.seen.shape[0]
+    masked frame pixels ``pixels`` (P,), a column each, on the time grid of ``seen``; the result is keyed
+    by flat pixel. On the host worked through SEEN_CHUNK pixels at a time; on a device
+    (``_seen_there``) as many as its memory takes."""
     covering = evidence.super_pixel[pixels]
     column = np.full(evidence.event_shape[0] * evidence.event_shape[1], -1, dtype=np.int64)
     column[seen.columns] = np.arange(seen.columns.size)
     taking = np.flatnonzero((column[covering] >= 0) & (seen.pixel_share <= edge_share))
-    keep = np.isin(surface.pixel, taking)
-    owner, t0, t1 = surface.pixel[keep], surface.t0_us[keep], surface.t1_us[keep]
+    if isinstance(surface, DeviceRunCollector):
+        return _seen_there(surface, seen.seen, column[covering[taking]], taking, pixels, evidence.period_us)
+    steps = seen.seen.shape[0]
+    shadows = surface.intervals(evidence.period_us)
+    keep = np.isin(shadows.pixel, taking)
+    owner, t0, t1 = shadows.pixel[keep], shadows.t0_us[keep], shadows.t1_us[keep]
     parts = []
     for first in range(0, taking.size, SEEN_CHUNK):
         part = taking[first : first + SEEN_CHUNK]
@@ -164,4 +177,27 @@ def _seen_at_pixels(evidence: ShadowEvidence, seen: SeenShadows, surface: Shadow
         grid = rasterize(ShadowIntervals(local, t0[inside], t1[inside]), part.size, evidence.period_us, steps)
         grid &= np.take(seen.seen, column[covering[part]], axis=1)
         parts.append(intervals_from_grid(grid, evidence.period_us, pixels[part]))
+    return ShadowIntervals.concatenate(parts)
+
+
+def _seen_there(surface: DeviceRunCollector, seen: np.ndarray, seen_column: np.ndarray, taking: np.ndarray,
+                pixels: np.ndarray, period_us: float) -> ShadowIntervals:
+    """``_seen_at_pixels`` on the device of ``surface``: the surface's shadows at the columns ``taking``
+    (T,) rebuilt there from its runs (``DeviceRunCollector.grid_at``), and with the seen map ``seen``
+    (steps, C) at their columns ``seen_column`` (T,), their runs found there; the same intervals as the
+    host's, which rasterizes the runs read back."""
+    import torch  # deferred: only a solver on a device sweeps there
+
+    device = surface.previous.device
+    seen_there = torch.as_tensor(seen, device=device)
+    # a column's bytes at a time: the ±1 table, its running sum, the grid, the seen columns, the collector's
+    chunk = max(1, devices.memory_budget(device, SEEN_BYTES) // (6 * (surface.rows + 1)))
+    parts = []
+    for first in range(0, taking.size, chunk):
+        part = taking[first : first + chunk]
+        grid = surface.grid_at(torch.as_tensor(part, device=device))
+        grid &= seen_there.index_select(1, torch.as_tensor(seen_column[first : first + chunk], device=device))
+        collector = DeviceRunCollector(part.size, device)
+        collector.feed(grid)
+        parts.append(collector.intervals(period_us, pixels[part]))
     return ShadowIntervals.concatenate(parts)

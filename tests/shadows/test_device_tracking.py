@@ -48,6 +48,20 @@ def test_the_device_collector_gives_the_hosts_runs(device: str) -> None:
 
 
 @pytest.mark.parametrize("device", DEVICES)
+def test_the_device_collector_gives_back_the_map_it_was_fed_at_any_columns(device: str) -> None:
+    shadowed = _map(120, 300, 3)
+    there = DeviceRunCollector(300, device)
+    for part in _blocks(120):
+        there.feed(torch.as_tensor(shadowed[part], device=device))
+    # always and never shadowed columns among them, out of order
+    columns = np.r_[np.random.default_rng(4).permutation(300)[:150], 1, 4]
+    grid = there.grid_at(torch.as_tensor(columns, device=device))
+    assert grid.dtype == torch.bool and grid.shape == (120, columns.size)
+    np.testing.assert_array_equal(grid.cpu().numpy(), shadowed[:, columns])
+    assert there.grid_at(torch.empty(0, dtype=torch.int64, device=device)).shape == (120, 0)
+
+
+@pytest.mark.parametrize("device", DEVICES)
 def test_the_device_tracker_gives_the_hosts_edges(device: str) -> None:
     rng = np.random.default_rng(1)
     shadowed = _map(120, 400, 2)

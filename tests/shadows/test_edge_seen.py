@@ -231,3 +231,32 @@ def test_evidence_on_a_device_integrates_and_sweeps_its_surface_there(lit_hollow
     swept = geometry_entry.obj().detect(there, geometry_entry.parse_options([]))
     monkeypatch.setattr(devices, "on_host", lambda device: True)
     assert np.array_equal(swept.coverage(), geometry_entry.obj().detect(evidence, geometry_entry.parse_options([])).coverage())
+
+
+def test_fused_on_a_device_confirms_the_hosts_shadows_and_moves_the_dark_map_once(lit_hollows: dict,
+                                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """Through torch on the CPU, as on a GPU: a fitted, inter-reflected surface (the seen edges of every
+    pixel, rebuilt on the device from the sweep's runs, a few pixels at a time; the taller surface too)
+    confirms the host's shadows, and the events' dark map is made once for the capture's detections."""
+    from pstoolkit._shared import devices
+
+    filled = lit_hollows["filled"]
+    filled.forget()
+    surfaces = [filled.with_normal(filled.normal, fitted=True, inter_reflected=True)]
+    tilted = filled.normal.copy()
+    tilted[..., 0] += 0.02
+    surfaces.append(filled.with_normal(tilted, fitted=True, inter_reflected=True))
+    host = [_fused(surface, "height_scale=0") for surface in surfaces]
+    made = []
+    darkness = fused.event_darkness
+    monkeypatch.setattr(fused, "event_darkness", lambda *args: made.append(1) or darkness(*args))
+    monkeypatch.setattr(devices, "on_host", lambda device: False)
+    # chunks of 7 pixels on the default 720 steps
+    monkeypatch.setattr(fused, "SEEN_BYTES", 7 * 6 * 721)
+    there = replace(filled, profile=filled.profile)
+    for surface, expected in zip(surfaces, host, strict=True):
+        mask = _fused(there.with_normal(surface.normal, fitted=True, inter_reflected=True), "height_scale=0")
+        assert mask.diagnostics == expected.diagnostics and mask.diagnostics["edge_seen"] > 0
+        np.testing.assert_array_equal(mask.table.start, expected.table.start)
+        np.testing.assert_array_equal(mask.table.end, expected.table.end)
+    assert made == [1]

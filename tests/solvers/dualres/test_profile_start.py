@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import psfmt
+from pstoolkit._shared import devices
 from pstoolkit.evaluation.metrics import angular_error_deg
 from pstoolkit.optics.lights import RingLight
 from pstoolkit.sim.config import SimulationConfig
@@ -59,6 +60,20 @@ def test_a_lobe_is_told_from_a_cosine_and_its_normals_recovered(weight: float, r
     assert np.median(error) < 2.5 and np.mean(error < 6.0) > 0.65
     matte = _profiles(normal, 0.0, roughness, seed=3)
     assert specular_weight(matte, _ring(), VIEW)[0] <= 0.1
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+def test_the_fits_on_a_device_choose_what_the_host_chooses(device: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The shapes and residuals computed on a torch device (here through torch on the CPU, told it is
+    not the host) choose the host's weight, roughness and candidate normals."""
+    metal = _profiles(_normals(400, seed=1), 0.9, 0.3, seed=2)
+    host = specular_weight(metal, _ring(), VIEW)
+    host_normal = profile_normals(metal, _ring(), VIEW, *host)
+    monkeypatch.setattr(devices, "on_host", lambda where: False)
+    assert specular_weight(metal, _ring(), VIEW, device) == host
+    there = profile_normals(metal, _ring(), VIEW, *host, device)
+    # a candidate may differ only where two fit a profile equally to rounding (measured: none)
+    assert np.mean(np.all(there == host_normal, axis=1)) >= 0.99
 
 
 @pytest.fixture(scope="module")
