@@ -2,7 +2,7 @@
 of cells: ``Cells`` pools the surface and its direct light onto at most ``WORK_SIDE`` cells a side (the
 bounce is smooth at the scale of a pixel), the compiled ``_bounce`` sums each cell's neighbours within
 ``RADIUS_CELLS`` cells that it sees above the height field, and ``Bounce`` reads the result back at any
-masked pixel and phase. ``bounce_device`` does the per-pixel parts on a torch device.
+masked pixel and phase. ``bounce_device`` does all but the pooling onto the cells on a torch device.
 """
 
 from __future__ import annotations
@@ -154,22 +154,39 @@ class Cells:
             out[..., t] = self.pool(plane.reshape(h, w))
         return out
 
+    def surface(self, normal: np.ndarray, albedo: np.ndarray, height: np.ndarray) -> CellSurface:
+        """The cells' surface of the frame pixels' ``normal`` (H, W, 3), ``albedo`` (H, W, 3) and ``height``
+        (H, W, frame pixels), which ``_bounce`` sums over."""
+        cell_normal = self.pool(normal)
+        cell_normal /= np.maximum(np.linalg.norm(cell_normal, axis=-1, keepdims=True), 1e-12)
+        cell_height = self.pool(height) / self.stride
+        v, u = np.mgrid[0 : self.shape[0], 0 : self.shape[1]].astype(np.float64)
+        inside = _pool(self.mask.astype(np.float64), np.ones(self.mask.shape), self.stride, self.shape) >= 0.5
+        return CellSurface(np.stack([u, -v, cell_height], axis=-1), cell_normal, self.pool(albedo), inside, cell_height)
+
     def bounce(self, normal: np.ndarray, albedo: np.ndarray, height: np.ndarray, direct: np.ndarray, phase_us: np.ndarray,
                period_us: float) -> Bounce:
         """``one_bounce`` of the cells' mean direct irradiance ``direct`` (Hc, Wc, T) (``direct``)."""
-        cell_normal = self.pool(normal)
-        cell_normal /= np.maximum(np.linalg.norm(cell_normal, axis=-1, keepdims=True), 1e-12)
-        cell_albedo = self.pool(albedo)
-        cell_height = self.pool(height) / self.stride
-        inside = _pool(self.mask.astype(np.float64), np.ones(self.mask.shape), self.stride, self.shape) >= 0.5
-        v, u = np.mgrid[0 : self.shape[0], 0 : self.shape[1]].astype(np.float64)
-        point = np.stack([u, -v, cell_height], axis=-1)
+        surface = self.surface(normal, albedo, height)
         t_count = direct.shape[-1]
         out = np.zeros((*self.shape, t_count, 3))
-        _bounce(point, cell_normal, cell_albedo, np.ascontiguousarray(direct, dtype=np.float64), inside, cell_height,
-                RADIUS_CELLS, out)
+        _bounce(surface.point, surface.normal, surface.albedo, np.ascontiguousarray(direct, dtype=np.float64), surface.inside,
+                surface.height, RADIUS_CELLS, out)
         value = np.ascontiguousarray(np.moveaxis(out.reshape(-1, t_count, 3), 1, 0)).astype(np.float32)
         return Bounce(value, self.cell, np.asarray(phase_us, dtype=np.float64), float(period_us))
+
+
+@dataclass(frozen=True)
+class CellSurface:
+    """The surface on the cells (``Cells.surface``), each (Hc, Wc, ...) float64 in cell units: ``point``
+    (u, −v, height) of each cell's centre, unit ``normal``, ``albedo`` (3 channels), ``inside`` bool
+    (at least half its pixels on the object), ``height``."""
+
+    point: np.ndarray
+    normal: np.ndarray
+    albedo: np.ndarray
+    inside: np.ndarray
+    height: np.ndarray
 
 
 def one_bounce(normal: np.ndarray, albedo: np.ndarray, height: np.ndarray, mask: np.ndarray, lit: np.ndarray,

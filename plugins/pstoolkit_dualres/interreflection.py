@@ -40,7 +40,7 @@ from pstoolkit.optics.lights import LightModel
 from pstoolkit.shadows.intervals import grid_times
 from pstoolkit.shadows.table_device import DeviceShadowMask
 from pstoolkit_dualres.bounce import Bounce, Cells, one_bounce
-from pstoolkit_dualres.bounce_device import DeviceBounce, cell_direct_there, event_offsets_there, frame_offsets_there
+from pstoolkit_dualres.bounce_device import bounce_there, cell_direct_there, event_offsets_there, frame_offsets_there
 from pstoolkit_dualres.forward_model import frame_prediction
 from pstoolkit_dualres.losses import event_loss, frame_loss, grid_frame_loss, pair_grey
 from pstoolkit_dualres.problem import EventTerms, FrameTerms, Problem
@@ -184,7 +184,7 @@ def _offsets_there(problem: Problem, normal: Tensor, albedo: Tensor, full_normal
     cells = Cells.of(mask)
     normal64, albedo64 = normal.detach().to(torch.float64), albedo.detach().to(torch.float64)
     direct = cell_direct_there(cells, normal64, lit, directions)
-    there = DeviceBounce.of(cells.bounce(full_normal, full_albedo, height, direct, phase_us, period_us), device)
+    there = bounce_there(cells, full_normal, full_albedo, height, direct, period_us)
     offset = frame_offsets_there(problem.frames, there, albedo64, t0_us, period_us)
     now, ref = event_offsets_there(problem.events, there, albedo64, t0_us, period_us)
     return offset.cpu().numpy(), now.cpu().numpy(), ref.cpu().numpy()

@@ -185,6 +185,38 @@ def test_a_bounce_the_measurements_do_not_have_is_tried_and_left_out(hollows_48:
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+def test_the_sum_over_the_cells_on_a_device_is_the_compiled_kernels(device: str) -> None:
+    """``bounce_device._sum_there`` against ``bounce._bounce`` on rough cells with holes and a wall (pairs
+    the wall blocks, pairs beyond the radius, rounding halfway between cells), the radius inside the
+    grid and past it."""
+    from pstoolkit_dualres.bounce import _bounce
+    from pstoolkit_dualres.bounce_device import _sum_there
+
+    rng = np.random.default_rng(5)
+    hc, wc, t_count = 17, 22, 4
+    height = rng.normal(0.0, 1.5, (hc, wc))
+    height[:, 10] = 12.0
+    normal = rng.normal(0.0, 0.4, (hc, wc, 3))
+    normal[..., 2] = 1.0
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    albedo, direct = rng.uniform(0.1, 0.9, (hc, wc, 3)), rng.uniform(0.0, 1.0, (hc, wc, t_count))
+    inside = rng.random((hc, wc)) > 0.15
+    v, u = np.mgrid[0:hc, 0:wc].astype(np.float64)
+    point = np.stack([u, -v, height], axis=-1)
+    for radius in (6, 32):
+        expected = np.zeros((hc, wc, t_count, 3))
+        _bounce(point, normal, albedo, direct, inside, height, radius, expected)
+        there = _sum_there(*(torch.as_tensor(a, device=device) for a in (point, normal, albedo, direct, inside, height)), radius)
+        np.testing.assert_allclose(there.cpu().numpy().reshape(hc, wc, t_count, 3), expected, rtol=1e-12, atol=1e-15)
+    open_wall = height.copy()
+    open_wall[:, 10] = 0.0
+    unblocked = np.zeros((hc, wc, t_count, 3))
+    _bounce(point, normal, albedo, direct, inside, open_wall, 32, unblocked)
+    # the wall blocks some pairs, and the exchange is not empty
+    assert expected.max() > 0.0 and not np.allclose(unblocked, expected)
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
 def test_the_bounce_taken_out_on_the_device_is_the_hosts(hollows_48: Path, device: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """``remove_bounce`` down the device's path (``bounce_device``) changes the frames and the pairs as the
     host's does, for the shared grid's samples and the importance samples."""
