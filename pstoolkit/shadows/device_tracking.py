@@ -84,9 +84,12 @@ class DeviceEdgeTracker:
 
     def __init__(self, groups: SuperPixels, device: str | torch.device, *, count_pixels: bool = False) -> None:
         self.groups = groups
-        self.group = torch.as_tensor(groups.group.astype(np.int64), device=device)
-        self.used = torch.as_tensor(groups.used.astype(np.int64), device=device)
-        self.needed = torch.as_tensor(groups.needed, device=device)
+        key = str(torch.device(device))
+        if key not in groups.there:
+            # moved once for every tracker of the same super pixels (a calibration sweeps 13 times)
+            groups.there[key] = tuple(torch.as_tensor(a, device=device) for a in
+                                      (groups.group.astype(np.int64), groups.used.astype(np.int64), groups.needed))
+        self.group, self.used, self.needed = groups.there[key]
         self._pixel_bins = torch.zeros(groups.group.size, dtype=torch.int64, device=device) if count_pixels else None
         self._bins: list[Tensor] = []
         self._pixel: list[Tensor] = []

@@ -50,7 +50,7 @@ def seen_shadows(evidence: ShadowEvidence, height: np.ndarray, time_steps: int, 
     """The shadows of the surface of ``height`` (pixels) whose edges the events of ``evidence`` see
     (module docstring), marched at ``time_steps`` light directions per period with the occluder margin
     ``margin_px`` (``surface_sweep.surface_shadow_blocks``); ``seen_edges`` on its ``EdgeTracker``."""
-    tracker = super_pixel_edges(evidence, SuperPixels.of(evidence), height, time_steps, margin_px, count_pixels=True)
+    tracker = super_pixel_edges(evidence, SuperPixels.shared(evidence), height, time_steps, margin_px, count_pixels=True)
     return seen_edges(evidence, tracker, tolerance_deg)
 
 

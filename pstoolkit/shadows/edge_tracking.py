@@ -6,7 +6,8 @@ onsets, ``fused`` (``edge_seen``) looks for the events' fall and rise at them; o
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -21,14 +22,23 @@ SHARE_THRESHOLD = 0.3
 class SuperPixels:
     """The super pixels covering the masked frame pixels: ``used`` (G,) the event pixels, increasing;
     ``group`` (P,) int32 the position in ``used`` of each masked frame pixel's (flat order); ``needed``
-    (G,) int32 how many of a super pixel's frame pixels make the ``SHARE_THRESHOLD`` share."""
+    (G,) int32 how many of a super pixel's frame pixels make the ``SHARE_THRESHOLD`` share. ``there``:
+    their copies on torch devices, by device (``device_tracking``)."""
 
     used: np.ndarray
     group: np.ndarray
     needed: np.ndarray
+    there: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+    @classmethod
+    def shared(cls, evidence: ShadowEvidence) -> SuperPixels:
+        """``of`` the evidence, made once for it and its copies (``ShadowEvidence.of_capture``): every
+        sweep of every detection tracks them."""
+        return evidence.of_capture("super_pixels", lambda: cls.of(evidence))
 
     @classmethod
     def of(cls, evidence: ShadowEvidence) -> SuperPixels:
+        """Those of the evidence's ``super_pixel`` and ``mask``."""
         covering = evidence.super_pixel[np.flatnonzero(np.asarray(evidence.mask).ravel())]
         used, group, count = np.unique(covering, return_inverse=True, return_counts=True)
         # a whole count s reaches the share x = threshold·count exactly when it reaches ceil(x)

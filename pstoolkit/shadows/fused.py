@@ -119,7 +119,7 @@ def _confirmed(evidence: ShadowEvidence, options: dict[str, Any], height: np.nda
     edge_share = options["fitted_edge_share" if evidence.fitted else "edge_share"]
     edges = edge_share > 0
     if edges:
-        tracker = edge_tracker(SuperPixels.of(evidence), evidence.device, count_pixels=True)
+        tracker = edge_tracker(SuperPixels.shared(evidence), evidence.device, count_pixels=True)
         surface = run_collector(pixels.size, evidence.device)
     under = _dark_columns(dark, covering, evidence.device)
     start = 0

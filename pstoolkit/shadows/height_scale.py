@@ -168,7 +168,7 @@ def calibrate(evidence: ShadowEvidence, height: np.ndarray, *, margin_px: float,
     falling, rising = onsets(evidence.profile, evidence.refractory_us)
     period = evidence.period_us
     tolerance_us = tolerance_deg / 360.0 * period
-    groups = SuperPixels.of(evidence)
+    groups = SuperPixels.shared(evidence)
     tried: dict[float, tuple[int, float]] = {}
     on_host = devices.on_host(evidence.device)
     if not on_host:

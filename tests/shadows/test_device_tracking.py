@@ -80,6 +80,8 @@ def test_the_device_tracker_gives_the_hosts_edges(device: str) -> None:
     assert there.steps == host.steps == 120
     assert DeviceEdgeTracker(groups, device).pixel_bins is None
     assert DeviceEdgeTracker(groups, device).edges()[0].size == 0
+    # every tracker of the same super pixels takes the copies the first one moved there
+    assert DeviceEdgeTracker(groups, device).group is there.group and list(groups.there) == [str(torch.device(device))]
 
 
 def test_the_host_or_the_device_copy_is_picked_by_the_device() -> None:

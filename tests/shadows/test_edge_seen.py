@@ -13,6 +13,7 @@ import psfmt
 from pstoolkit.plugin.manager import get_registries
 from pstoolkit.shadows import ShadowEvidence, fused, geometry, interval_profile
 from pstoolkit.shadows.edge_seen import seen_shadows
+from pstoolkit.shadows.edge_tracking import SuperPixels
 from pstoolkit.shadows.height_scale import period_keys, within
 from pstoolkit.shadows.intervals import grid_times
 from pstoolkit.shadows.score import score, true_shadows
@@ -185,6 +186,18 @@ def test_the_height_of_a_surface_is_calibrated_once_for_the_evidence_and_its_cop
     fresh = _fused(replace(fitted, profile=fitted.profile), "height_scale=0")
     assert len(calls) == 3 and len(sweeps) == 4
     assert np.array_equal(fresh.coverage(), first.coverage())
+
+
+def test_the_super_pixels_are_made_once_for_the_evidence_and_its_copies(lit_hollows: dict) -> None:
+    evidence = lit_hollows["evidence"]
+    groups = SuperPixels.shared(evidence)
+    assert SuperPixels.shared(evidence.with_normal(evidence.normal, fitted=True)) is groups
+    evidence.forget()
+    assert SuperPixels.shared(evidence) is groups
+    other = np.asarray(evidence.mask).copy()
+    other[other.shape[0] // 2 :] = False
+    fewer = SuperPixels.shared(replace(evidence, mask=other))
+    assert fewer is not groups and fewer.group.size == np.count_nonzero(other) < groups.group.size
 
 
 def test_forget_drops_what_the_detectors_kept_for_every_copy(lit_hollows: dict, monkeypatch: pytest.MonkeyPatch) -> None:
