@@ -3,7 +3,8 @@
 The compiled sweep walks each light's parallel lines column by column, keeping their running maximum
 of occluder − ramp; a GPU takes the same quantities all at once instead: for a batch of lights, the
 occluder samples of every line at every column (interpolated between the two rows the line passes,
-as the sweep does), their maximum over the columns after each one by a log-step scan, and the margin
+as the sweep does), their maximum over the columns after each one by one running maximum from the far
+end (``torch.cummax``), and the margin
 of each pixel from the two lines around it. Every value is the sweep's own float32 expression of the
 same inputs and a maximum is exact, so the margins equal the compiled sweep's (a test holds them to
 it). Memory: a few (lines × columns) float32 arrays per light of a batch, bounded by
@@ -92,14 +93,13 @@ def _oriented_margins(occluder: Tensor, height: Tensor, inside: Tensor, k: np.nd
     # (1 − f)·a + f·b, as the sweep: not a + f·(b − a)
     sample = pairs[..., :-1] * (one - f) + pairs[..., 1:] * f - ramp
     del pairs
-    # the running maximum a column's pixels see: over the columns after it (towards the light)
-    after = torch.full_like(sample, _NO_OCCLUDER)
-    after[:, :-1] = sample[:, 1:]
+    # the running maximum a column's pixels see: over the columns after it (towards the light), one scan
+    # from the far end (a log-step scan takes log2(columns) passes over the lines, each reading them thrice)
+    backwards = torch.full_like(sample, _NO_OCCLUDER)
+    backwards[:, 1:] = sample[:, 1:].flip(1)
     del sample
-    step = 1
-    while step < cols - 1:
-        after[:, : cols - step] = torch.maximum(after[:, : cols - step], after[:, step:].clone())
-        step *= 2
+    after = torch.cummax(backwards, dim=1).values.flip(1)
+    del backwards
     # pixel row r lies between lines q0 + r and q0 + r + 1
     around = after.unfold(2, rows + 1, 1)[torch.arange(len(k), device=device)[:, None], column,
                                           torch.as_tensor(q0.astype(np.int64), device=device)]  # (G, C, R + 1)
