@@ -96,3 +96,51 @@ def test_bad_and_empty_input() -> None:
     with pytest.raises(ValueError, match="disagree"):
         integrate_normals_on(np.zeros((4, 5, 3)), np.ones((4, 4), bool), "cpu")
     np.testing.assert_array_equal(integrate_normals_on(np.zeros((4, 4, 3)), np.zeros((4, 4), bool), "cpu"), np.zeros((4, 4)))
+
+
+def test_a_capture_cuda_refuses_leaves_the_cycle_eager(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``_replayed`` with CUDA's capture stood in for on the CPU, refusing: the cycle itself comes back,
+    the garbage collector was off during the capture and is on again."""
+    import contextlib
+    import gc
+    from types import SimpleNamespace
+
+    import pstoolkit.surface.integrate_device as integrate_device
+
+    collecting: list[bool] = []
+
+    @contextlib.contextmanager
+    def refused(graph: object):  # type: ignore[no-untyped-def]
+        collecting.append(gc.isenabled())
+        yield
+        raise RuntimeError("CUDA error: operation not permitted when stream is capturing")
+
+    stream = SimpleNamespace(wait_stream=lambda other: None)
+    monkeypatch.setattr(torch.cuda, "Stream", lambda device=None: stream)
+    monkeypatch.setattr(torch.cuda, "current_stream", lambda device=None: stream)
+    monkeypatch.setattr(torch.cuda, "stream", lambda chosen: contextlib.nullcontext())
+    monkeypatch.setattr(torch.cuda, "CUDAGraph", object)
+    monkeypatch.setattr(torch.cuda, "graph", refused)
+    operator, _ = _operator(37, 53, 2)
+    cycle = integrate_device.VCycle(operator)
+    assert integrate_device._replayed(cycle, torch.zeros(37, 53, dtype=torch.float64)) is cycle
+    assert collecting == [False] and gc.isenabled()
+
+
+@pytest.mark.cuda
+def test_on_cuda_the_cycle_is_replayed_as_a_graph_and_solves_as_the_eager_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    import pstoolkit.surface.integrate_device as integrate_device
+
+    operator, full = _operator(37, 53, 2)
+    operator = GridOperator(*(t.to("cuda") for t in (operator.wx, operator.wy, operator.diagonal)))
+    rhs = torch.as_tensor(np.random.default_rng(3).normal(size=(37, 53)), device="cuda")
+    replays: list[int] = []
+    replay = torch.cuda.CUDAGraph.replay
+    monkeypatch.setattr(torch.cuda.CUDAGraph, "replay", lambda self: replays.append(1) or replay(self))
+    x, iterations = solve_grid(operator, rhs)
+    assert len(replays) == iterations
+    monkeypatch.setattr(integrate_device, "_replayed", lambda cycle, like: cycle)
+    eager, eager_iterations = solve_grid(operator, rhs)
+    assert eager_iterations == iterations
+    torch.testing.assert_close(x, eager, rtol=1e-12, atol=1e-12)
+    assert np.linalg.norm(full @ x.cpu().numpy().ravel() - rhs.cpu().numpy().ravel()) / float(torch.linalg.vector_norm(rhs)) <= 1e-10
