@@ -140,7 +140,9 @@ def kappa_there(falling: Tensor, rising: Tensor, phase_us: Tensor, pixel: Tensor
         around = within_there(keys, centre[which], CHANCE_SPAN * tolerance_us) - near
         met[which] = near > 0
         chance[which] = 1.0 - torch.exp(-around.to(torch.float64) / (CHANCE_SPAN - 1.0))
-    return float(torch.sum(met.to(torch.float64) - chance) / max(float(torch.sum(1.0 - chance)), 1e-9))
+    # both sums in one read of the device
+    beyond, left = torch.stack([torch.sum(met.to(torch.float64) - chance), torch.sum(1.0 - chance)]).tolist()
+    return float(beyond / max(left, 1e-9))
 
 
 def calibrate(evidence: ShadowEvidence, height: np.ndarray, *, margin_px: float, tolerance_deg: float = 10.0,
