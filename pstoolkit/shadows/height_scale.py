@@ -167,15 +167,17 @@ def calibrate(evidence: ShadowEvidence, height: np.ndarray, *, margin_px: float,
     HeightScale
         The chosen scale (``_choose``) and the figures of every scale tried, in increasing order.
     """
-    falling, rising = onsets(evidence.profile, evidence.refractory_us)
     period = evidence.period_us
     tolerance_us = tolerance_deg / 360.0 * period
     groups = SuperPixels.shared(evidence)
     tried: dict[float, tuple[int, float]] = {}
     on_host = devices.on_host(evidence.device)
-    if not on_host:
-        # the device's tracker keeps its edges there: the onsets go to meet them
-        falling, rising = (torch.as_tensor(keys, device=evidence.device) for keys in (falling, rising))
+    if on_host:
+        falling, rising = onsets(evidence.profile, evidence.refractory_us)
+    else:
+        # the device's tracker keeps its edges there: the onsets go to meet them, once for every surface
+        falling, rising = evidence.of_capture(("onsets", str(evidence.device)), lambda: tuple(
+            torch.as_tensor(keys, device=evidence.device) for keys in onsets(evidence.profile, evidence.refractory_us)))
 
     def agreement(scale: float) -> None:
         tracker = super_pixel_edges(evidence, groups, height * np.float32(scale), time_steps, margin_px)

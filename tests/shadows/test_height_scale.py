@@ -136,3 +136,10 @@ def test_the_device_calibration_is_the_hosts(blobs: dict, device: str, monkeypat
     assert len(scored) == len(host.scales) and there.scale == host.scale != 1.0
     assert there.scales == host.scales and there.edges == host.edges
     np.testing.assert_allclose(there.matched, host.matched, rtol=1e-12, atol=1e-12)
+    # the onsets are found and moved to the device once for every surface of the evidence
+    found = []
+    monkeypatch.setattr(height_scale, "onsets", lambda *args: found.append(1) or onsets(*args))
+    moved = dataclasses.replace(evidence, device=device)
+    for factor in (0.7, 0.8):
+        calibrate(moved.with_normal(_scaled_normals(capture.ground_truth.normal, factor)), surface_height(evidence), margin_px=0.225)
+    assert found == [1]
