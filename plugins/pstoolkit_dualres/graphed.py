@@ -35,13 +35,13 @@ step to the step of ``train`` on the same batch, and how ``compiled`` runs on th
 from __future__ import annotations
 
 import dataclasses
-import gc
 import warnings
 from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor, nn
 
+from pstoolkit._shared import devices
 from pstoolkit_dualres.batches import EpochBatches, Tiling, Unpacker, drawn_capacity, full_batch
 from pstoolkit_dualres.losses import frame_chunk, losses
 from pstoolkit_dualres.problem import Problem
@@ -246,12 +246,6 @@ class GraphedSteps:
         # the graph's backward makes the gradients in its own memory, which later replays write
         self.optimizer.zero_grad(set_to_none=True)
         graph = torch.cuda.CUDAGraph()
-        collecting = gc.isenabled()
-        gc.disable()
-        try:
-            with torch.cuda.graph(graph):
-                self._step(tv_on)
-        finally:
-            if collecting:
-                gc.enable()
+        with devices.collector_off(), torch.cuda.graph(graph):
+            self._step(tv_on)
         return graph

@@ -1,6 +1,10 @@
-"""Where a computation that has a torch copy for devices runs."""
+"""Where a computation that has a torch copy for devices runs, and what a capture of one as a CUDA graph needs."""
 
 from __future__ import annotations
+
+import contextlib
+import gc
+from collections.abc import Iterator
 
 
 def on_host(device: object) -> bool:
@@ -21,3 +25,16 @@ def memory_budget(device: object, cap_bytes: int, share: float = 0.25) -> int:
         return cap_bytes
     free_bytes, _ = torch.cuda.mem_get_info(device)
     return int(max(64 << 20, min(cap_bytes, share * free_bytes)))
+
+
+@contextlib.contextmanager
+def collector_off() -> Iterator[None]:
+    """Python's garbage collector off for the block, as it was after: around a CUDA graph's capture, where a
+    collection that destroys another graph makes a call CUDA forbids then, and the capture fails."""
+    collecting = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if collecting:
+            gc.enable()

@@ -22,7 +22,6 @@ pyamg set-up and solve took 8 s a surface at 1024² on one core.
 
 from __future__ import annotations
 
-import gc
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -30,6 +29,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from pstoolkit._shared import devices
 from pstoolkit.surface.integrate import MULTIGRID_TOL, SCREEN, surface_gradients
 
 # Cells on the coarsest level's side, solved directly.
@@ -175,17 +175,11 @@ def _replayed(cycle: VCycle, like: Tensor) -> Callable[[Tensor], Tensor]:
         cycle(static)
     torch.cuda.current_stream(device).wait_stream(side)
     graph = torch.cuda.CUDAGraph()
-    # a collection during the capture that destroys another graph breaks it (``graphed`` of dualres)
-    collecting = gc.isenabled()
-    gc.disable()
     try:
-        with torch.cuda.graph(graph):
+        with devices.collector_off(), torch.cuda.graph(graph):
             out = cycle(static)
     except RuntimeError:
         return cycle
-    finally:
-        if collecting:
-            gc.enable()
 
     def replay(residual: Tensor) -> Tensor:
         static.copy_(residual)
