@@ -4,8 +4,10 @@ time, which its launches set: issue 36).
 On the simulator's ``blobs`` at ``--size`` frame pixels (the problem with the importance samples, the
 paper's network at full width, GGX with indirect light, batches of 512 pixels):
 
-- **epoch**: milliseconds to build an epoch's batches (``batches.epoch_batches``): the host's path, and
-  the device's (torch making the samples' indices; here through torch on the CPU);
+- **epoch**: milliseconds to build an epoch's batches (``batches.epoch_batches``): the host's path (numpy),
+  and the device's (``batches_device``: torch draws them where the fit runs; here through torch on the
+  CPU), and the torch operations the device's path launches to draw and pack an epoch
+  (``EpochBatches.packed``; the random draws among them, on the host's generator);
 - **ops**: the torch operations of one step's losses and gradient, counted at the dispatcher (views and
   allocations left out; on a GPU each is a kernel launch): the plain batch through torch (as a GPU
   renders it) and the padded one a CUDA graph replays (``graphed``);
@@ -102,14 +104,18 @@ def main() -> None:
     tiling = Tiling.of(problem)
     generator = torch.Generator().manual_seed(0)
     epoch_ms = {"host": milliseconds(lambda i: epoch_batches(problem, tiling, BATCH_PIXELS, 8, generator), 5)}
+    epoch = epoch_batches(problem, tiling, BATCH_PIXELS, 8, torch.Generator().manual_seed(1))
+    batches, capacity = epoch.batches(), epoch.needs.grown(1.1)
     on_host = devices.on_host
     devices.on_host = lambda device: False
     try:
         epoch_ms["device path"] = milliseconds(lambda i: epoch_batches(problem, tiling, BATCH_PIXELS, 8, generator), 5)
+        count = _Count()
+        with count:
+            epoch_batches(problem, tiling, BATCH_PIXELS, 8, generator).packed(capacity)
     finally:
         devices.on_host = on_host
-    epoch = epoch_batches(problem, tiling, BATCH_PIXELS, 8, torch.Generator().manual_seed(1))
-    batches, capacity = epoch.batches(), epoch.needs.grown(1.1)
+    epoch_ops = sum(count.ops.values())
     rows, unpack, share = epoch.packed(capacity), Unpacker(capacity, problem.dtype, problem.device), torch.tensor(0.5)
 
     def plain(i: int) -> None:
@@ -135,7 +141,7 @@ def main() -> None:
     step_ms = {"plain batch, compiled passes": milliseconds(plain, STEPS), "padded batch, eager": milliseconds(padded, STEPS)}
     record: dict[str, Any] = {
         "benchmark": "paper_step", "size": args.size, "batches": len(epoch), "samples_per_batch": float(np.mean(epoch.rows["samples"])),
-        "pairs_per_batch": float(np.mean(epoch.rows["events"])), "capacity": vars(capacity), "epoch_ms": epoch_ms,
+        "pairs_per_batch": float(np.mean(epoch.rows["events"])), "capacity": vars(capacity), "epoch_ms": epoch_ms, "epoch_ops": epoch_ops,
         "ops": {name: sum(counts.values()) for name, counts in ops.items()}, "op_names": ops, "step_ms": step_ms,
         "machine": {"torch": torch.__version__, "python": platform.python_version(), "torch_threads": torch.get_num_threads()},
     }
@@ -154,6 +160,7 @@ def main() -> None:
           f"{record['pairs_per_batch']:.0f} pairs a batch; capacity {vars(capacity)}")
     for name, value in epoch_ms.items():
         print(f"  epoch's batches, {name:<30} {value:8.1f} ms")
+    print(f"  epoch's batches drawn and packed on a device: {epoch_ops} operations")
     for name, value in record["ops"].items():
         print(f"  ops of a step, {name:<31} {value:8d}")
     for name, value in step_ms.items():

@@ -5,9 +5,10 @@ An epoch of mini-batches is a pass over all masked pixels in batches of about ``
 pixels: square tiles of ``tile`` frame pixels, shuffled and offset at random every epoch, each batch
 taking its pixels' frames and importance samples, the event pairs of the super pixels anchored in its
 tiles, and the TV pairs inside it (as LL22a trains). ``EpochBatches`` holds them as arrays over the
-whole epoch: split into batches of their own sizes (``batches``), or packed into rows of one size
-(``packed``, each field padded to a ``Capacity``), which a step replayed as a CUDA graph reads
-(``graphed``) through an ``Unpacker``.
+whole epoch, drawn with numpy on the host, or on the problem's device where that is not the CPU
+(``batches_device``, the same arrays): split into batches of their own sizes (``batches``), or packed
+into rows of one size (``packed``, each field padded to a ``Capacity``), which a step replayed as a CUDA
+graph reads (``graphed``) through an ``Unpacker``.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import torch
 from torch import Tensor
 
 from pstoolkit._shared import devices
+from pstoolkit_dualres.batches_device import TilesThere, draw_there, moved
 from pstoolkit_dualres.problem import Problem
 
 # The per-batch counts a packed row starts with: own pixels, pixels outside, samples, pairs, TV pairs.
@@ -144,6 +146,16 @@ class Tiling:
     sample_start: Tensor
     sample_count: Tensor
     sample_frame: Tensor
+    _there: TilesThere | None = dataclasses.field(default=None, repr=False)
+
+    def there(self) -> TilesThere:
+        """The tiling on the samples' device (``batches_device``), moved there once."""
+        if self._there is None:
+            arrays = moved({"row": self.row, "col": self.col, "events": self.events, "event_anchor": self.event_anchor,
+                            "event_taps": self.event_taps, "tv_pairs": self.tv_pairs}, self.sample_count.device)
+            self._there = TilesThere(sample_start=self.sample_start, sample_count=self.sample_count,
+                                     sample_frame=self.sample_frame, **arrays)
+        return self._there
 
     @classmethod
     def of(cls, problem: Problem) -> Tiling:
@@ -165,9 +177,25 @@ def _starts(count: np.ndarray) -> np.ndarray:
     return np.cumsum(count) - count
 
 
+def _draw_order(problem: Problem, tile: int, generator: torch.Generator) -> tuple[np.ndarray, int, np.ndarray]:
+    """An epoch's random offset (2,) of the tiles of ``tile`` frame pixels a side, their number in a row
+    (columns), and their random order (each tile's rank), drawn from ``generator``."""
+    shift = torch.randint(0, tile, (2,), generator=generator).numpy()
+    rows = (problem.geometry.height + tile) // tile + 1
+    cols = (problem.geometry.width + tile) // tile + 1
+    return shift, cols, torch.randperm(rows * cols, generator=generator).numpy()
+
+
+def _capacity(own: np.ndarray, outside: np.ndarray, samples: np.ndarray, pairs: np.ndarray, tv: np.ndarray, frames: int,
+              fan: int) -> Capacity:
+    """The rows of the largest batch in each field, from each batch's counts (B,)."""
+    return Capacity(own=int(own.max()), outside=int(outside.max()), samples=int(samples.max()), pairs=int(pairs.max()),
+                    tv=int(tv.max()), frames=frames, fan=fan)
+
+
 @dataclass
 class _Grouping:
-    """The host's part of an epoch's batching (``epoch_batches``): the batch of each masked pixel,
+    """The host's part of an epoch's batching (``epoch_batches`` on the CPU): the batch of each masked pixel,
     pair and TV pair, their orders by batch, each batch's counts, each pixel's place among its
     batch's own, and the pixels the pairs' footprints reach outside their batch (``extra_*``)."""
 
@@ -192,13 +220,10 @@ class _Grouping:
         grouped into batches of about ``batch_pixels`` pixels, drawn from ``generator``; at least one
         masked pixel."""
         p = problem.geometry.pixels.size
-        shift = torch.randint(0, tile, (2,), generator=generator).numpy()
-        rows = (problem.geometry.height + tile) // tile + 1
-        cols = (problem.geometry.width + tile) // tile + 1
+        shift, cols, rank = _draw_order(problem, tile, generator)
         tile_of = ((tiling.row + shift[0]) // tile) * cols + (tiling.col + shift[1]) // tile
-        rank = torch.randperm(rows * cols, generator=generator).numpy()
         # tiles in random order; a batch closes once it holds batch_pixels pixels
-        size = np.bincount(rank[tile_of], minlength=rows * cols)
+        size = np.bincount(rank[tile_of], minlength=rank.size)
         batch_of_rank = _starts(size) // batch_pixels
         # a tile larger than batch_pixels skips batch numbers: number the batches densely
         pixel_batch = np.unique(batch_of_rank[rank[tile_of]], return_inverse=True)[1].reshape(-1)
@@ -225,8 +250,8 @@ class _Grouping:
 
     def capacity(self, frames: int) -> Capacity:
         """The rows of the largest batch in each field."""
-        return Capacity(own=int(self.own_count.max()), outside=int(self.extra_count.max()), samples=int(self.sample_count.max()),
-                        pairs=int(self.event_count.max()), tv=int(self.pair_count.max()), frames=frames, fan=int(self.taps.shape[1]))
+        return _capacity(self.own_count, self.extra_count, self.sample_count, self.event_count, self.pair_count, frames,
+                         int(self.taps.shape[1]))
 
 
 def epoch_batches(problem: Problem, tiling: Tiling, batch_pixels: int, tile: int, generator: torch.Generator) -> EpochBatches:
@@ -236,12 +261,18 @@ def epoch_batches(problem: Problem, tiling: Tiling, batch_pixels: int, tile: int
 
     A batch's pixels are its own (in the masked pixels' order), then the pixels its event pairs'
     footprints reach outside its tiles (ascending); its frame rows and samples follow its own pixels'
-    order. Every batch is built at once: the arrays of pixels, pairs and TV pairs on the host, moved to
-    the problem's device in one copy, the samples' (some 80 per pixel) there."""
+    order. Every batch is built at once, as arrays over the epoch: with numpy on the host, or where the
+    problem's device is not the CPU, there (``batches_device``: the same arrays, from the same draws)."""
     p = problem.geometry.pixels.size
     frames = problem.frames.count
     if p == 0:
         return EpochBatches(np.zeros(0, np.int64), {}, {}, Capacity(0, 0, 0, 0, 0, frames, 0))
+    if not devices.on_host(problem.device):
+        shift, cols, rank = _draw_order(problem, tile, generator)
+        order = moved({"shift": shift, "rank": rank}, problem.device)
+        drawn = draw_there(tiling.there(), order["shift"], order["rank"], cols, batch_pixels, tile, frames)
+        return _assembled(drawn.fields, drawn.own, drawn.outside, drawn.samples, drawn.pairs, drawn.tv, frames,
+                          int(tiling.event_taps.shape[1]))
     g = _Grouping.draw(problem, tiling, batch_pixels, tile, generator)
     own_count, own_rank, by_pixel, pixel_batch = g.own_count, g.own_rank, g.by_pixel, g.pixel_batch
     own_of = own_count[pixel_batch[by_pixel]]
@@ -260,12 +291,20 @@ def epoch_batches(problem: Problem, tiling: Tiling, batch_pixels: int, tile: int
     for k in range(frames):
         frame_rows[row_start + k * own_of] = k * p + by_pixel
     pairs = tiling.tv_pairs[g.by_pair[g.by_pair.size - int(g.pair_count.sum()):]]
-    moved = _moved({"pixels": pixels, "frame_rows": frame_rows, "events": tiling.events[g.by_event], "event_taps": local_taps,
-                    "tv_pairs": own_rank[pairs]}, problem.device)
-    rows = {"pixels": pixel_count, "frame_rows": frames * own_count, "samples": g.sample_count, "sample_pixel": g.sample_count,
-            "sample_group": g.sample_count, "events": g.event_count, "event_taps": g.event_count, "tv_pairs": g.pair_count}
-    fields = {**moved, **_samples(tiling, by_pixel, own_rank[by_pixel], own_of)}
-    return EpochBatches(own_count, {name: fields[name] for name in rows}, rows, g.capacity(frames))
+    fields = {name: torch.from_numpy(values) for name, values in (
+        ("pixels", pixels), ("frame_rows", frame_rows), ("events", tiling.events[g.by_event]), ("event_taps", local_taps),
+        ("tv_pairs", own_rank[pairs]))}
+    fields.update(_samples(tiling, by_pixel, own_rank[by_pixel], own_of))
+    return _assembled(fields, own_count, g.extra_count, g.sample_count, g.event_count, g.pair_count, frames, int(g.taps.shape[1]))
+
+
+def _assembled(fields: dict[str, Tensor], own: np.ndarray, outside: np.ndarray, samples: np.ndarray, pairs: np.ndarray,
+               tv: np.ndarray, frames: int, fan: int) -> EpochBatches:
+    """The ``EpochBatches`` of an epoch's ``fields`` and each batch's counts (B,) of own pixels, pixels
+    outside, samples, event pairs and TV pairs."""
+    rows = {"pixels": own + outside, "frame_rows": frames * own, "samples": samples, "sample_pixel": samples,
+            "sample_group": samples, "events": pairs, "event_taps": pairs, "tv_pairs": tv}
+    return EpochBatches(own, {name: fields[name] for name in rows}, rows, _capacity(own, outside, samples, pairs, tv, frames, fan))
 
 
 def drawn_capacity(problem: Problem, tiling: Tiling, batch_pixels: int, tile: int, generator: torch.Generator, epochs: int) -> Capacity:
@@ -390,39 +429,15 @@ class Unpacker:
         return Batch(frame_pixels=c.own, padding=padding, **fields)
 
 
-def _moved(arrays: dict[str, np.ndarray], device: torch.device) -> dict[str, Tensor]:
-    """These int64 arrays on ``device``, moved in one copy: on a GPU a copy for each batch and array would
-    wait for the device each time."""
-    moved = torch.as_tensor(np.concatenate([a.ravel() for a in arrays.values()], dtype=np.int64), device=device)
-    out, start = {}, 0
-    for name, a in arrays.items():
-        out[name] = moved[start:start + a.size].view(a.shape)
-        start += a.size
-    return out
-
-
 def _samples(tiling: Tiling, order: np.ndarray, rank: np.ndarray, own: np.ndarray) -> dict[str, Tensor]:
     """The importance samples of the masked pixels ``order`` (P,), each pixel's in their stored order:
     "samples" their indices into all samples, "sample_pixel" the ``rank`` of their pixel among its
     batch's own pixels, "sample_group" frame·``own`` + rank (``own`` each pixel's batch's count of own
-    pixels). In numpy on the host (faster there than torch), in torch on a device (some 80 samples a
-    pixel: moving their indices each epoch would take longer than making them there)."""
-    start, count, frame = tiling.sample_start, tiling.sample_count, tiling.sample_frame
-    total = int(frame.numel())
-    if devices.on_host(count.device):
-        count_np = count.numpy()[order]
-        offset = np.repeat(start.numpy()[order] - (np.cumsum(count_np) - count_np), count_np)
-        samples = np.arange(total, dtype=np.int64) + offset
-        sample_pixel = np.repeat(rank, count_np)
-        group = frame.numpy()[samples] * np.repeat(own, count_np) + sample_pixel
-        return {"samples": torch.from_numpy(samples), "sample_pixel": torch.from_numpy(sample_pixel),
-                "sample_group": torch.from_numpy(group)}
-    there = _moved({"order": order, "rank": rank, "own": own}, count.device)
-    count = count[there["order"]]
-    offset = torch.repeat_interleave(start[there["order"]] - (torch.cumsum(count, 0) - count), count, output_size=total)
-    samples = torch.arange(total, device=count.device) + offset
-    sample_pixel = torch.repeat_interleave(there["rank"], count, output_size=total)
-    group = frame[samples] * torch.repeat_interleave(there["own"], count, output_size=total) + sample_pixel
-    return {"samples": samples, "sample_pixel": sample_pixel, "sample_group": group}
-
-
+    pixels); ``batches_device.samples_there`` on a device."""
+    start, count, frame = tiling.sample_start.numpy(), tiling.sample_count.numpy(), tiling.sample_frame.numpy()
+    count = count[order]
+    offset = np.repeat(start[order] - (np.cumsum(count) - count), count)
+    samples = np.arange(frame.size, dtype=np.int64) + offset
+    sample_pixel = np.repeat(rank, count)
+    group = frame[samples] * np.repeat(own, count) + sample_pixel
+    return {"samples": torch.from_numpy(samples), "sample_pixel": torch.from_numpy(sample_pixel), "sample_group": torch.from_numpy(group)}

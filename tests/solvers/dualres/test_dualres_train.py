@@ -96,17 +96,25 @@ def test_a_batchs_pixels_are_its_own_then_the_footprints_outside_ascending(spher
     assert reached > 0
 
 
-def test_the_samples_made_on_a_device_are_the_hosts(sphere: tuple[psfmt.Capture, Problem], monkeypatch: pytest.MonkeyPatch) -> None:
-    """Torch on the CPU, ``devices.on_host`` told otherwise, makes the batches' samples as numpy does."""
+@pytest.mark.parametrize("batch_pixels", [20, 256, 100_000])
+def test_an_epoch_drawn_on_a_device_is_the_hosts(sphere: tuple[psfmt.Capture, Problem], monkeypatch: pytest.MonkeyPatch,
+                                                 batch_pixels: int) -> None:
+    """Torch on the CPU, ``devices.on_host`` told otherwise, draws an epoch's batches (``batches_device``)
+    as numpy does, every field, count and capacity entry for entry: batches smaller than a tile (whose
+    numbers skip), of a few tiles, of the whole object."""
     _, problem = sphere
     tiling = Tiling.of(problem)
-    host = epoch_batches(problem, tiling, STAGE.batch_pixels, STAGE.tile, torch.Generator().manual_seed(5)).batches()
+    seeds = (5, 6)
+    host = [epoch_batches(problem, tiling, batch_pixels, STAGE.tile, torch.Generator().manual_seed(seed)) for seed in seeds]
     monkeypatch.setattr(devices, "on_host", lambda device: False)
-    there = epoch_batches(problem, tiling, STAGE.batch_pixels, STAGE.tile, torch.Generator().manual_seed(5)).batches()
-    assert len(host) == len(there) > 1
-    for a, b in zip(host, there):
-        for name in ("pixels", "frame_rows", "samples", "sample_pixel", "sample_group", "events", "event_taps", "tv_pairs"):
-            assert torch.equal(getattr(a, name), getattr(b, name)), name
+    for seed, a in zip(seeds, host):
+        b = epoch_batches(problem, tiling, batch_pixels, STAGE.tile, torch.Generator().manual_seed(seed))
+        assert a.needs == b.needs and np.array_equal(a.own, b.own)
+        assert a.rows.keys() == b.rows.keys() and all(np.array_equal(a.rows[name], b.rows[name]) for name in a.rows)
+        assert a.fields.keys() == b.fields.keys() and all(torch.equal(a.fields[name], b.fields[name]) for name in a.fields)
+    steps = len(host[0])
+    assert steps == 1 if batch_pixels > problem.geometry.pixels.size else steps > 1
+    assert (host[0].rows["pixels"] > host[0].own).any() == (steps > 1)
 
 
 def test_the_mask_reaches_the_frames_and_the_events(blobs: tuple[psfmt.Capture, Preprocessed]) -> None:
