@@ -96,22 +96,29 @@ def test_a_batchs_pixels_are_its_own_then_the_footprints_outside_ascending(spher
     assert reached > 0
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
 @pytest.mark.parametrize("batch_pixels", [20, 256, 100_000])
 def test_an_epoch_drawn_on_a_device_is_the_hosts(sphere: tuple[psfmt.Capture, Problem], monkeypatch: pytest.MonkeyPatch,
-                                                 batch_pixels: int) -> None:
-    """Torch on the CPU, ``devices.on_host`` told otherwise, draws an epoch's batches (``batches_device``)
-    as numpy does, every field, count and capacity entry for entry: batches smaller than a tile (whose
-    numbers skip), of a few tiles, of the whole object."""
-    _, problem = sphere
+                                                 batch_pixels: int, device: str) -> None:
+    """An epoch's batches drawn on a device (``batches_device``; on the CPU, ``devices.on_host`` told
+    otherwise) are the host's, every field, count and capacity entry for entry: batches smaller than a
+    tile (whose numbers skip), of a few tiles, of the whole object."""
+    capture, problem = sphere
     tiling = Tiling.of(problem)
     seeds = (5, 6)
     host = [epoch_batches(problem, tiling, batch_pixels, STAGE.tile, torch.Generator().manual_seed(seed)) for seed in seeds]
-    monkeypatch.setattr(devices, "on_host", lambda device: False)
+    if device == "cpu":
+        monkeypatch.setattr(devices, "on_host", lambda where: False)
+        there = problem
+    else:
+        there = build_problem(preprocess(capture, PreprocessOptions()), capture.calibration.view_direction, device=device)
+    tiling_there = Tiling.of(there)
     for seed, a in zip(seeds, host):
-        b = epoch_batches(problem, tiling, batch_pixels, STAGE.tile, torch.Generator().manual_seed(seed))
+        b = epoch_batches(there, tiling_there, batch_pixels, STAGE.tile, torch.Generator().manual_seed(seed))
         assert a.needs == b.needs and np.array_equal(a.own, b.own)
         assert a.rows.keys() == b.rows.keys() and all(np.array_equal(a.rows[name], b.rows[name]) for name in a.rows)
-        assert a.fields.keys() == b.fields.keys() and all(torch.equal(a.fields[name], b.fields[name]) for name in a.fields)
+        assert a.fields.keys() == b.fields.keys()
+        assert all(b.fields[name].device.type == device and torch.equal(a.fields[name], b.fields[name].cpu()) for name in a.fields)
     steps = len(host[0])
     assert steps == 1 if batch_pixels > problem.geometry.pixels.size else steps > 1
     assert (host[0].rows["pixels"] > host[0].own).any() == (steps > 1)
