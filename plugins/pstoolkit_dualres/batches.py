@@ -308,12 +308,15 @@ def _assembled(fields: dict[str, Tensor], own: np.ndarray, outside: np.ndarray, 
 
 
 def drawn_capacity(problem: Problem, tiling: Tiling, batch_pixels: int, tile: int, generator: torch.Generator, epochs: int) -> Capacity:
-    """The rows of the largest batch in each field over ``epochs`` epochs drawn from ``generator`` (the
-    batches' counts only, on the host)."""
+    """The rows of the largest batch in each field over ``epochs`` epochs drawn from ``generator`` (on
+    the host, the batches' counts only; on a device, the epochs drawn there)."""
     frames = problem.frames.count
     if problem.geometry.pixels.size == 0:
         return Capacity(0, 0, 0, 0, 0, frames, 0)
-    needs = [_Grouping.draw(problem, tiling, batch_pixels, tile, generator).capacity(frames) for _ in range(epochs)]
+    if not devices.on_host(problem.device):
+        needs = [epoch_batches(problem, tiling, batch_pixels, tile, generator).needs for _ in range(epochs)]
+    else:
+        needs = [_Grouping.draw(problem, tiling, batch_pixels, tile, generator).capacity(frames) for _ in range(epochs)]
     return functools.reduce(Capacity.union, needs)
 
 

@@ -24,7 +24,7 @@ from pstoolkit.shadows import ShadowIntervals, ShadowMask
 from pstoolkit.shadows.score import true_shadows
 from pstoolkit.sim.config import SimulationConfig
 from pstoolkit.sim.simulator import simulate
-from pstoolkit_dualres.batches import Tiling, epoch_batches
+from pstoolkit_dualres.batches import Tiling, drawn_capacity, epoch_batches
 from pstoolkit_dualres.fields import NeuralField, PyramidField, collapse, decompose
 from pstoolkit_dualres.forward_model import frame_prediction_grid, superpixel_grey
 from pstoolkit_dualres.frame_kernel import supports
@@ -107,6 +107,7 @@ def test_an_epoch_drawn_on_a_device_is_the_hosts(sphere: tuple[psfmt.Capture, Pr
     tiling = Tiling.of(problem)
     seeds = (5, 6)
     host = [epoch_batches(problem, tiling, batch_pixels, STAGE.tile, torch.Generator().manual_seed(seed)) for seed in seeds]
+    aside = drawn_capacity(problem, tiling, batch_pixels, STAGE.tile, torch.Generator().manual_seed(7), 3)
     if device == "cpu":
         monkeypatch.setattr(devices, "on_host", lambda where: False)
         there = problem
@@ -119,6 +120,8 @@ def test_an_epoch_drawn_on_a_device_is_the_hosts(sphere: tuple[psfmt.Capture, Pr
         assert a.rows.keys() == b.rows.keys() and all(np.array_equal(a.rows[name], b.rows[name]) for name in a.rows)
         assert a.fields.keys() == b.fields.keys()
         assert all(b.fields[name].device.type == device and torch.equal(a.fields[name], b.fields[name].cpu()) for name in a.fields)
+    # the capacities drawn aside for a stage's graphs, from epochs drawn there
+    assert drawn_capacity(there, tiling_there, batch_pixels, STAGE.tile, torch.Generator().manual_seed(7), 3) == aside
     steps = len(host[0])
     assert steps == 1 if batch_pixels > problem.geometry.pixels.size else steps > 1
     assert (host[0].rows["pixels"] > host[0].own).any() == (steps > 1)
