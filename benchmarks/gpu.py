@@ -23,7 +23,10 @@ Sections, each a table printed and stored in the JSON:
 
 ``--profile SIZE …`` also runs cProfile over the cuda solve of that size (``paper``: the paper preset's
 runs) and writes the functions that take the most time (cumulative and own) to ``profile-SIZE.txt``
-beside the JSON.
+beside the JSON. ``--kernels SIZE …`` solves that size once more under torch's profiler: the operators
+and CUDA kernels that take the most time go to ``kernels-SIZE.txt``, and the row keeps the seconds the
+GPU was busy (its kernels' time) beside the solve's: a GPU busy for a small share of the solve waits on
+the host.
 
 A solve that fails is a row with its ``error`` (printed, and kept in the JSON), and the runs after it go
 on: one fault costs its row, not the device session.
@@ -39,6 +42,7 @@ device synchronised before the clock is read.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import cProfile
 import io
 import json
@@ -57,6 +61,8 @@ import numpy as np
 import torch
 from dualres_scale import capture_path, parse_size, size_name
 from results_io import write_results
+from torch.autograd import DeviceType
+from torch.profiler import ProfilerActivity
 
 import psfmt
 from pstoolkit.evaluation.metrics import angular_error_deg
@@ -80,10 +86,14 @@ def synchronize(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def solve(path: Path, device: str, assignments: list[str], profile: Path | None = None) -> dict[str, Any]:
-    """One dualres solve of the capture at ``path`` on ``device``: seconds, errors, stages, GPU memory."""
+def solve(path: Path, device: str, assignments: list[str], profile: Path | None = None, kernels: Path | None = None
+          ) -> dict[str, Any]:
+    """One dualres solve of the capture at ``path`` on ``device``: seconds, errors, stages, GPU memory;
+    under cProfile with ``profile`` (its tables written there), or torch's profiler with ``kernels``
+    (``write_kernels``; the row's ``device_busy_s`` and ``kernel_launches``)."""
     entry = get_registries().solvers.get("dualres")
     options = entry.parse_options(assignments)
+    activities = [ProfilerActivity.CPU, *([ProfilerActivity.CUDA] if device == "cuda" else [])]
     with psfmt.read(path) as capture:
         truth = capture.ground_truth
         if device == "cuda":
@@ -93,8 +103,9 @@ def solve(path: Path, device: str, assignments: list[str], profile: Path | None 
         started = time.perf_counter()
         if profiler:
             profiler.enable()
-        result, _ = run_solver(entry, capture, options, device=device)
-        synchronize(device)
+        with torch.profiler.profile(activities=activities) if kernels else contextlib.nullcontext() as traced:
+            result, _ = run_solver(entry, capture, options, device=device)
+            synchronize(device)
         seconds = time.perf_counter() - started
         if profiler:
             profiler.disable()
@@ -107,7 +118,20 @@ def solve(path: Path, device: str, assignments: list[str], profile: Path | None 
         "gpu_peak_gb": torch.cuda.max_memory_allocated() / 1e9 if device == "cuda" else None,
         "stages": d.get("seconds", {}), "preprocess_split": d.get("preprocess", {}).get("seconds", {}),
         "tiling": d.get("tiling"), "epochs": d.get("preset", {}).get("epochs"),
+        **(write_kernels(traced, kernels, device) if kernels else {}),
     }
+
+
+def write_kernels(traced: torch.profiler.profile, path: Path, device: str) -> dict[str, Any]:
+    """The operators (and on CUDA the kernels) that took the most time in a solve under torch's profiler,
+    written to ``path``; the seconds the device was busy (its kernels' time: a device busy for a small
+    share of the solve waits on the host) and its kernel launches."""
+    averages = traced.key_averages()
+    kernels = [event for event in averages if event.device_type == DeviceType.CUDA]
+    order = "self_device_time_total" if device == "cuda" else "self_cpu_time_total"
+    path.write_text(averages.table(sort_by=order, row_limit=60) + "\n" + averages.table(sort_by="cpu_time_total", row_limit=40))
+    return {"device_busy_s": sum(event.self_device_time_total for event in kernels) / 1e6 if device == "cuda" else None,
+            "kernel_launches": sum(event.count for event in kernels)}
 
 
 def write_profile(profiler: cProfile.Profile, path: Path) -> None:
@@ -127,7 +151,7 @@ def failed(what: str, error: Exception) -> dict[str, Any]:
 
 
 def fast_rows(folder: Path, gpu: str, sizes: list[str], cpu_sizes: list[str], options: list[str], profile: list[str],
-              out: Path) -> list[dict[str, Any]]:
+              kernels: list[str], out: Path) -> list[dict[str, Any]]:
     rows = []
     for text in sizes:
         shape = parse_size(text)
@@ -142,8 +166,24 @@ def fast_rows(folder: Path, gpu: str, sizes: list[str], cpu_sizes: list[str], op
                 print(f"  fast {row['size']} {device}: {row['seconds']:.2f} s, MAE {row['mae_deg']:.3f}° "
                       f"(median {row['median_deg']:.3f}°, p90 {row['p90_deg']:.3f}°); stages {row['stages']}; "
                       f"preprocess {row['preprocess_split']}", flush=True)
+                if device == gpu and text in kernels:
+                    row["kernels"] = kernel_row(capture_path(folder, shape, 0), device, options, out.parent / f"kernels-{text}.txt")
             rows.append(row)
     return rows
+
+
+def kernel_row(path: Path, device: str, options: list[str], where: Path) -> dict[str, Any]:
+    """The same solve again under torch's profiler (``solve``'s ``kernels``): the seconds its device was
+    busy, its kernel launches, the solve's seconds under the profiler (slower than the row's)."""
+    try:
+        traced = solve(path, device, options, kernels=where)
+    except Exception as error:  # noqa: BLE001 -- the profile is extra: its failure leaves the row
+        return failed(f"kernels {path.name} {device}", error)
+    busy = traced["device_busy_s"]
+    print(f"  kernels {path.stem} {device}: {traced['kernel_launches']} kernels"
+          + (f", the device busy {busy:.2f} s" if busy is not None else "")
+          + f" of a {traced['seconds']:.2f} s solve under the profiler; tables in {where}", flush=True)
+    return {name: traced[name] for name in ("seconds", "device_busy_s", "kernel_launches")}
 
 
 def training_seconds(row: dict[str, Any]) -> float:
@@ -237,6 +277,9 @@ def main() -> None:
     parser.add_argument("--paper-options", nargs="*", default=[],
                         help="extra --set assignments of the paper runs (batch_pixels=4096: fewer, larger steps an epoch)")
     parser.add_argument("--profile", nargs="*", default=[], help="sizes of --sizes whose cuda solve runs under cProfile, and/or 'paper'")
+    parser.add_argument("--kernels", nargs="*", default=[],
+                        help="sizes of --sizes whose cuda solve runs again under torch's profiler: the operators and kernels that "
+                             "take the most time (kernels-SIZE.txt beside the JSON), the seconds the GPU was busy")
     parser.add_argument("--tests", action="store_true", help="first run the suite's CUDA tests (pytest -m cuda)")
     parser.add_argument("--data", type=Path, help="folder to keep the captures in (default: a temporary one)")
     parser.add_argument("--out", type=Path, default=RESULTS)
@@ -263,7 +306,8 @@ def main() -> None:
         for device in dict.fromkeys((args.device, *(("cpu",) if args.cpu_sizes else ()))):
             solve(warm, device, ["epochs=10"])
         # each section's numbers are written as soon as they are in: a run cut short keeps them
-        record["rows"] = fast_rows(folder, args.device, args.sizes, args.cpu_sizes, args.dualres_options, args.profile, args.out)
+        record["rows"] = fast_rows(folder, args.device, args.sizes, args.cpu_sizes, args.dualres_options, args.profile, args.kernels,
+                                   args.out)
         write_results(args.out, record)
         table(record["rows"])
         compiles = {"off": (False,), "on": (True,), "both": (False, True)}[args.paper_compile]
