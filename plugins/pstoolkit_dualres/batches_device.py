@@ -90,8 +90,9 @@ def draw_there(tiles: TilesThere, shift: Tensor, rank: Tensor, tiles_across: int
     batch_of_rank = _starts(size) // batch_pixels
     # a tile larger than batch_pixels skips batch numbers: number the batches densely, in the pixels'
     # order by batch (the same order for either numbering)
-    by_pixel = torch.argsort(batch_of_rank[tile_rank], stable=True)
-    numbers = batch_of_rank[tile_rank][by_pixel]
+    numbers = batch_of_rank[tile_rank]
+    by_pixel = torch.argsort(numbers, stable=True)
+    numbers = numbers[by_pixel]
     zero = torch.zeros(1, dtype=torch.int64, device=device)
     sorted_batch = torch.cumsum(torch.cat([zero, (numbers[1:] != numbers[:-1]).to(torch.int64)]), 0)
     pixel_batch = torch.empty_like(sorted_batch)
@@ -103,14 +104,14 @@ def draw_there(tiles: TilesThere, shift: Tensor, rank: Tensor, tiles_across: int
     # the batches' numbers are below this, whatever the draw
     bound = p // batch_pixels + 1
     own_count = _counts(sorted_batch, bound)
+    own_start = _starts(own_count)
     event_count = _counts(event_batch[by_event], bound)
     pair_count = _counts(pair_batch[by_pair], bound)
     samples_sum = torch.cat([zero, torch.cumsum(tiles.sample_count[by_pixel], 0)])
-    own_end = torch.cumsum(own_count, 0)
-    sample_count = samples_sum[own_end] - samples_sum[own_end - own_count]
+    sample_count = samples_sum[own_start + own_count] - samples_sum[own_start]
     # each pixel's place among its batch's own pixels
     own_rank = torch.empty_like(arange)
-    own_rank[by_pixel] = arange - _starts(own_count)[sorted_batch]
+    own_rank[by_pixel] = arange - own_start[sorted_batch]
     # the footprints' pixels outside their pair's batch, unique and ascending within each batch
     taps = tiles.event_taps[by_event]
     tap_batch = event_batch[by_event][:, None].expand_as(taps)
@@ -134,7 +135,7 @@ def draw_there(tiles: TilesThere, shift: Tensor, rank: Tensor, tiles_across: int
     pixels[pixel_start[extra_batch] + extra_place] = extra_pixel
     # frame rows frame-major within each batch: frame·P + pixel for each frame, then the next
     own_of = own_count[sorted_batch]
-    row_start = frames * _starts(own_count)[sorted_batch] + own_rank[by_pixel]
+    row_start = frames * own_start[sorted_batch] + own_rank[by_pixel]
     frame_rows = torch.empty(frames * p, dtype=torch.int64, device=device)
     for k in range(frames):
         frame_rows[row_start + k * own_of] = k * p + by_pixel
