@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import copy
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Generator, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
@@ -53,7 +53,7 @@ from pstoolkit_dualres.problem import Problem, build_problem, start_values
 from pstoolkit_dualres.reflectance import FitModel, reflects_indirect
 from pstoolkit_dualres.thresholds import REFIT_EVERY, THRESHOLD_FITS, ThresholdGains, fit_thresholds
 from pstoolkit_dualres.tiling import plan
-from pstoolkit_dualres.train import StageConfig, train
+from pstoolkit_dualres.train import StageConfig, Training
 from pstoolkit_dualres.unlit import fill_unlit, unlit_pixels
 
 # The event gate's bound is at least this share of the smaller contrast threshold: the residual an
@@ -68,8 +68,32 @@ BOUNCE_REFLECTANCE = 0.6
 # ``interreflection=auto`` keeps the bounce when the fit with it leaves at most this share more of the
 # frames and events as measured unexplained (``interreflection.unexplained``) than the fit without.
 BOUNCE_TOLERANCE = 0.1
+# ``interreflection=auto`` (with ``bounce_early``) compares its two fits at these shares of the epochs after
+# the first re-detection too, and goes on with one alone where the ratio of what they leave unexplained is
+# further than the margin from 1 + BOUNCE_TOLERANCE; else at the end. The margins hold every choice of the
+# realism grid's 48 captures the bounce is tried on to the one at the end: from a third of the epochs on,
+# the ratio rose by up to 0.11 (path-traced `relief`, whose bounce is wrong) and fell by up to 0.05; from
+# two thirds on, it moved by 0.03 at most (``benchmarks/NOTES.md``).
+BOUNCE_CHECKS = ((1 / 3, 0.12), (2 / 3, 0.03))
 # A bounce below this share of the measured frames is not worth a second fit (a convex object, a metal).
 MIN_BOUNCE_SHARE = 0.002
+
+
+# A fit's records (one per stage after its first) and the history of its training.
+Fitted = tuple[list[dict[str, Any]], list[dict[str, float]]]
+# What a paused fit is sent to go on: the progress bar's place of its next epochs, whether to pause again
+# (None starts a new one).
+GoOn = tuple[Callable[[float], float], bool] | None
+
+
+def _to_end(fit: Generator[None, GoOn, Fitted], place: Callable[[float], float] | None = None) -> Fitted:
+    """``fit`` (a ``DualRes.solve_whole`` fitting, new or paused) run to its end without a pause, its
+    progress bar at ``place`` from where it paused; what it returns."""
+    try:
+        fit.send(None if place is None else (place, False))
+    except StopIteration as end:
+        return end.value
+    raise RuntimeError("a fit told to go on to its end paused")
 
 
 @dataclass
@@ -227,6 +251,10 @@ class DualRes(Solver):
                "events at each re-detection: auto (from the first re-detection on the fit goes on with it and without, and "
                f"keeps it unless it leaves more than {100 * BOUNCE_TOLERANCE:g} % more of the measurements unexplained), on "
                "or off", choices=BOUNCE_MODES),
+        Option("bounce_early", bool, True,
+               "interreflection=auto: compare the fits with and without the bounce at a third and at two thirds of the "
+               "epochs after the first re-detection too, and go on with one alone once the comparison is clear (the "
+               "ratio of what they leave unexplained 0.12, then 0.03, from the tolerance); false: both fit to the end"),
         Option("bounce_reflectance", float, BOUNCE_REFLECTANCE,
                "γ of interreflection: the reflectance of the capture's bright albedo (the fitted albedo is relative to it; "
                "about a bright plastic's or paint's diffuse reflectance)", minimum=0.01, maximum=2.0),
@@ -291,6 +319,9 @@ class DualRes(Solver):
         if options["interreflection"] == "off" and options["bounce_reflectance"] != BOUNCE_REFLECTANCE:
             raise UserError(f"dualres: option bounce_reflectance={options['bounce_reflectance']:g} cannot apply with "
                             "interreflection=off: it is the reflectance of the bounce that option takes out")
+        if options["interreflection"] != "auto" and not options["bounce_early"]:
+            raise UserError(f"dualres: option bounce_early=false cannot apply with interreflection={options['interreflection']}: "
+                            "it is when auto compares its fits with and without the bounce")
         preset = resolve(options)
         if options["compile"] and preset.batch_pixels == 0:
             raise UserError("dualres: option compile=true cannot apply with full-batch steps (batch_pixels=0, as in "
@@ -353,6 +384,19 @@ class DualRes(Solver):
         sigma = threshold_sigma(capture, options["threshold_sigma"]) if options["thresholds"] != "nominal" else 0.0
         gains: list[ThresholdGains] = []
 
+        comparing = bouncing and mode == "auto" and len(spans) > 1
+        rest_from, last_epoch = spans[1][0] if len(spans) > 1 else 0, spans[-1][1]
+        # the epochs interreflection=auto compares its two fits at, each with its margin, the last epoch last
+        checks = sorted({min(rest_from + max(1, int(round(share * (last_epoch - rest_from)))), last_epoch): margin
+                         for share, margin in (BOUNCE_CHECKS if options["bounce_early"] else ())}.items())
+        checks = [(epoch, margin) for epoch, margin in checks if epoch < last_epoch] + [(last_epoch, 0.0)]
+        # the progress bar counts the epochs of both fits after the first re-detection, as if neither stopped early
+        total = max(last_epoch + (last_epoch - rest_from if comparing else 0), 1)
+
+        def place_of(epoch: float) -> float:
+            """The share of the run's training done at ``epoch`` of a fit that trains on alone."""
+            return epoch / total
+
         def refit(epoch: int) -> None:
             if epoch > 0 and epoch % REFIT_EVERY == 0:
                 gains.append(fit_thresholds(problem, field, model, (pre.event_height, pre.event_width), sigma, pre.contrast_pos,
@@ -380,38 +424,60 @@ class DualRes(Solver):
                 clock.lap(f"bounce_{stage}")
             return record
 
-        def fit_from(stage: int, reflectance: float, bar: tuple[float, float], until: int | None = None
-                     ) -> tuple[list[dict[str, Any]], list[dict[str, float]]]:
+        def fitting(stage: int, reflectance: float, place: Callable[[float], float], pauses: tuple[int, ...] = (),
+                    until: int | None = None) -> Generator[None, GoOn, Fitted]:
             """Train ``stage`` and the ones after it up to ``until`` (default: all; ``between`` each but the
-            first), the progress bar going over ``bar`` (shares of the run); their records and history."""
+            first, at ``reflectance``), ``place(epoch)`` the share of the run's training done at an epoch for
+            the progress bar; their records and history. At each of ``pauses`` (epochs after ``stage``'s
+            first, ascending) it stops, before anything that runs between stages, and goes on when sent the
+            ``place`` of its next epochs and whether to stop at the pauses left."""
             records: list[dict[str, Any]] = []
             fitted: list[dict[str, float]] = []
-            until = len(spans) if until is None else until
-            for index in range(stage, until):
+            places = [place]
+            pausing = True
+            for index in range(stage, len(spans) if until is None else until):
                 first, last = spans[index]
                 if index > stage:
                     records.append(between(index, reflectance))
                 config = self._stage(preset, options, last - first, options["seed"] + index)
-                length = max(spans[until - 1][1] - spans[stage][0], 1)
-                done_from = bar[0] + (bar[1] - bar[0]) * (first - spans[stage][0]) / length
-                done_to = bar[0] + (bar[1] - bar[0]) * (last - spans[stage][0]) / length
 
-                def report(fraction: float, message: str, lo: float = done_from, hi: float = done_to) -> None:
-                    progress(PREPROCESS_SHARE + (1.0 - PREPROCESS_SHARE) * (lo + fraction * (hi - lo)), message)
+                def report(fraction: float, message: str, first: int = first, last: int = last) -> None:
+                    progress(PREPROCESS_SHARE + (1.0 - PREPROCESS_SHARE) * places[-1](first + fraction * (last - first)), message)
 
                 # no detection of this stage's surface is left to come
                 pre.evidence.forget()
-                fitted += train(problem, field, model, config, report,
-                                before_epoch=(lambda epoch, first=first: refit(first + epoch)) if sigma > 0 else None)
+                training = Training(problem, field, model, config, report,
+                                    before_epoch=(lambda epoch, first=first: refit(first + epoch)) if sigma > 0 else None)
+                try:
+                    for pause in pauses:
+                        if pausing and first < pause <= last:
+                            training.run(pause - first)
+                            clock.lap(f"train_{index}")
+                            sent, pausing = yield
+                            places.append(sent)
+                    training.run()
+                finally:
+                    training.close()
+                fitted += training.history
                 clock.lap(f"train_{index}")
             return records, fitted
 
-        def with_or_without_bounce(bar: tuple[float, float]) -> tuple[list[dict[str, Any]], list[dict[str, float]], dict[str, Any]]:
-            """From stage 1 on, the fit with a bounce of reflectance γ and the fit without, each over
-            half of ``bar``; the one kept (module docstring) is left in place. Its records and history,
-            and what the choice saw."""
+        def segment(lo: int, hi: int, done: float, to: float) -> Callable[[float], float]:
+            """The progress bar's ``place`` that takes the epochs ``lo``..``hi`` from ``done`` to ``to`` (shares
+            of the training)."""
+            return lambda epoch: done + (to - done) * (epoch - lo) / max(hi - lo, 1)
+
+        def turn(bounce: bool, before: int, epoch: int) -> Callable[[float], float]:
+            """The ``place`` of the epochs ``before``..``epoch`` of the fit with or without the ``bounce``,
+            which take turns: the one with it first."""
+            done = (2 * before - rest_from + (0 if bounce else epoch - before)) / total
+            return segment(before, epoch, done, done + (epoch - before) / total)
+
+        def with_or_without_bounce() -> tuple[list[dict[str, Any]], list[dict[str, float]], dict[str, Any]]:
+            """From stage 1 on, the fit with a bounce of reflectance γ and the fit without, taken in turns to
+            each of ``checks`` and compared there until one is kept (module docstring, ``BOUNCE_CHECKS``),
+            which goes on alone to the last epoch. Its records and history, and what the choice saw."""
             nonlocal shadows
-            middle = 0.5 * (bar[0] + bar[1])
             start = FitState.take(problem, field, model, shadows, gains)
             usable_a = problem.events.usable.cpu().numpy()
             if detector.uses_surface:
@@ -424,7 +490,8 @@ class DualRes(Solver):
             if seen["bounce_frame_share"] < MIN_BOUNCE_SHARE:
                 start.restore(problem, field, model, gains)
                 shadows = start.shadows
-                records, fitted = fit_from(1, 0.0, bar)
+                # no second fit: this one spans the rest of the bar
+                records, fitted = _to_end(fitting(1, 0.0, segment(rest_from, last_epoch, place_of(rest_from), 1.0)))
                 return records, fitted, {"kept": False, **seen}
             # both fits are judged on the pairs both masks leave usable: neither gains by leaving more out
             # both lists ascend: a lookup table intersects them in order (np.intersect1d sorts them again, 1.3 s at 1024²)
@@ -432,38 +499,51 @@ class DualRes(Solver):
             in_a = np.zeros(problem.events.target.shape[0], dtype=bool)
             in_a[usable_a] = True
             compared = usable_b[in_a[usable_b]]
-            records_b, fitted_b = fit_from(1, gamma, (bar[0], middle))
-            bounced = FitState.take(problem, field, model, shadows, gains)
             weights = self._stage(preset, options, 0, options["seed"])
-            left_b = self._unexplained(problem, field, model, weights, compared)
-            clock.lap("unexplained")
-            start.restore(problem, field, model, gains)
-            shadows = start.shadows
-            records_a, fitted_a = fit_from(1, 0.0, (middle, bar[1]))
-            left_a = self._unexplained(problem, field, model, weights, compared)
-            clock.lap("unexplained")
-            chosen = {**seen, "unexplained_without": left_a, "unexplained_with": left_b}
-            if left_b <= (1.0 + BOUNCE_TOLERANCE) * left_a:
-                bounced.restore(problem, field, model, gains)
-                shadows = bounced.shadows
-                return records_b, fitted_b, {"kept": True, **chosen}
-            return records_a, fitted_a, {"kept": False, **chosen}
+            pauses = tuple(epoch for epoch, _ in checks)
+            fits = {bounce: fitting(1, gamma if bounce else 0.0, turn(bounce, rest_from, pauses[0]), pauses) for bounce in (True, False)}
+            states: dict[bool, FitState] = {False: start}
+            seen_at: list[dict[str, float]] = []
+            before = rest_from
+            for epoch, margin in checks:
+                left: dict[bool, float] = {}
+                for bounce in (True, False):
+                    if bounce in states:
+                        states[bounce].restore(problem, field, model, gains)
+                        shadows = states[bounce].shadows
+                    if epoch == pauses[0]:
+                        next(fits[bounce])
+                    else:
+                        fits[bounce].send((turn(bounce, before, epoch), True))
+                    states[bounce] = FitState.take(problem, field, model, shadows, gains)
+                    left[bounce] = self._unexplained(problem, field, model, weights, compared)
+                    clock.lap("unexplained")
+                seen_at.append({"epoch": epoch, "unexplained_with": left[True], "unexplained_without": left[False]})
+                ratio = left[True] / left[False] if left[False] > 0 else float("inf")
+                if abs(ratio - (1.0 + BOUNCE_TOLERANCE)) > margin or epoch == last_epoch:
+                    break
+                before = epoch
+            kept = left[True] <= (1.0 + BOUNCE_TOLERANCE) * left[False]
+            fits[not kept].close()
+            states[kept].restore(problem, field, model, gains)
+            shadows = states[kept].shadows
+            records, fitted = _to_end(fits[kept], segment(epoch, last_epoch, place_of(2 * epoch - rest_from), 1.0))
+            return records, fitted, {"kept": kept, **seen, "unexplained_without": left[False], "unexplained_with": left[True],
+                                     "decided_at_epoch": epoch, "checks": seen_at}
 
         with deterministic(torch.device(self.device)):
             field = build_field(preset, problem, model)
             clock.lap("field")
-            total = max(preset.epochs, 1)
-            records, fitted = fit_from(0, 0.0, (0.0, spans[0][1] / total), until=1)
+            records, fitted = _to_end(fitting(0, 0.0, place_of, until=1))
             stages += records
             history += fitted
             if len(spans) > 1:
                 fixed = gamma if bouncing and mode == "on" else 0.0
                 record = between(1, fixed)
-                rest = (spans[1][0] / total, 1.0)
-                if bouncing and mode == "auto":
-                    records, fitted, record["interreflection"] = with_or_without_bounce(rest)
+                if comparing:
+                    records, fitted, record["interreflection"] = with_or_without_bounce()
                 else:
-                    records, fitted = fit_from(1, fixed, rest)
+                    records, fitted = _to_end(fitting(1, fixed, place_of))
                 stages += [record, *records]
                 history += fitted
             self.shadows = shadows

@@ -1,5 +1,5 @@
-"""The Adam loop of DualResPS over eq. 26 (``train``), in full batches or in the mini-batches of
-spatial tiles the paper's network trains on (``batches.epoch_batches``).
+"""The Adam loop of DualResPS over eq. 26 (``train``; ``Training`` to stop it and go on), in full
+batches or in the mini-batches of spatial tiles the paper's network trains on (``batches.epoch_batches``).
 
 An epoch with ``batch_pixels`` 0 is one full-batch step on all pixels with ``event_batch`` event
 pairs drawn at random (0 = all). Otherwise it is a pass over all pixels in mini-batches of about
@@ -63,10 +63,13 @@ def _event_sample(problem: Problem, config: StageConfig, generator: torch.Genera
     return usable
 
 
-def train(problem: Problem, field: nn.Module, model: FitModel, config: StageConfig, progress: Progress,
-          warm_start: bool = False, before_epoch: Callable[[int], None] | None = None) -> list[dict[str, float]]:
-    """Adam over ``config.epochs`` epochs on eq. 26, the learning rates decaying exponentially to
-    ``LR_DECAY`` of their first.
+class Training:
+    """One stage of Adam on eq. 26 in progress, the learning rates decaying exponentially to ``LR_DECAY``
+    of their first over ``config.epochs``: ``run`` goes on to an epoch and may stop before the last, so
+    that the solver can set a fit aside, fit something else and come back to it (``interreflection=auto``
+    compares two fits early). Its state (the draws' generator, Adam's moments, the schedule, the graphs
+    of its steps) is its own; what it fits is ``problem``, ``field`` and ``model`` as they are when it
+    runs, which whoever interleaves two trainings puts back (``solver.FitState``).
 
     Parameters
     ----------
@@ -82,42 +85,69 @@ def train(problem: Problem, field: nn.Module, model: FitModel, config: StageConf
         Called with each epoch's index (within the stage) before its batches: what the solver
         re-estimates from the fit as it goes (``thresholds``).
 
-    Returns
-    -------
-    list of dict
-        For every PROGRESS_EVERY-th epoch and the last: "epoch", "steps" and the loss and its parts,
+    Attributes
+    ----------
+    epoch : int
+        The epochs run so far.
+    history : list of dict
+        For every PROGRESS_EVERY-th epoch and the last run: "epoch", "steps" and the loss and its parts,
         means over the epoch's batches.
     """
-    generator = torch.Generator(device="cpu").manual_seed(config.seed)
-    tiling = Tiling.of(problem) if config.batch_pixels > 0 else None
-    stepped = graphed.wanted(problem, config.compiled, tiling is not None)
-    optimizer = _adam(field, model, config, problem.device if stepped else None)
-    steps = GraphedSteps(problem, tiling, field, model, config, optimizer, use_graphs=problem.device.type == "cuda") \
-        if stepped else None
-    scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, LR_DECAY ** (1.0 / max(config.epochs, 1)))
-    history: list[dict[str, float]] = []
-    warmup = max(config.tv_fraction * config.epochs, 1e-9)
-    for epoch in range(config.epochs):
-        if before_epoch is not None:
-            before_epoch(epoch)
-        tv_share = 0.0 if warm_start else max(0.0, 1.0 - epoch / warmup)
-        if steps is not None and tiling is None:
-            totals, count = steps.full_epoch(_event_sample(problem, config, generator), tv_share), 1
-        elif steps is not None:
-            padded_epoch = epoch_batches(problem, tiling, config.batch_pixels, config.tile, generator)
-            totals, count = steps.epoch(padded_epoch, tv_share), len(padded_epoch)
-        else:
-            batches = [full_batch(problem, _event_sample(problem, config, generator))] if tiling is None else \
-                epoch_batches(problem, tiling, config.batch_pixels, config.tile, generator).batches()
-            totals, count = _steps(problem, field, model, config, optimizer, batches, tv_share), len(batches)
-        scheduler.step()
-        if epoch % PROGRESS_EVERY == 0 or epoch == config.epochs - 1:
-            means = {name: float(value) for name, value in totals.items()}
-            history.append({"epoch": float(epoch), "steps": float(count), **means})
-            progress((epoch + 1) / config.epochs, f"epoch {epoch + 1}/{config.epochs} loss {means['loss']:.4g}")
-    if steps is not None:
-        steps.release()
-    return history
+
+    def __init__(self, problem: Problem, field: nn.Module, model: FitModel, config: StageConfig, progress: Progress,
+                 warm_start: bool = False, before_epoch: Callable[[int], None] | None = None) -> None:
+        self.problem, self.field, self.model, self.config, self.progress = problem, field, model, config, progress
+        self.warm_start, self.before_epoch = warm_start, before_epoch
+        self.generator = torch.Generator(device="cpu").manual_seed(config.seed)
+        self.tiling = Tiling.of(problem) if config.batch_pixels > 0 else None
+        stepped = graphed.wanted(problem, config.compiled, self.tiling is not None)
+        self.optimizer = _adam(field, model, config, problem.device if stepped else None)
+        self.steps = GraphedSteps(problem, self.tiling, field, model, config, self.optimizer,
+                                  use_graphs=problem.device.type == "cuda") if stepped else None
+        self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimizer, LR_DECAY ** (1.0 / max(config.epochs, 1)))
+        self.epoch = 0
+        self.history: list[dict[str, float]] = []
+
+    def run(self, until: int | None = None) -> None:
+        """The epochs from ``epoch`` up to ``until`` (default and at most: ``config.epochs``)."""
+        config, problem, generator = self.config, self.problem, self.generator
+        until = config.epochs if until is None else min(until, config.epochs)
+        warmup = max(config.tv_fraction * config.epochs, 1e-9)
+        for epoch in range(self.epoch, until):
+            if self.before_epoch is not None:
+                self.before_epoch(epoch)
+            tv_share = 0.0 if self.warm_start else max(0.0, 1.0 - epoch / warmup)
+            if self.steps is not None and self.tiling is None:
+                totals, count = self.steps.full_epoch(_event_sample(problem, config, generator), tv_share), 1
+            elif self.steps is not None:
+                padded_epoch = epoch_batches(problem, self.tiling, config.batch_pixels, config.tile, generator)
+                totals, count = self.steps.epoch(padded_epoch, tv_share), len(padded_epoch)
+            else:
+                batches = [full_batch(problem, _event_sample(problem, config, generator))] if self.tiling is None else \
+                    epoch_batches(problem, self.tiling, config.batch_pixels, config.tile, generator).batches()
+                totals, count = _steps(problem, self.field, self.model, config, self.optimizer, batches, tv_share), len(batches)
+            self.scheduler.step()
+            self.epoch = epoch + 1
+            if epoch % PROGRESS_EVERY == 0 or epoch == config.epochs - 1:
+                means = {name: float(value) for name, value in totals.items()}
+                self.history.append({"epoch": float(epoch), "steps": float(count), **means})
+                self.progress((epoch + 1) / config.epochs, f"epoch {epoch + 1}/{config.epochs} loss {means['loss']:.4g}")
+
+    def close(self) -> None:
+        """Free the graphs of its steps (the stage is over, or given up)."""
+        if self.steps is not None:
+            self.steps.release()
+
+
+def train(problem: Problem, field: nn.Module, model: FitModel, config: StageConfig, progress: Progress,
+          warm_start: bool = False, before_epoch: Callable[[int], None] | None = None) -> list[dict[str, float]]:
+    """``Training`` (its parameters) run through all ``config.epochs``; its history."""
+    training = Training(problem, field, model, config, progress, warm_start, before_epoch)
+    try:
+        training.run()
+    finally:
+        training.close()
+    return training.history
 
 
 def _adam(field: nn.Module, model: FitModel, config: StageConfig, capturable_on: torch.device | None) -> torch.optim.Adam:

@@ -6,6 +6,7 @@ eagerly (``pytest -m cuda``)."""
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import functools
 import gc
@@ -31,8 +32,8 @@ from pstoolkit_dualres.preprocess import PreprocessOptions, preprocess
 from pstoolkit_dualres.presets import PRESETS
 from pstoolkit_dualres.problem import Problem, build_problem
 from pstoolkit_dualres.reflectance import FitModel
-from pstoolkit_dualres.solver import build_field
-from pstoolkit_dualres.train import StageConfig, train
+from pstoolkit_dualres.solver import build_field, deterministic
+from pstoolkit_dualres.train import StageConfig, Training, train
 
 STAGE = StageConfig(epochs=3, lr=1e-3, material_lr=1e-3, frame_weight=1.0, event_weight=0.05, event_huber=0.1,
                     indirect_sparsity=0.01, tv_weight=0.02, tv_fraction=0.5, event_batch=0, batch_pixels=200, tile=8, seed=0)
@@ -227,6 +228,51 @@ def test_compiled_steps_train_as_the_plain_ones(blobs: Problem, monkeypatch: pyt
     for a, b in zip(plain, compiled_run):
         assert b["loss"] == pytest.approx(a["loss"], rel=1e-4)
     assert float(_angle_deg(normal_a, normal_b).max()) < 1e-4
+
+
+@pytest.mark.parametrize(("device", "stepped"), [("cpu", False), ("cpu", True), pytest.param("cuda", True, marks=pytest.mark.cuda)])
+def test_a_stage_set_aside_and_taken_up_again_trains_as_one_never_stopped(blobs_48: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                         device: str, stepped: bool) -> None:
+    """A ``Training`` stopped after two epochs, another trained on the same field in between (with its own
+    draws, Adam and, on a GPU, graphs) and the parameters put back, then run to its end: the normals and
+    history of a stage never stopped (bit for bit on the CPU; on a GPU, whose scatter-adds are not
+    deterministic, to float rounding), plain and padded steps."""
+    problem = _problem(blobs_48, device)
+    if device == "cpu":
+        monkeypatch.setattr(graphed, "wanted", lambda problem, compiled, mini_batches: stepped)
+    config = dataclasses.replace(STAGE, epochs=5)
+    # deterministic scatter-adds on the CPU, as the solver runs (``solver.deterministic``)
+    with deterministic(torch.device(device)):
+        field, model = _fit(problem)
+        history = train(problem, field, model, config, no_progress)
+        with torch.no_grad():
+            expected = field()[0].cpu()
+        field, model = _fit(problem)
+        training = Training(problem, field, model, config, no_progress)
+        training.run(2)
+        assert training.epoch == 2 and len(training.history) == 1
+        kept = (copy.deepcopy(field.state_dict()), [p.detach().clone() for p in model.parameters()])
+        other = Training(problem, field, model, dataclasses.replace(config, seed=3, lr=1e-2), no_progress)
+        other.run()
+        other.close()
+        with torch.no_grad():
+            assert float(_angle_deg(field()[0].cpu(), expected).max()) > 0.1  # the other fit moved the surface
+        field.load_state_dict(kept[0])
+        with torch.no_grad():
+            for parameter, value in zip(model.parameters(), kept[1]):
+                parameter.copy_(value)
+        training.run()
+        training.close()
+        assert training.epoch == config.epochs
+        with torch.no_grad():
+            normal = field()[0].cpu()
+    assert [h["epoch"] for h in training.history] == [h["epoch"] for h in history]
+    if device == "cpu":
+        assert torch.equal(normal, expected) and training.history == history
+    else:
+        assert float(_angle_deg(normal, expected).max()) < 1e-3
+        for a, b in zip(history, training.history):
+            assert b["loss"] == pytest.approx(a["loss"], rel=1e-4)
 
 
 def test_a_capture_that_fails_is_tried_again_then_left_eager(blobs: Problem, monkeypatch: pytest.MonkeyPatch) -> None:

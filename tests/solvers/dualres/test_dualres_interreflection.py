@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -19,6 +20,7 @@ from pstoolkit.sim.config import SimulationConfig
 from pstoolkit.sim.simulator import simulate
 from pstoolkit.solve.api import solve_capture
 from pstoolkit.surface import integrate_normals
+from pstoolkit_dualres import solver
 from pstoolkit_dualres.bounce import MIN_NZ, one_bounce
 from pstoolkit_dualres.interreflection import remove_bounce
 from pstoolkit_dualres.preprocess import PreprocessOptions, preprocess
@@ -184,6 +186,36 @@ def test_a_bounce_the_measurements_do_not_have_is_tried_and_left_out(hollows_48:
     assert more["bounce_frame_share"] > 1.5 * record["bounce_frame_share"]
 
 
+def test_the_fit_chosen_early_goes_on_as_if_the_other_had_never_run(hollows_48: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``bounce_early``: the two fits take turns to each of ``BOUNCE_CHECKS`` and are compared there; once
+    the comparison clears its margin the one kept goes on alone, to the normals it ends with when both go
+    to the end (bit for bit; the other fit ran in between). At 30 epochs (the first re-detection at 12) the
+    bounce is kept when the fits are compared at 21 or 30 and left out at 16, then exactly as with the
+    bounce off; a check whose margin is not cleared goes on to the next. The checks are recorded, and
+    the progress bar rises to the end."""
+    def choice(solution: object) -> dict[str, Any]:
+        return next(stage for stage in solution.diagnostics["stages"] if "interreflection" in stage)["interreflection"]
+
+    reported: list[float] = []
+    late = solve_capture(hollows_48, "dualres", epochs=30, bounce_early=False)
+    monkeypatch.setattr(solver, "BOUNCE_CHECKS", ((0.2, 1.0), (0.5, 0.0)))
+    early = solve_capture(hollows_48, "dualres", epochs=30, progress=lambda fraction, message: reported.append(fraction))
+    monkeypatch.setattr(solver, "BOUNCE_CHECKS", ((0.2, 0.0),))
+    earlier = solve_capture(hollows_48, "dualres", epochs=30)
+    off = solve_capture(hollows_48, "dualres", epochs=30, interreflection="off")
+    assert (choice(late)["kept"], choice(late)["decided_at_epoch"], len(choice(late)["checks"])) == (True, 30, 1)
+    assert (choice(early)["kept"], choice(early)["decided_at_epoch"]) == (True, 21)
+    assert [check["epoch"] for check in choice(early)["checks"]] == [16, 21]
+    assert choice(early)["unexplained_with"] == choice(early)["checks"][-1]["unexplained_with"]
+    assert (choice(earlier)["kept"], choice(earlier)["decided_at_epoch"]) == (False, 16)
+    check = choice(earlier)["checks"][0]
+    assert check["unexplained_with"] > 1.1 * check["unexplained_without"]
+    np.testing.assert_array_equal(early.normal, late.normal)
+    np.testing.assert_array_equal(earlier.normal, off.normal)
+    assert not np.array_equal(late.normal, off.normal)
+    assert reported == sorted(reported) and reported[-1] == pytest.approx(1.0) and sum(f > 0.5 for f in reported) >= 2
+
+
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
 def test_the_sum_over_the_cells_on_a_device_is_the_compiled_kernels(device: str) -> None:
     """``bounce_device._sum_there`` against ``bounce._bounce`` on rough cells with holes and a wall (pairs
@@ -285,3 +317,6 @@ def test_bad_interreflection_options_are_refused(sphere_48: Path) -> None:
         solve_capture(sphere_48, "dualres", epochs=2, bounce_reflectance=0.0)
     with pytest.raises(UserError, match="bounce_reflectance=0.8 cannot apply with interreflection=off"):
         solve_capture(sphere_48, "dualres", epochs=2, interreflection="off", bounce_reflectance=0.8)
+    with pytest.raises(UserError, match=r"^dualres: option bounce_early=false cannot apply with interreflection=on: it is "
+                                        "when auto compares its fits with and without the bounce$"):
+        solve_capture(sphere_48, "dualres", epochs=2, interreflection="on", bounce_early=False)
