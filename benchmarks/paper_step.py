@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from dualres_scale import capture_path
 from results_io import write_results
+from torch import nn
 from torch.utils._python_dispatch import TorchDispatchMode
 
 import psfmt
@@ -41,12 +42,13 @@ from pstoolkit._shared import devices
 from pstoolkit.optics.brdf import GGX
 from pstoolkit_dualres import losses as loss_module
 from pstoolkit_dualres.batches import Tiling, Unpacker, epoch_batches
-from pstoolkit_dualres.fields import NeuralField
 from pstoolkit_dualres.gather import gather_sum_torch
 from pstoolkit_dualres.losses import losses
 from pstoolkit_dualres.preprocess import PreprocessOptions, preprocess
+from pstoolkit_dualres.presets import PRESETS
 from pstoolkit_dualres.problem import Problem, build_problem
 from pstoolkit_dualres.reflectance import FitModel
+from pstoolkit_dualres.solver import build_field
 from pstoolkit_dualres.train import StageConfig
 
 RESULTS = Path(__file__).resolve().parent / "results" / "paper_step.json"
@@ -79,13 +81,13 @@ def milliseconds(run: Callable[[int], Any], count: int) -> float:
     return (time.perf_counter() - started) / (count - 1) * 1e3
 
 
-def setup(path: Path) -> tuple[Problem, NeuralField, FitModel, StageConfig]:
+def setup(path: Path) -> tuple[Problem, nn.Module, FitModel, StageConfig]:
     capture = psfmt.read(path)
     pre = preprocess(capture, PreprocessOptions())
     problem = build_problem(pre, capture.calibration.view_direction, device="cpu", frame_samples=0)
     torch.manual_seed(0)
     model = FitModel(GGX(), indirect=True)
-    field = NeuralField(problem.geometry.coords, model.raw_init("pixel"), model.raw_init("smooth"))
+    field = build_field(PRESETS["paper"], problem, model)
     config = StageConfig(epochs=1, lr=1e-3, material_lr=1e-3, frame_weight=1.0, event_weight=0.05, event_huber=0.1,
                          indirect_sparsity=0.05, tv_weight=0.02, tv_fraction=0.3, event_batch=0, batch_pixels=BATCH_PIXELS,
                          tile=8, seed=0)

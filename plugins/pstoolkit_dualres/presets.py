@@ -6,10 +6,10 @@ what a run does; single options override a preset's value.
   shares information between pixels far less than a network, so the events must weigh more), and a
   surface-based shadow detector run again after the first 40 % of the epochs, the fit carrying on
   under the new mask from where it is.
-- ``paper``: the paper's coordinate MLP (``fields.NeuralField``) trained from scratch for 1200 epochs
-  on the importance samples of eq. 21/23 in mini-batches of 512 pixels (8 × 8 tiles), Adam at 1e-3
-  decaying to 1e-4, λ_e = 0.05 (supplement §2.4, as LL22a trains); a surface-based detector runs again
-  after a quarter and after half of the epochs.
+- ``paper``: the paper's coordinate MLP (``fields.NeuralField``, facing the camera with the closed
+  form's median albedo at the start) trained for 1200 epochs on the importance samples of eq. 21/23 in
+  mini-batches of 512 pixels (8 × 8 tiles), Adam at 1e-3 decaying to 1e-4, λ_e = 0.05 (supplement §2.4,
+  as LL22a trains); a surface-based detector runs again after a quarter and after half of the epochs.
 
 A run records the preset it used, overrides applied (``resolve``), under ``preset`` in its
 diagnostics (``Preset.record``), which ``result.json`` carries.

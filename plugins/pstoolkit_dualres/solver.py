@@ -166,11 +166,16 @@ class Stopwatch:
 
 
 def build_field(preset: Preset, problem: Problem, model: FitModel) -> nn.Module:
-    """``pyramid`` → PyramidField from the closed-form start; ``mlp`` → the paper's NeuralField."""
+    """``pyramid`` → PyramidField from the closed-form start; ``mlp`` → the paper's NeuralField, its
+    albedo everywhere the closed form's median (per channel)."""
     geometry = problem.geometry
     smooth_init = model.raw_init("smooth").to(problem.device, problem.dtype)
     if preset.field == "mlp":
-        return NeuralField(geometry.coords, model.raw_init("pixel").to(problem.device), smooth_init).to(problem.device)
+        # albedo is in units of the capture's bright albedo: a textured object's typical pixel is darker, and
+        # a network started at the bright one turns its normals away from the light faster than its albedo
+        # comes down (path-traced textured `relief`: the normals sideways within 15 epochs)
+        typical = torch.nanmedian(geometry.init_albedo, dim=0).values[None]
+        return NeuralField(geometry.coords, model.pixel_raw_from(typical)[0], smooth_init).to(problem.device)
     return PyramidField(
         (geometry.height, geometry.width), geometry.pixels, geometry.init_normal, model.pixel_raw_from(geometry.init_albedo),
         geometry.event_shape, geometry.grid_taps, smooth_init, smoothness=preset.smoothness,
