@@ -520,18 +520,22 @@ class DualRes(Solver):
                         next(fits[bounce])
                     else:
                         fits[bounce].send((turn(bounce, before, epoch), True))
-                    states[bounce] = FitState.take(problem, field, model, shadows, gains)
                     left[bounce] = self._unexplained(problem, field, model, weights, compared)
                     clock.lap("unexplained")
+                    if bounce:
+                        states[True] = FitState.take(problem, field, model, shadows, gains)
                 seen_at.append({"epoch": epoch, "unexplained_with": left[True], "unexplained_without": left[False]})
                 ratio = left[True] / left[False] if left[False] > 0 else float("inf")
                 if abs(ratio - (1.0 + BOUNCE_TOLERANCE)) > margin or epoch == last_epoch:
                     break
+                # the fit without the bounce, in place now, is set aside only when both go on
+                states[False] = FitState.take(problem, field, model, shadows, gains)
                 before = epoch
             kept = left[True] <= (1.0 + BOUNCE_TOLERANCE) * left[False]
             fits[not kept].close()
-            states[kept].restore(problem, field, model, gains)
-            shadows = states[kept].shadows
+            if kept:
+                states[True].restore(problem, field, model, gains)
+                shadows = states[True].shadows
             records, fitted = _to_end(fits[kept], segment(epoch, last_epoch, place_of(2 * epoch - rest_from), 1.0))
             return records, fitted, {"kept": kept, **seen, "unexplained_without": left[False], "unexplained_with": left[True],
                                      "decided_at_epoch": epoch, "checks": seen_at}
