@@ -55,11 +55,12 @@ class StageConfig:
 
 def _event_sample(problem: Problem, config: StageConfig, generator: torch.Generator) -> Tensor:
     """``event_batch`` of the usable pairs at random (all of them at 0), in the pairs' order: grouped by
-    super pixel, so that a step reads the pixels' maps in memory order."""
+    super pixel, so that a step reads the pixels' maps in memory order. Drawn on ``generator``'s device,
+    the pairs' own."""
     usable = problem.events.usable
     if 0 < config.event_batch < usable.numel():
-        chosen = torch.randperm(usable.numel(), generator=generator)[: config.event_batch]
-        return usable[torch.sort(chosen).values.to(usable.device)]
+        chosen = torch.randperm(usable.numel(), generator=generator, device=generator.device)[: config.event_batch]
+        return usable[torch.sort(chosen).values]
     return usable
 
 
@@ -98,8 +99,12 @@ class Training:
                  warm_start: bool = False, before_epoch: Callable[[int], None] | None = None) -> None:
         self.problem, self.field, self.model, self.config, self.progress = problem, field, model, config, progress
         self.warm_start, self.before_epoch = warm_start, before_epoch
-        self.generator = torch.Generator(device="cpu").manual_seed(config.seed)
         self.tiling = Tiling.of(problem) if config.batch_pixels > 0 else None
+        # the mini-batches' tiles are drawn on the host (a few thousand integers an epoch); the full batch's
+        # event pairs on the problem's device: on a GPU, a copy from the host's pageable memory would wait,
+        # once an epoch, for every step queued before it
+        draws_on = torch.device("cpu") if self.tiling is not None else problem.device
+        self.generator = torch.Generator(device=draws_on).manual_seed(config.seed)
         stepped = graphed.wanted(problem, config.compiled, self.tiling is not None)
         self.optimizer = _adam(field, model, config, problem.device if stepped else None)
         self.steps = GraphedSteps(problem, self.tiling, field, model, config, self.optimizer,

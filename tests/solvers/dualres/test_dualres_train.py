@@ -6,13 +6,16 @@ inside it), and a coordinate MLP trained so on a small sphere."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
+import torch.utils._pytree as pytree
 from helpers.device_path import masked_problems
+from torch.utils._python_dispatch import TorchDispatchMode
 
 import psfmt
 from pstoolkit._shared import devices
@@ -24,6 +27,7 @@ from pstoolkit.shadows import ShadowIntervals, ShadowMask
 from pstoolkit.shadows.score import true_shadows
 from pstoolkit.sim.config import SimulationConfig
 from pstoolkit.sim.simulator import simulate
+from pstoolkit_dualres import train as train_module
 from pstoolkit_dualres.batches import Tiling, drawn_capacity, epoch_batches
 from pstoolkit_dualres.fields import NeuralField, PyramidField, collapse, decompose
 from pstoolkit_dualres.forward_model import frame_prediction_grid, superpixel_grey
@@ -31,9 +35,11 @@ from pstoolkit_dualres.frame_kernel import supports
 from pstoolkit_dualres.gather import gather_sum
 from pstoolkit_dualres.losses import CUDA_FRAME_CHUNK, FRAME_CHUNK, event_loss, frame_chunk, frame_loss, grid_frame_loss, pair_event_loss, robust_square
 from pstoolkit_dualres.preprocess import Preprocessed, PreprocessOptions, preprocess
+from pstoolkit_dualres.presets import PRESETS
 from pstoolkit_dualres.problem import Problem, build_problem
 from pstoolkit_dualres.reflectance import FitModel
-from pstoolkit_dualres.train import StageConfig, train
+from pstoolkit_dualres.solver import build_field
+from pstoolkit_dualres.train import StageConfig, Training, train
 
 STAGE = StageConfig(epochs=1, lr=1e-3, material_lr=1e-3, frame_weight=1.0, event_weight=0.05, event_huber=0.0, indirect_sparsity=0.0, tv_weight=0.02,
                     tv_fraction=0.3, event_batch=0, batch_pixels=256, tile=8, seed=0)
@@ -125,6 +131,63 @@ def test_an_epoch_drawn_on_a_device_is_the_hosts(sphere: tuple[psfmt.Capture, Pr
     steps = len(host[0])
     assert steps == 1 if batch_pixels > problem.geometry.pixels.size else steps > 1
     assert (host[0].rows["pixels"] > host[0].own).any() == (steps > 1)
+
+
+class _FromHost(TorchDispatchMode):
+    """The operations on ``device``, not the host, that take a tensor of more than one element from the
+    host: on a GPU, a copy from the host's pageable memory, which waits for every step queued before it."""
+
+    def __init__(self, device: torch.device) -> None:
+        super().__init__()
+        self.device, self.seen = device, []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):  # type: ignore[no-untyped-def]
+        out = func(*args, **(kwargs or {}))
+        tensors = [t for t in pytree.tree_leaves((args, kwargs, out)) if isinstance(t, torch.Tensor)]
+        if self.device.type != "cpu" and any(t.device.type == "cpu" and t.dim() > 0 for t in tensors) and \
+                any(t.device == self.device for t in tensors):
+            self.seen.append(func.__name__.split(".")[0])
+        return out
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+def test_a_full_batch_epoch_draws_its_event_pairs_where_they_are(blobs: tuple[psfmt.Capture, Preprocessed],
+                                                                 monkeypatch: pytest.MonkeyPatch, device: str) -> None:
+    """The ``fast`` preset's full batches take ``event_batch`` of the usable pairs an epoch: ascending
+    (grouped by super pixel), none twice, another set each epoch, the same for the same seed; drawn
+    on the pairs' device, so that on a GPU an epoch after the graphs' capture copies nothing from the
+    host (the CPU's draws are the host generator's as before: its results are unchanged)."""
+    capture, pre = blobs
+    problem = build_problem(pre, capture.calibration.view_direction, device=device, frame_samples=8)
+    usable = problem.events.usable
+    config = replace(STAGE, epochs=4, lr=5e-3, material_lr=5e-2, event_weight=8.0, event_batch=usable.numel() // 3,
+                     batch_pixels=0, tv_fraction=0.5)
+    drawn: list[torch.Tensor] = []
+    sample = train_module._event_sample
+    monkeypatch.setattr(train_module, "_event_sample", lambda *args: drawn.append(sample(*args)) or drawn[-1])
+    runs = []
+    for _ in range(2):
+        torch.manual_seed(0)
+        model = FitModel(GGX(), indirect=True).to(problem.device)
+        training = Training(problem, build_field(PRESETS["fast"], problem, model), model, config, no_progress)
+        # the graphs, where a GPU takes them, are captured at the first epoch with the TV term and without
+        training.run(until=3)
+        from_host = _FromHost(problem.device)
+        with from_host:
+            training.run()
+        training.close()
+        runs.append(from_host.seen)
+    assert len(drawn) == 8 and runs == [[], []]
+    for pairs in drawn:
+        assert pairs.device == usable.device and pairs.numel() == config.event_batch
+        assert bool((pairs[1:] > pairs[:-1]).all()) and bool(torch.isin(pairs, usable).all())
+    assert all(torch.equal(a, b) for a, b in zip(drawn[:4], drawn[4:]))
+    assert not torch.equal(drawn[0], drawn[1])
+    if device != "cpu":
+        # the check sees what it looks for: pairs drawn on the host and taken there
+        with from_host:
+            usable[torch.sort(torch.randperm(usable.numel())[:5]).values]
+        assert from_host.seen
 
 
 def test_the_mask_reaches_the_frames_and_the_events(blobs: tuple[psfmt.Capture, Preprocessed]) -> None:
