@@ -17,7 +17,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-from torch.utils._python_dispatch import TorchDispatchMode
+from helpers.stalls import ReadsBack
 
 import psfmt
 from pstoolkit._shared.progress import no_progress
@@ -350,28 +350,6 @@ def test_cuda_graphs_replay_the_steps_they_capture(blobs_48: Path, monkeypatch: 
     assert float(_angle_deg(normal_a, normal_b).mean()) < 0.05
 
 
-# Operations whose result waits for the device (a value read back, or a shape that depends on the data),
-# and host data made a tensor (``lift_fresh``: on a GPU, a copy from the host): CUDA refuses them while it
-# captures a graph.
-READS_BACK = {"_local_scalar_dense", "nonzero", "masked_select", "_unique", "_unique2", "unique_dim", "unique_consecutive",
-              "repeat_interleave", "is_nonzero", "equal", "allclose", "lift_fresh"}
-
-
-class _ReadsBack(TorchDispatchMode):
-    def __init__(self) -> None:
-        super().__init__()
-        self.seen: list[str] = []
-
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):  # type: ignore[no-untyped-def]
-        name = func.__name__.split(".")[0]
-        # a boolean index counts its true entries (a nonzero inside the indexing kernel)
-        masked = name.startswith("index") and len(args) > 1 and isinstance(args[1], (list, tuple)) and any(
-            isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in args[1])
-        if name in READS_BACK or masked:
-            self.seen.append(name)
-        return func(*args, **(kwargs or {}))
-
-
 def _as_on_a_gpu(monkeypatch: pytest.MonkeyPatch) -> None:
     """The losses through torch as on a GPU, where the CPU takes its compiled passes (``frame_kernel``,
     ``event_kernel``, ``gather``), which read numpy arrays."""
@@ -390,7 +368,7 @@ def test_a_padded_step_reads_nothing_back_from_the_device(blobs: Problem, monkey
     unpack = Unpacker(capacity, blobs.dtype, blobs.device)
     share = torch.tensor(0.5)
     _as_on_a_gpu(monkeypatch)
-    reads = _ReadsBack()
+    reads = ReadsBack()
     with reads:
         loss, _ = losses(blobs, field, model, STAGE, unpack(row), share)
         loss.backward()
@@ -413,7 +391,7 @@ def test_a_full_batch_step_reads_nothing_back_from_the_device(blobs_48: Path, mo
     config = dataclasses.replace(STAGE, event_weight=8.0, tv_weight=0.05, batch_pixels=0)
     events, share = problem.events.usable[::2], torch.tensor(0.5)
     _as_on_a_gpu(monkeypatch)
-    reads = _ReadsBack()
+    reads = ReadsBack()
     with reads:
         batch = full_batch(problem, events, problem.geometry.pixels.size)
         loss, parts = losses(problem, field, model, config, batch, share)

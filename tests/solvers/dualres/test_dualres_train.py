@@ -13,9 +13,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-import torch.utils._pytree as pytree
 from helpers.device_path import masked_problems
-from torch.utils._python_dispatch import TorchDispatchMode
+from helpers.stalls import FromHost
 
 import psfmt
 from pstoolkit._shared import devices
@@ -133,23 +132,6 @@ def test_an_epoch_drawn_on_a_device_is_the_hosts(sphere: tuple[psfmt.Capture, Pr
     assert (host[0].rows["pixels"] > host[0].own).any() == (steps > 1)
 
 
-class _FromHost(TorchDispatchMode):
-    """The operations on ``device``, not the host, that take a tensor of more than one element from the
-    host: on a GPU, a copy from the host's pageable memory, which waits for every step queued before it."""
-
-    def __init__(self, device: torch.device) -> None:
-        super().__init__()
-        self.device, self.seen = device, []
-
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):  # type: ignore[no-untyped-def]
-        out = func(*args, **(kwargs or {}))
-        tensors = [t for t in pytree.tree_leaves((args, kwargs, out)) if isinstance(t, torch.Tensor)]
-        if self.device.type != "cpu" and any(t.device.type == "cpu" and t.dim() > 0 for t in tensors) and \
-                any(t.device == self.device for t in tensors):
-            self.seen.append(func.__name__.split(".")[0])
-        return out
-
-
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
 def test_a_full_batch_epoch_draws_its_event_pairs_where_they_are(blobs: tuple[psfmt.Capture, Preprocessed],
                                                                  monkeypatch: pytest.MonkeyPatch, device: str) -> None:
@@ -172,7 +154,7 @@ def test_a_full_batch_epoch_draws_its_event_pairs_where_they_are(blobs: tuple[ps
         training = Training(problem, build_field(PRESETS["fast"], problem, model), model, config, no_progress)
         # the graphs, where a GPU takes them, are captured at the first epoch with the TV term and without
         training.run(until=3)
-        from_host = _FromHost(problem.device)
+        from_host = FromHost(problem.device)
         with from_host:
             training.run()
         training.close()
