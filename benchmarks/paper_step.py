@@ -88,9 +88,10 @@ def setup(path: Path) -> tuple[Problem, nn.Module, FitModel, StageConfig]:
     torch.manual_seed(0)
     model = FitModel(GGX(), indirect=True)
     field = build_field(PRESETS["paper"], problem, model)
-    config = StageConfig(epochs=1, lr=1e-3, material_lr=1e-3, frame_weight=1.0, event_weight=0.05, event_huber=0.1,
-                         indirect_sparsity=0.05, tv_weight=0.02, tv_fraction=0.3, event_batch=0, batch_pixels=BATCH_PIXELS,
-                         tile=8, seed=0)
+    paper = PRESETS["paper"]
+    config = StageConfig(epochs=1, lr=paper.lr, material_lr=paper.material_lr, frame_weight=1.0, event_weight=paper.event_weight,
+                         event_huber=0.1, indirect_sparsity=0.05, tv_weight=paper.tv_weight, tv_fraction=paper.tv_fraction,
+                         event_batch=0, batch_pixels=BATCH_PIXELS, tile=8, seed=0)
     return problem, field, model, config
 
 

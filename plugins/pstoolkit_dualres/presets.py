@@ -8,8 +8,10 @@ what a run does; single options override a preset's value.
   under the new mask from where it is.
 - ``paper``: the paper's coordinate MLP (``fields.NeuralField``, facing the camera with the closed
   form's median albedo at the start) trained for 1200 epochs on the importance samples of eq. 21/23 in
-  mini-batches of 512 pixels (8 × 8 tiles), Adam at 1e-3 decaying to 1e-4, λ_e = 0.05 (supplement §2.4,
-  as LL22a trains); a surface-based detector runs again after a quarter and after half of the epochs.
+  mini-batches of 512 pixels (8 × 8 tiles), Adam at 1e-3 decaying to 1e-4 (as LL22a trains), λ_e = 8 as
+  ``fast`` (the paper gives no weight: the events are what pin the specular lobe its three frames cannot,
+  main §3.2, and a weak event term leaves the network's roughness where its start takes it); a
+  surface-based detector runs again after a quarter and after half of the epochs.
 
 A run records the preset it used, overrides applied (``resolve``), under ``preset`` in its
 diagnostics (``Preset.record``), which ``result.json`` carries.
@@ -51,7 +53,7 @@ class Preset:
 PRESETS: dict[str, Preset] = {
     "fast": Preset("fast", field="pyramid", epochs=150, lr=5e-3, material_lr=5e-2, event_weight=8.0, tv_weight=0.05,
                    tv_fraction=0.3, frame_samples=8, batch_pixels=0, smoothness=3.0, detect_at=(0.4,)),
-    "paper": Preset("paper", field="mlp", epochs=1200, lr=1e-3, material_lr=1e-3, event_weight=0.05, tv_weight=0.02,
+    "paper": Preset("paper", field="mlp", epochs=1200, lr=1e-3, material_lr=1e-3, event_weight=8.0, tv_weight=0.02,
                     tv_fraction=0.3, frame_samples=0, batch_pixels=512, smoothness=0.0, detect_at=(0.25, 0.5)),
 }
 

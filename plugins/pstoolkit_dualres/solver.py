@@ -230,7 +230,7 @@ class DualRes(Solver):
         Option("lr", float, -1.0, "learning rate of the surface (−1 = the preset's: fast 5e-3, paper 1e-3)", minimum=-1.0),
         Option("material_lr", float, -1.0, "learning rate of the smooth materials (−1 = the preset's)", minimum=-1.0),
         Option("frame_weight", float, 1.0, "λ_f, weight of the frame loss (eq. 24)", minimum=0.0),
-        Option("event_weight", float, -1.0, "λ_e, weight of the event loss (eq. 25) (−1 = the preset's: fast 8, paper 0.05)", minimum=-1.0),
+        Option("event_weight", float, -1.0, "λ_e, weight of the event loss (eq. 25) (−1 = the preset's: 8)", minimum=-1.0),
         Option("event_huber", float, 0.1,
                "Huber δ of the event residual, log units: residuals beyond it pull linearly (0 = the paper's square)",
                minimum=0.0),
