@@ -80,8 +80,6 @@ class Training:
         The stage: epochs, learning rates, loss weights, batches and seed.
     progress
         ``progress(fraction, message)``, called at every PROGRESS_EVERY-th epoch and the last.
-    warm_start
-        Skips the TV warm-up (a later stage).
     before_epoch
         Called with each epoch's index (within the stage) before its batches: what the solver
         re-estimates from the fit as it goes (``thresholds``).
@@ -96,9 +94,9 @@ class Training:
     """
 
     def __init__(self, problem: Problem, field: nn.Module, model: FitModel, config: StageConfig, progress: Progress,
-                 warm_start: bool = False, before_epoch: Callable[[int], None] | None = None) -> None:
+                 before_epoch: Callable[[int], None] | None = None) -> None:
         self.problem, self.field, self.model, self.config, self.progress = problem, field, model, config, progress
-        self.warm_start, self.before_epoch = warm_start, before_epoch
+        self.before_epoch = before_epoch
         self.tiling = Tiling.of(problem) if config.batch_pixels > 0 else None
         # the mini-batches' tiles are drawn on the host (a few thousand integers an epoch); the full batch's
         # event pairs on the problem's device: on a GPU, a copy from the host's pageable memory would wait,
@@ -121,7 +119,7 @@ class Training:
         for epoch in range(self.epoch, until):
             if self.before_epoch is not None:
                 self.before_epoch(epoch)
-            tv_share = 0.0 if self.warm_start else max(0.0, 1.0 - epoch / warmup)
+            tv_share = max(0.0, 1.0 - epoch / warmup)
             if self.steps is not None and self.tiling is None:
                 totals, count = self.steps.full_epoch(_event_sample(problem, config, generator), tv_share), 1
             elif self.steps is not None:
@@ -145,9 +143,9 @@ class Training:
 
 
 def train(problem: Problem, field: nn.Module, model: FitModel, config: StageConfig, progress: Progress,
-          warm_start: bool = False, before_epoch: Callable[[int], None] | None = None) -> list[dict[str, float]]:
+          before_epoch: Callable[[int], None] | None = None) -> list[dict[str, float]]:
     """``Training`` (its parameters) run through all ``config.epochs``; its history."""
-    training = Training(problem, field, model, config, progress, warm_start, before_epoch)
+    training = Training(problem, field, model, config, progress, before_epoch)
     try:
         training.run()
     finally:
