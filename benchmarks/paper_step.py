@@ -52,7 +52,8 @@ from pstoolkit_dualres.solver import build_field
 from pstoolkit_dualres.train import StageConfig
 
 RESULTS = Path(__file__).resolve().parent / "results" / "paper_step.json"
-BATCH_PIXELS = 512
+PAPER = PRESETS["paper"]
+BATCH_PIXELS = PAPER.batch_pixels
 STEPS = 12
 # Dispatcher operations that launch no kernel: views, allocations, reads of metadata.
 NO_KERNEL = {"view", "as_strided", "t", "transpose", "slice", "expand", "reshape", "detach", "unsqueeze", "select", "permute",
@@ -87,10 +88,9 @@ def setup(path: Path) -> tuple[Problem, nn.Module, FitModel, StageConfig]:
     problem = build_problem(pre, capture.calibration.view_direction, device="cpu", frame_samples=0)
     torch.manual_seed(0)
     model = FitModel(GGX(), indirect=True)
-    field = build_field(PRESETS["paper"], problem, model)
-    paper = PRESETS["paper"]
-    config = StageConfig(epochs=1, lr=paper.lr, material_lr=paper.material_lr, frame_weight=1.0, event_weight=paper.event_weight,
-                         event_huber=0.1, indirect_sparsity=0.05, tv_weight=paper.tv_weight, tv_fraction=paper.tv_fraction,
+    field = build_field(PAPER, problem, model)
+    config = StageConfig(epochs=1, lr=PAPER.lr, material_lr=PAPER.material_lr, frame_weight=1.0, event_weight=PAPER.event_weight,
+                         event_huber=0.1, indirect_sparsity=0.05, tv_weight=PAPER.tv_weight, tv_fraction=PAPER.tv_fraction,
                          event_batch=0, batch_pixels=BATCH_PIXELS, tile=8, seed=0)
     return problem, field, model, config
 
