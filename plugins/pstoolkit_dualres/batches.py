@@ -347,53 +347,58 @@ class EpochBatches:
         frame·``capacity.own`` + pixel, sample groups likewise; padding points at row 0 of whatever
         it indexes (``Unpacker``'s masks leave it out). Every field must fit (``capacity.covers``)."""
         b, c = len(self), capacity
-        own, outside = self.own, self.rows["pixels"] - self.own
         device = self.fields["pixels"].device
+        # the batches' counts (those of the row's head, then the pixels' and frame rows') in one copy from
+        # the host: on a GPU each copy from pageable memory waits for the work queued before it
+        heads = (self.own, self.rows["pixels"] - self.own, self.rows["samples"], self.rows["events"], self.rows["tv_pairs"])
+        counts = torch.as_tensor(np.stack([*heads, self.rows["pixels"], self.rows["frame_rows"]], axis=1), device=device)
         out = torch.zeros((b, c.width), dtype=torch.int64, device=device)
-        counts = np.stack([own, outside, self.rows["samples"], self.rows["events"], self.rows["tv_pairs"]], axis=1)
-        out[:, :COUNTS] = torch.as_tensor(counts, device=device)
-        n_of = {name: _per_row(torch.as_tensor(own, device=device), self.rows[name]) for name in ("pixels", "frame_rows", "samples", "events")}
-        pixels, n = self.fields["pixels"], n_of["pixels"]
-        place = _place(self.rows["pixels"], device)
-        offset = COUNTS
-        offset = _pad_into(out, offset, c.own + c.outside, pixels, self.rows["pixels"], torch.where(place < n, place, place - n + c.own))
+        out[:, :COUNTS] = counts[:, :COUNTS]
+        own = counts[:, 0]
+        samples, events, tv, pixels, frame_rows = (_rows_of(counts[:, column], int(self.rows[name].sum())) for column, name in
+                                                   enumerate(("samples", "events", "tv_pairs", "pixels", "frame_rows"), start=2))
+        place, n = pixels.place, own[pixels.batch]
+        offset = _pad_into(out, COUNTS, c.own + c.outside, self.fields["pixels"], pixels,
+                           torch.where(place < n, place, place - n + c.own))
         # frame rows come frame-major: frame k of a batch of n own pixels at k·n + i, padded to k·own + i
-        place, n = _place(self.rows["frame_rows"], device), n_of["frame_rows"]
-        offset = _pad_into(out, offset, c.frames * c.own, self.fields["frame_rows"], self.rows["frame_rows"],
-                           place // n * c.own + place % n)
-        sample_pixel, n = self.fields["sample_pixel"], n_of["samples"]
-        group = (self.fields["sample_group"] - sample_pixel) // n * c.own + sample_pixel
+        place, n = frame_rows.place, own[frame_rows.batch]
+        offset = _pad_into(out, offset, c.frames * c.own, self.fields["frame_rows"], frame_rows, place // n * c.own + place % n)
+        sample_pixel = self.fields["sample_pixel"]
+        group = (self.fields["sample_group"] - sample_pixel) // own[samples.batch] * c.own + sample_pixel
         for values in (self.fields["samples"], sample_pixel, group):
-            offset = _pad_into(out, offset, c.samples, values, self.rows["samples"])
-        offset = _pad_into(out, offset, c.pairs, self.fields["events"], self.rows["events"])
-        taps, n = self.fields["event_taps"], n_of["events"][:, None]
-        offset = _pad_into(out, offset, c.pairs, torch.where(taps < n, taps, taps - n + c.own), self.rows["events"])
-        _pad_into(out, offset, c.tv, self.fields["tv_pairs"], self.rows["tv_pairs"])
+            offset = _pad_into(out, offset, c.samples, values, samples)
+        offset = _pad_into(out, offset, c.pairs, self.fields["events"], events)
+        taps, n = self.fields["event_taps"], own[events.batch][:, None]
+        offset = _pad_into(out, offset, c.pairs, torch.where(taps < n, taps, taps - n + c.own), events)
+        _pad_into(out, offset, c.tv, self.fields["tv_pairs"], tv)
         return out
 
 
-def _per_row(per_batch: Tensor, rows: np.ndarray) -> Tensor:
-    """``per_batch`` (B,) repeated for each of a field's rows (``rows`` (B,) of them a batch)."""
-    return torch.repeat_interleave(per_batch, torch.as_tensor(rows, device=per_batch.device), output_size=int(rows.sum()))
+@dataclass(frozen=True)
+class _Rows:
+    """A field's rows, the batches' one after the other, on the device: each row's ``batch`` (N,) and
+    its ``place`` (N,) within it."""
+
+    batch: Tensor
+    place: Tensor
 
 
-def _place(rows: np.ndarray, device: torch.device) -> Tensor:
-    """Each of a field's rows' place within its batch (``rows`` (B,) of them a batch)."""
-    starts = torch.as_tensor(_starts(rows), device=device)
-    return torch.arange(int(rows.sum()), device=device) - _per_row(starts, rows)
+def _rows_of(count: Tensor, total: int) -> _Rows:
+    """The ``_Rows`` of ``count`` (B,) rows a batch, ``total`` (their sum, known on the host: the device
+    is not read)."""
+    batch = torch.repeat_interleave(torch.arange(count.shape[0], device=count.device), count, output_size=total)
+    start = torch.cumsum(count, 0) - count
+    return _Rows(batch, torch.arange(total, device=count.device) - start[batch])
 
 
-def _pad_into(out: Tensor, offset: int, capacity: int, values: Tensor, rows: np.ndarray, place: Tensor | None = None) -> int:
-    """Write a field (``values`` (N, ...), ``rows`` (B,) of them a batch) into columns [offset, offset +
-    ``capacity``·row size) of ``out`` (B, W), each row at its ``place`` (default: its place within its
-    batch); the offset after it."""
-    device = out.device
+def _pad_into(out: Tensor, offset: int, capacity: int, values: Tensor, rows: _Rows, place: Tensor | None = None) -> int:
+    """Write a field (``values`` (N, ...) in its ``rows``) into columns [offset, offset + ``capacity``·row
+    size) of ``out`` (B, W), each row at its ``place`` (default: its place within its batch); the offset
+    after it."""
     size = int(np.prod(values.shape[1:], dtype=np.int64))
     if values.shape[0]:
-        batch = _per_row(torch.arange(len(rows), device=device), rows)
-        place = _place(rows, device) if place is None else place
         block = out[:, offset:offset + capacity * size].view(out.shape[0], capacity, size)
-        block[batch, place] = values.reshape(-1, size)
+        block[rows.batch, rows.place if place is None else place] = values.reshape(-1, size)
     return offset + capacity * size
 
 

@@ -17,7 +17,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-from helpers.stalls import ReadsBack
+from helpers.stalls import FromHost, ReadsBack
 
 import psfmt
 from pstoolkit._shared.progress import no_progress
@@ -113,6 +113,22 @@ def test_a_packed_row_unpacks_to_its_batch(blobs: Problem) -> None:
         np.testing.assert_array_equal(padded.tv_pairs[:q], batch.tv_pairs)
         # padding points at row 0 of whatever it indexes
         assert (padded.samples[s:] == 0).all() and (padded.events[e:] == 0).all() and (padded.pixels[n:co] == 0).all()
+
+
+@pytest.mark.parametrize("device", ["meta", pytest.param("cuda", marks=pytest.mark.cuda)])
+def test_an_epoch_is_packed_on_a_device_with_one_copy_from_the_host(blobs: Problem, device: str) -> None:
+    """On a GPU a copy from the host's pageable memory waits for the steps queued before it: the
+    batches' counts go over at once (the meta device stands a GPU in on the CPU: it dispatches the same
+    copies and computes nothing)."""
+    epoch = epoch_batches(blobs, Tiling.of(blobs), 200, 8, torch.Generator().manual_seed(1))
+    there = dataclasses.replace(epoch, fields={name: values.to(device) for name, values in epoch.fields.items()})
+    capacity = epoch.needs.grown(1.25)
+    from_host = FromHost(there.fields["pixels"].device)
+    with from_host:
+        packed = there.packed(capacity)
+    assert from_host.seen == ["_to_copy"] and packed.shape == (len(epoch), capacity.width) and len(epoch) > 5
+    if device == "cuda":
+        torch.testing.assert_close(packed.cpu(), epoch.packed(capacity), rtol=0, atol=0)
 
 
 def test_capacities_grow_to_the_next_power_of_two_or_three_times_one_and_an_empty_field_stays_empty() -> None:
